@@ -1,0 +1,69 @@
+"""Pinhole cameras in the OpenCV convention (x right, y down, z forward), pixel centres at +0.5."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera.
+
+    K is the 3x3 intrinsic matrix in pixels for an image of `width` x `height`, with the COLMAP convention that the
+    centre of the top-left pixel is at (0.5, 0.5). `world_to_camera` is a 4x4 rigid transform into OpenCV camera
+    coordinates. Both are float32 tensors.
+    """
+
+    K: torch.Tensor
+    world_to_camera: torch.Tensor
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        if self.K.shape != (3, 3) or self.world_to_camera.shape != (4, 4):
+            raise ValueError(f"Camera needs K [3,3] and world_to_camera [4,4], got {tuple(self.K.shape)} and "
+                             f"{tuple(self.world_to_camera.shape)}")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"Camera size must be positive, got {self.width}x{self.height}")
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def center(self) -> torch.Tensor:
+        """Camera centre in world coordinates, [3]."""
+        rotation = self.world_to_camera[:3, :3]
+        translation = self.world_to_camera[:3, 3]
+        return -rotation.T @ translation
+
+    def scaled(self, width: int, height: int) -> "Camera":
+        """The same camera for an image resized to width x height (intrinsics scaled per axis)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.clone()
+        K[0, :] *= sx
+        K[1, :] *= sy
+        return Camera(K=K, world_to_camera=self.world_to_camera, width=width, height=height)
+
+    def to(self, device: torch.device | str) -> "Camera":
+        return Camera(K=self.K.to(device), world_to_camera=self.world_to_camera.to(device),
+                      width=self.width, height=self.height)
+
+
+def intrinsics(fx: float, fy: float, cx: float, cy: float) -> torch.Tensor:
+    """A 3x3 float32 intrinsic matrix."""
+    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float32)
