@@ -1,0 +1,161 @@
+"""Rasterizer speed and memory: one JSON line per configuration (medians over repeats).
+
+    .venv/bin/python benchmarks/rasterizer.py                      # the default grid on CPU
+    .venv/bin/python benchmarks/rasterizer.py --sizes 100000 --resolutions 400 --threads 1 2
+
+Scene: N Gaussians in a ball in front of the camera, scaled so that about 32 Gaussians are composited per pixel at
+100k and 400x400 (the reference configuration of the targets). Timed separately: the compositing kernels alone
+(forward, backward) and the whole render + backward (projection, SH, binning, compositing, autograd).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import resource
+import statistics
+import time
+
+import torch
+
+from mcsplat.camera import Camera, intrinsics
+from mcsplat.render import Splats, render, set_cpu_threads
+from mcsplat.render.binning import bin_gaussians
+from mcsplat.render.launch import CompositeFunction
+from mcsplat.render.project import TILE_SIZE, project_gaussians, view_dependent_colors
+
+
+def make_scene(n: int, size: int, device: str, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    means = direction * torch.rand(n, 1, generator=g) ** (1 / 3)
+    # Scale shrinks as N grows so the per-pixel depth complexity stays comparable across sizes.
+    base = 0.007 * (100_000 / n) ** (1 / 3)
+    scales = base * torch.exp(torch.randn(n, 3, generator=g) * 0.3)
+    splats = Splats(means=means, quats=torch.randn(n, 4, generator=g), scales=scales,
+                    opacities=torch.rand(n, generator=g) * 0.6 + 0.05, sh=torch.randn(n, 16, 3, generator=g) * 0.3)
+    splats = Splats(*(t.to(device).requires_grad_() for t in (splats.means, splats.quats, splats.scales,
+                                                             splats.opacities, splats.sh)))
+    focal = size * 1.2
+    w2c = torch.eye(4)
+    w2c[2, 3] = 2.8
+    camera = Camera(K=intrinsics(focal, focal, size / 2, size / 2), world_to_camera=w2c, width=size, height=size)
+    return splats, camera.to(device)
+
+
+def sync(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.synchronize()
+
+
+def timed(fn, device: str, repeats: int) -> list[float]:
+    times = []
+    for _ in range(repeats):
+        sync(device)
+        t0 = time.perf_counter()
+        fn()
+        sync(device)
+        times.append((time.perf_counter() - t0) * 1000.0)
+    return times
+
+
+def bench(n: int, size: int, threads: int, device: str, repeats: int) -> dict:
+    set_cpu_threads(threads)
+    torch.set_num_threads(threads)
+    splats, camera = make_scene(n, size, device)
+    background = torch.zeros(3, device=device)
+
+    # Compositing alone, on fixed projected inputs.
+    with torch.no_grad():
+        proj = project_gaussians(splats.means, splats.quats, splats.scales, splats.opacities, camera)
+        colors = view_dependent_colors(splats.means, splats.sh, camera, 3)
+        tiles = (math.ceil(size / TILE_SIZE), math.ceil(size / TILE_SIZE))
+        bins = bin_gaussians(proj.tile_min, proj.tile_max, proj.depths, proj.radii, *tiles)
+    inputs = [t.detach().clone().requires_grad_() for t in (proj.means2d, proj.conics, splats.opacities, colors,
+                                                            proj.depths)]
+    grad_rgb = torch.rand(size, size, 3, device=device)
+
+    def composite_forward():
+        return CompositeFunction.apply(*inputs, background, bins, size, size)
+
+    state = {}
+
+    def forward_only():
+        state["out"] = composite_forward()
+
+    def backward_only():
+        torch.autograd.backward(state["out"][0], grad_rgb, inputs=inputs)
+
+    composite_forward()  # compile / warm up
+    fwd, bwd = [], []
+    for _ in range(repeats):
+        fwd += timed(forward_only, device, 1)
+        bwd += timed(backward_only, device, 1)
+
+    def full_step():
+        out = render(splats, camera, background, 3)
+        (out.rgb * grad_rgb).sum().backward()
+
+    full_step()
+    full = timed(full_step, device, repeats)
+
+    walked, composited = _per_pixel_counts(bins, inputs, size)
+    record = {
+        "device": device if device != "cpu" else f"cpu ({platform.processor() or platform.machine()})",
+        "gaussians": n, "image": f"{size}x{size}", "threads": threads if device == "cpu" else None,
+        "visible": int((proj.radii > 0).sum()), "tile_pairs": bins.num_pairs,
+        "walked_per_pixel": round(walked, 1), "composited_per_pixel": round(composited, 1),
+        "composite_forward_ms": round(statistics.median(fwd), 1),
+        "composite_backward_ms": round(statistics.median(bwd), 1),
+        "composite_total_ms": round(statistics.median(fwd) + statistics.median(bwd), 1),
+        "render_forward_backward_ms": round(statistics.median(full), 1),
+        "repeats": repeats,
+    }
+    if device == "cpu":
+        record["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+    else:
+        record["peak_cuda_mb"] = round(torch.cuda.max_memory_allocated() / 2 ** 20, 1)
+    return record
+
+
+def _per_pixel_counts(bins, inputs, size, samples: int = 400) -> tuple[float, float]:
+    """(walked, composited) Gaussians per pixel, averaged over sampled pixels, by the kernel's own rules."""
+    means2d, conics, opacities = (t.detach().cpu() for t in inputs[:3])
+    ranges, ids = bins.tile_ranges.cpu(), bins.gaussian_ids.cpu().long()
+    g = torch.Generator().manual_seed(1)
+    walked = composited = 0
+    for px, py in torch.randint(0, size, (samples, 2), generator=g).tolist():
+        start, end = ranges[(py // TILE_SIZE) * bins.tiles_x + px // TILE_SIZE].tolist()
+        k = ids[start:end]
+        d = means2d[k] - torch.tensor([px + 0.5, py + 0.5])
+        q = conics[k]
+        power = -0.5 * (q[:, 0] * d[:, 0] ** 2 + q[:, 2] * d[:, 1] ** 2) - q[:, 1] * d[:, 0] * d[:, 1]
+        alpha = torch.clamp(opacities[k] * torch.exp(power), max=0.99)
+        used = (power <= 0) & (alpha >= 1 / 255)
+        t_after = torch.cumprod(torch.where(used, 1 - alpha, torch.ones_like(alpha)), 0)
+        included = used & (t_after >= 1e-4)
+        stop = torch.nonzero(used & (t_after < 1e-4))
+        walked += int(stop[0]) + 1 if stop.numel() else k.numel()
+        composited += int(included.sum())
+    return walked / samples, composited / samples
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[20_000, 100_000, 300_000])
+    parser.add_argument("--resolutions", type=int, nargs="+", default=[400, 800])
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, torch.get_num_threads()])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    threads = sorted(set(args.threads)) if args.device == "cpu" else [1]
+    for size in args.resolutions:
+        for n in args.sizes:
+            for t in threads:
+                print(json.dumps(bench(n, size, t, args.device, args.repeats)), flush=True)
+
+
+if __name__ == "__main__":
+    main()

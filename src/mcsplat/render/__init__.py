@@ -1,0 +1,105 @@
+"""Differentiable Gaussian rasterizer: `render(gaussians, camera, background, sh_degree) -> RenderResult`.
+
+Projection, SH colour and binning run in torch (autograd gives their backward); alpha compositing runs in Warp
+kernels with a hand-written backward (kernels.py), on every CPU core or on CUDA, wherever the tensors are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, Sequence
+
+import torch
+
+from ..camera import Camera
+from .binning import TileBins, bin_gaussians
+from .launch import CompositeFunction, cpu_threads, ensure_warp, set_cpu_threads
+from .project import TILE_SIZE, project_gaussians, view_dependent_colors
+from .sh import degree_from_bases
+
+__all__ = ["render", "RenderResult", "Splats", "GaussiansLike", "set_cpu_threads", "cpu_threads", "ensure_warp"]
+
+
+class GaussiansLike(Protocol):
+    """What render() reads: activated parameters (GaussianModel and Splats both provide them)."""
+
+    means: torch.Tensor      # [N, 3]
+    quats: torch.Tensor      # [N, 4] (w, x, y, z), need not be normalised
+    scales: torch.Tensor     # [N, 3] activated (positive)
+    opacities: torch.Tensor  # [N] activated, in [0, 1]
+    sh: torch.Tensor         # [N, K, 3] SH coefficients, K = (degree + 1)^2
+
+
+@dataclass
+class Splats:
+    """A plain bundle of activated Gaussian parameters."""
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor
+
+
+@dataclass
+class RenderResult:
+    rgb: torch.Tensor          # [H, W, 3], composited over the background
+    alpha: torch.Tensor        # [H, W] accumulated opacity
+    depth: torch.Tensor        # [H, W] expected depth (alpha-weighted mean camera z; 0 where alpha is 0)
+    means2d: torch.Tensor      # [N, 2] screen-space means; .grad is kept after backward (for ADC)
+    radii: torch.Tensor        # [N] int32 pixel radius, 0 where culled
+    depths: torch.Tensor       # [N] camera-space z of each Gaussian
+    contributed: torch.Tensor  # [N] bool: the Gaussian was composited into at least one pixel
+    num_pairs: int             # (tile, Gaussian) intersections
+
+    @property
+    def visible(self) -> torch.Tensor:
+        """[N] bool: inside the view frustum and covering at least one tile."""
+        return self.radii > 0
+
+
+def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float] | torch.Tensor | None = None,
+           sh_degree: int | None = None, *, near: float = 0.01, far: float = 1e10, eps2d: float = 0.3,
+           opacity_aware_radius: bool = False) -> RenderResult:
+    """Render one view. `sh_degree` None uses every SH coefficient given; `background` defaults to black."""
+    means, quats, scales = gaussians.means, gaussians.quats, gaussians.scales
+    opacities, sh = gaussians.opacities, gaussians.sh
+    _check_inputs(means, quats, scales, opacities, sh)
+    dtype, device = means.dtype, means.device
+    max_degree = degree_from_bases(sh.shape[1])
+    degree = max_degree if sh_degree is None else sh_degree
+    if not 0 <= degree <= max_degree:
+        raise ValueError(f"sh_degree must be in 0..{max_degree} for these coefficients, got {sh_degree}")
+    bg = torch.zeros(3, dtype=dtype, device=device) if background is None else \
+        torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
+
+    projection = project_gaussians(means, quats, scales, opacities, camera, near=near, far=far, eps2d=eps2d,
+                                   opacity_aware_radius=opacity_aware_radius)
+    means2d = projection.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    colors = view_dependent_colors(means, sh, camera, degree)
+    tiles_x = -(-camera.width // TILE_SIZE)
+    tiles_y = -(-camera.height // TILE_SIZE)
+    bins: TileBins = bin_gaussians(projection.tile_min, projection.tile_max, projection.depths, projection.radii,
+                                   tiles_x, tiles_y)
+    rgb, alpha, depth_sum, contributed = CompositeFunction.apply(
+        means2d, projection.conics, opacities, colors, projection.depths, bg, bins, camera.width, camera.height)
+    depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))
+    return RenderResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=projection.radii,
+                        depths=projection.depths, contributed=contributed, num_pairs=bins.num_pairs)
+
+
+def _check_inputs(means, quats, scales, opacities, sh) -> None:
+    n = means.shape[0]
+    expected = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 3)),
+                "opacities": (opacities, (n,))}
+    for name, (tensor, shape) in expected.items():
+        if tuple(tensor.shape) != shape:
+            raise ValueError(f"render: {name} must have shape {list(shape)}, got {list(tensor.shape)}")
+    if sh.dim() != 3 or sh.shape[0] != n or sh.shape[2] != 3:
+        raise ValueError(f"render: sh must have shape [{n}, K, 3], got {list(sh.shape)}")
+    for name, tensor in (("quats", quats), ("scales", scales), ("opacities", opacities), ("sh", sh)):
+        if tensor.dtype != means.dtype or tensor.device != means.device:
+            raise ValueError(f"render: {name} is {tensor.dtype} on {tensor.device}, but means are {means.dtype} "
+                             f"on {means.device}; all parameters must share one dtype and device")

@@ -1,0 +1,170 @@
+"""Warp kernels for alpha compositing (forward) and its hand-written backward.
+
+One thread per pixel, pixels in tile-major order: thread t of a launch works on pixel (t % 256) of tile
+`first_tile + t // 256`, like one CUDA block per tile. A launch can cover a band of tiles, so the CPU launcher can
+run bands in parallel. Per pixel, front to back (3DGS):
+
+    alpha_i = min(0.99, o_i * exp(-0.5 d^T Q d)),  d = mean_i - pixel centre,  Q the conic
+    skip alpha_i < 1/255; stop before the transmittance would fall below 1e-4
+    C = sum_i alpha_i T_i c_i + T_final * background,   D = sum_i alpha_i T_i z_i
+
+The backward walks the same list back to front from the last contributor, recovering T_i by division, and adds
+gradients for the 2D means, conics, opacities, colours and depths. Warp's automatic differentiation is not used: it
+returns wrong gradients for this loop (dynamic range with an early exit) without any error.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import warp as wp
+
+TILE = 16
+PIXELS_PER_TILE = TILE * TILE
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.99
+TRANSMITTANCE_MIN = 1e-4
+# alpha = o exp(power) <= exp(power), so below ln(1/255) the alpha test fails for any opacity: skipping there saves
+# the exp for most of the list. The margin keeps the shortcut from deciding a case the exact test would not.
+POWER_SKIP = -5.5413 - 1e-3
+
+
+@functools.lru_cache(maxsize=None)
+def composite_kernels(dtype):
+    """(forward, backward) kernels for scalar type wp.float32 or wp.float64."""
+    vec3 = wp.types.vector(3, dtype)
+
+    @wp.kernel(module="unique")
+    def composite_forward(
+        first_tile: int, tiles_x: int, width: int, height: int,
+        tile_ranges: wp.array2d(dtype=wp.int32), gaussian_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array2d(dtype=dtype), conics: wp.array2d(dtype=dtype), opacities: wp.array(dtype=dtype),
+        colors: wp.array2d(dtype=dtype), depths: wp.array(dtype=dtype), background: wp.array(dtype=dtype),
+        out_rgb: wp.array3d(dtype=dtype), out_transmittance: wp.array2d(dtype=dtype),
+        out_depth: wp.array2d(dtype=dtype), out_last: wp.array2d(dtype=wp.int32),
+        contributed: wp.array(dtype=wp.int32),
+    ):
+        t = wp.tid()
+        tile = first_tile + t / PIXELS_PER_TILE
+        local = t % PIXELS_PER_TILE
+        px = (tile % tiles_x) * TILE + local % TILE
+        py = (tile / tiles_x) * TILE + local / TILE
+        if px >= width or py >= height:
+            return
+        pix_x = dtype(px) + dtype(0.5)
+        pix_y = dtype(py) + dtype(0.5)
+        start = tile_ranges[tile, 0]
+        end = tile_ranges[tile, 1]
+
+        transmittance = dtype(1.0)
+        rgb = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
+        depth = dtype(0.0)
+        last = int(0)
+        for k in range(start, end):
+            g = gaussian_ids[k]
+            dx = means2d[g, 0] - pix_x
+            dy = means2d[g, 1] - pix_y
+            power = dtype(-0.5) * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) - conics[g, 1] * dx * dy
+            if power > dtype(0.0) or power < dtype(POWER_SKIP):
+                continue
+            alpha = wp.min(dtype(ALPHA_MAX), opacities[g] * wp.exp(power))
+            if alpha < dtype(ALPHA_MIN):
+                continue
+            next_transmittance = transmittance * (dtype(1.0) - alpha)
+            if next_transmittance < dtype(TRANSMITTANCE_MIN):
+                break
+            weight = alpha * transmittance
+            rgb = rgb + weight * vec3(colors[g, 0], colors[g, 1], colors[g, 2])
+            depth = depth + weight * depths[g]
+            transmittance = next_transmittance
+            last = k - start + 1
+            contributed[g] = 1
+
+        for ch in range(3):
+            out_rgb[py, px, ch] = rgb[ch] + transmittance * background[ch]
+        out_transmittance[py, px] = transmittance
+        out_depth[py, px] = depth
+        out_last[py, px] = last
+
+    @wp.kernel(module="unique")
+    def composite_backward(
+        first_tile: int, tiles_x: int, width: int, height: int,
+        tile_ranges: wp.array2d(dtype=wp.int32), gaussian_ids: wp.array(dtype=wp.int32),
+        means2d: wp.array2d(dtype=dtype), conics: wp.array2d(dtype=dtype), opacities: wp.array(dtype=dtype),
+        colors: wp.array2d(dtype=dtype), depths: wp.array(dtype=dtype), background: wp.array(dtype=dtype),
+        final_transmittance: wp.array2d(dtype=dtype), last_contributor: wp.array2d(dtype=wp.int32),
+        grad_rgb: wp.array3d(dtype=dtype), grad_alpha: wp.array2d(dtype=dtype), grad_depth: wp.array2d(dtype=dtype),
+        grad_means2d: wp.array2d(dtype=dtype), grad_conics: wp.array2d(dtype=dtype),
+        grad_opacities: wp.array(dtype=dtype), grad_colors: wp.array2d(dtype=dtype),
+        grad_depths: wp.array(dtype=dtype),
+    ):
+        t = wp.tid()
+        tile = first_tile + t / PIXELS_PER_TILE
+        local = t % PIXELS_PER_TILE
+        px = (tile % tiles_x) * TILE + local % TILE
+        py = (tile / tiles_x) * TILE + local / TILE
+        if px >= width or py >= height:
+            return
+        pix_x = dtype(px) + dtype(0.5)
+        pix_y = dtype(py) + dtype(0.5)
+        start = tile_ranges[tile, 0]
+        last = last_contributor[py, px]
+
+        t_final = final_transmittance[py, px]
+        dl_drgb = vec3(grad_rgb[py, px, 0], grad_rgb[py, px, 1], grad_rgb[py, px, 2])
+        dl_ddepth = grad_depth[py, px]
+        dl_dalpha_out = grad_alpha[py, px]
+        bg = vec3(background[0], background[1], background[2])
+        bg_term = wp.dot(bg, dl_drgb)
+
+        transmittance = t_final
+        behind_rgb = vec3(dtype(0.0), dtype(0.0), dtype(0.0))  # colour composited behind the current Gaussian
+        behind_depth = dtype(0.0)
+        next_alpha = dtype(0.0)
+        next_rgb = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
+        next_depth = dtype(0.0)
+        for j in range(last - 1, -1, -1):
+            g = gaussian_ids[start + j]
+            dx = means2d[g, 0] - pix_x
+            dy = means2d[g, 1] - pix_y
+            ca = conics[g, 0]
+            cb = conics[g, 1]
+            cc = conics[g, 2]
+            power = dtype(-0.5) * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+            if power > dtype(0.0) or power < dtype(POWER_SKIP):
+                continue
+            gauss = wp.exp(power)
+            opacity = opacities[g]
+            raw_alpha = opacity * gauss
+            alpha = wp.min(dtype(ALPHA_MAX), raw_alpha)
+            if alpha < dtype(ALPHA_MIN):
+                continue
+            one_minus_alpha = dtype(1.0) - alpha
+            transmittance = transmittance / one_minus_alpha
+            weight = alpha * transmittance
+            color = vec3(colors[g, 0], colors[g, 1], colors[g, 2])
+            depth = depths[g]
+            for ch in range(3):
+                wp.atomic_add(grad_colors, g, ch, weight * dl_drgb[ch])
+            wp.atomic_add(grad_depths, g, weight * dl_ddepth)
+
+            behind_rgb = next_alpha * next_rgb + (dtype(1.0) - next_alpha) * behind_rgb
+            behind_depth = next_alpha * next_depth + (dtype(1.0) - next_alpha) * behind_depth
+            next_alpha = alpha
+            next_rgb = color
+            next_depth = depth
+
+            dl_dalpha = transmittance * (wp.dot(color - behind_rgb, dl_drgb) + (depth - behind_depth) * dl_ddepth)
+            # The background and the output alpha (1 - T_final) both depend on alpha through T_final.
+            dl_dalpha = dl_dalpha + (t_final / one_minus_alpha) * (dl_dalpha_out - bg_term)
+            if raw_alpha > dtype(ALPHA_MAX):
+                continue  # clamped: alpha no longer depends on opacity or position
+            wp.atomic_add(grad_opacities, g, gauss * dl_dalpha)
+            dl_dpower = raw_alpha * dl_dalpha
+            wp.atomic_add(grad_means2d, g, 0, -dl_dpower * (ca * dx + cb * dy))
+            wp.atomic_add(grad_means2d, g, 1, -dl_dpower * (cb * dx + cc * dy))
+            wp.atomic_add(grad_conics, g, 0, dtype(-0.5) * dl_dpower * dx * dx)
+            wp.atomic_add(grad_conics, g, 1, -dl_dpower * dx * dy)
+            wp.atomic_add(grad_conics, g, 2, dtype(-0.5) * dl_dpower * dy * dy)
+
+    return composite_forward, composite_backward

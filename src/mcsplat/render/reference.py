@@ -1,0 +1,152 @@
+"""A dense, obviously-correct pure-PyTorch renderer: the test oracle for the Warp rasterizer. Never used to train.
+
+Every pixel looks at every Gaussian (an [H*W, N] matrix), so it needs O(H W N) memory: keep scenes tiny. It follows
+the same rules as the fast path: EWA projection with the 0.3 px low-pass, 3-sigma (or opacity-aware) radius and 16x16
+tile rectangles (a Gaussian only reaches pixels of the tiles its rectangle covers), alpha = min(0.99, o G), skip
+alpha < 1/255, stop before transmittance falls below 1e-4. Gradients come from autograd alone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..camera import Camera
+from .sh import eval_sh
+
+TILE = 16
+
+
+@dataclass
+class ReferenceResult:
+    rgb: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor      # expected depth
+    means2d: torch.Tensor    # kept in the graph with retain_grad()
+    radii: torch.Tensor
+
+
+def reference_render(gaussians, camera: Camera, background=None, sh_degree: int | None = None, *,
+                     near: float = 0.01, eps2d: float = 0.3, opacity_aware_radius: bool = False) -> ReferenceResult:
+    means, quats, scales = gaussians.means, gaussians.quats, gaussians.scales
+    opacities, sh = gaussians.opacities, gaussians.sh
+    dtype = means.dtype
+    bg = torch.zeros(3, dtype=dtype) if background is None else torch.as_tensor(background, dtype=dtype).reshape(3)
+    degree = round(math.sqrt(sh.shape[1])) - 1 if sh_degree is None else sh_degree
+
+    means2d, conics, depths, radii, tile_min, tile_max = reference_project(
+        means, quats, scales, opacities, camera, near=near, eps2d=eps2d, opacity_aware_radius=opacity_aware_radius)
+    means2d.retain_grad() if means2d.requires_grad else None
+    cam_center = -camera.world_to_camera[:3, :3].T.to(dtype) @ camera.world_to_camera[:3, 3].to(dtype)
+    dirs = (means - cam_center) / torch.linalg.norm(means - cam_center, dim=-1, keepdim=True)
+    colors = torch.clamp(eval_sh(degree, sh, dirs) + 0.5, min=0.0)
+    rgb, alpha, depth_sum = reference_composite(means2d, conics, opacities, colors, depths, radii, tile_min,
+                                                tile_max, bg, camera.width, camera.height)
+    depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))
+    return ReferenceResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=radii)
+
+
+def reference_project(means, quats, scales, opacities, camera: Camera, *, near=0.01, eps2d=0.3,
+                      opacity_aware_radius=False):
+    """Per-Gaussian 2D mean, conic, depth, pixel radius and tile rectangle, written out matrix by matrix."""
+    dtype = means.dtype
+    w2c = camera.world_to_camera.to(dtype)
+    K = camera.K.to(dtype)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    W, H = camera.width, camera.height
+    out_means2d, out_conics, out_depths, out_radii, out_min, out_max = [], [], [], [], [], []
+    for i in range(means.shape[0]):
+        p = w2c[:3, :3] @ means[i] + w2c[:3, 3]
+        x, y, z = p[0], p[1], p[2]
+        q = quats[i] / torch.linalg.norm(quats[i])
+        w, qx, qy, qz = q[0], q[1], q[2], q[3]
+        rot = torch.stack([
+            torch.stack([1 - 2 * (qy ** 2 + qz ** 2), 2 * (qx * qy - w * qz), 2 * (qx * qz + w * qy)]),
+            torch.stack([2 * (qx * qy + w * qz), 1 - 2 * (qx ** 2 + qz ** 2), 2 * (qy * qz - w * qx)]),
+            torch.stack([2 * (qx * qz - w * qy), 2 * (qy * qz + w * qx), 1 - 2 * (qx ** 2 + qy ** 2)]),
+        ])
+        sigma = rot @ torch.diag(scales[i] ** 2) @ rot.T
+        visible = bool(z > near)
+        zs = z if visible else torch.ones((), dtype=dtype)
+        # View direction clamped to 1.3x the field of view for the Jacobian only.
+        tan_x, tan_y = 0.5 * W / fx, 0.5 * H / fy
+        u = torch.clamp(x / zs, -(cx / fx + 0.3 * tan_x), (W - cx) / fx + 0.3 * tan_x) * zs
+        v = torch.clamp(y / zs, -(cy / fy + 0.3 * tan_y), (H - cy) / fy + 0.3 * tan_y) * zs
+        zero = torch.zeros((), dtype=dtype)
+        J = torch.stack([torch.stack([fx / zs, zero, -fx * u / zs ** 2]),
+                         torch.stack([zero, fy / zs, -fy * v / zs ** 2])])
+        cov2d = J @ w2c[:3, :3] @ sigma @ w2c[:3, :3].T @ J.T + eps2d * torch.eye(2, dtype=dtype)
+        det = torch.linalg.det(cov2d)
+        visible = visible and bool(det > 0)
+        inv = torch.linalg.inv(cov2d) if visible else torch.eye(2, dtype=dtype)
+        mean2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy])
+
+        radius, lo, hi = 0, (0, 0), (0, 0)
+        if visible:
+            k = 3.0
+            if opacity_aware_radius:
+                o = float(opacities[i].detach())
+                k = min(3.0, math.sqrt(2.0 * math.log(255.0 * o))) if 255.0 * o > 1.0 else 0.0
+            # Same floor of 0.1 under the square root as 3DGS, so the radius matches for near-isotropic splats.
+            a, b, c = (float(v) for v in cov2d.detach()[[0, 0, 1], [0, 1, 1]])
+            lam = 0.5 * (a + c) + math.sqrt(max(0.1, 0.25 * (a - c) ** 2 + b * b))
+            radius = math.ceil(k * math.sqrt(lam))
+            mx, my = (float(v) for v in mean2d.detach())
+            tiles = (math.ceil(W / TILE), math.ceil(H / TILE))
+            lo = tuple(min(max(math.floor((m - radius) / TILE), 0), t) for m, t in zip((mx, my), tiles))
+            hi = tuple(min(max(math.floor((m + radius) / TILE) + 1, 0), t) for m, t in zip((mx, my), tiles))
+            if radius == 0 or hi[0] <= lo[0] or hi[1] <= lo[1]:
+                radius, lo, hi = 0, (0, 0), (0, 0)
+        out_means2d.append(mean2d)
+        out_conics.append(torch.stack([inv[0, 0], inv[0, 1], inv[1, 1]]))
+        out_depths.append(z)
+        out_radii.append(radius)
+        out_min.append(lo)
+        out_max.append(hi)
+    n = means.shape[0]
+    if n == 0:
+        empty = means.new_zeros(0, 2)
+        return (empty, means.new_zeros(0, 3), means.new_zeros(0), torch.zeros(0, dtype=torch.int32),
+                torch.zeros(0, 2, dtype=torch.int32), torch.zeros(0, 2, dtype=torch.int32))
+    return (torch.stack(out_means2d), torch.stack(out_conics), torch.stack(out_depths),
+            torch.tensor(out_radii, dtype=torch.int32), torch.tensor(out_min, dtype=torch.int32),
+            torch.tensor(out_max, dtype=torch.int32))
+
+
+def reference_composite(means2d, conics, opacities, colors, depths, radii, tile_min, tile_max, background,
+                        width: int, height: int):
+    """Dense front-to-back compositing -> (rgb [H,W,3], alpha [H,W], alpha-weighted depth sum [H,W])."""
+    dtype = means2d.dtype
+    ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    px, py = xs.reshape(-1), ys.reshape(-1)
+    keep = torch.nonzero(radii > 0).squeeze(1)
+    # Front to back; equal depths keep index order, as the fast path does.
+    keep = keep[torch.argsort(depths.detach()[keep], stable=True)]
+    if keep.numel() == 0:
+        rgb = background.reshape(1, 1, 3).expand(height, width, 3).clone()
+        zeros = torch.zeros(height, width, dtype=dtype)
+        return rgb + 0 * means2d.sum(), zeros, zeros.clone()
+    m, q = means2d[keep], conics[keep]
+    dx = m[None, :, 0] - (px[:, None].to(dtype) + 0.5)   # [P, N]
+    dy = m[None, :, 1] - (py[:, None].to(dtype) + 0.5)
+    power = -0.5 * (q[None, :, 0] * dx ** 2 + q[None, :, 2] * dy ** 2) - q[None, :, 1] * dx * dy
+    alpha = torch.clamp(opacities[keep][None, :] * torch.exp(power), max=0.99)
+    tx, ty = (px // TILE)[:, None], (py // TILE)[:, None]
+    in_rect = ((tx >= tile_min[keep, 0][None]) & (tx < tile_max[keep, 0][None])
+               & (ty >= tile_min[keep, 1][None]) & (ty < tile_max[keep, 1][None]))
+    used = in_rect & (power <= 0) & (alpha >= 1.0 / 255.0)
+    alpha = torch.where(used, alpha, torch.zeros_like(alpha))
+    # Early stop: a Gaussian counts only while the transmittance after it stays >= 1e-4. That test is monotone
+    # along the list, so "included" is a prefix of the used Gaussians of each pixel.
+    with torch.no_grad():
+        t_after = torch.cumprod(1.0 - alpha, dim=1)
+        included = t_after >= 1e-4
+    factors = torch.where(included, 1.0 - alpha, torch.ones_like(alpha))
+    t_before = torch.cat([torch.ones_like(factors[:, :1]), torch.cumprod(factors, dim=1)[:, :-1]], dim=1)
+    weights = torch.where(included, alpha * t_before, torch.zeros_like(alpha))
+    t_final = torch.prod(factors, dim=1)
+    rgb = weights @ colors[keep] + t_final[:, None] * background[None, :]
+    depth = weights @ depths[keep]
+    return rgb.reshape(height, width, 3), (1.0 - t_final).reshape(height, width), depth.reshape(height, width)
