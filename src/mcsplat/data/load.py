@@ -1,0 +1,60 @@
+"""load_scene: find the format of a scene folder and hand it to its loader."""
+
+from __future__ import annotations
+
+import os
+import struct
+from pathlib import Path
+from typing import Sequence
+
+from mcsplat.data import blender, colmap, llff
+from mcsplat.data.scene import NAMED_BACKGROUNDS, Scene, check_options, parse_background
+from mcsplat.errors import DataError
+
+LOOKED_FOR = ("sparse/0/ or sparse/ with cameras, images, points3D .bin/.txt (COLMAP), transforms_train.json or "
+              "transforms.json (Blender/NeRF), poses_bounds.npy (LLFF)")
+
+
+def detect_kind(root: Path) -> str:
+    """"colmap", "blender" or "llff" (in that order of priority); DataError if the folder holds none of them."""
+    if colmap.find_model(root) is not None:
+        return "colmap"
+    if blender.is_blender(root):
+        return "blender"
+    if llff.is_llff(root):
+        return "llff"
+    partial = colmap.incomplete_model(root)
+    raise DataError(f"no scene found in {root}: looked for {LOOKED_FOR}" + (f"; {partial}" if partial else ""))
+
+
+def load_scene(path: str | os.PathLike, downscale: int = 1, background: str | Sequence[float] | None = None,
+               test_every: int = 8) -> Scene:
+    """Load a COLMAP, Blender/NeRF or LLFF scene folder (auto-detected).
+
+    downscale: load images at 1/N resolution (images_N/ when the folder has it, else resized); K follows.
+    background: "white", "black" or an RGB triple in [0, 1]; default white for Blender, black otherwise. Images with
+        an alpha channel are composited on it.
+    test_every: every N-th view (sorted by name, starting with the first) is a test view; 0 = none. Blender scenes
+        with transforms_test.json (or _val) keep their own split.
+    Raises mcsplat.errors.DataError (one line: the file and what is wrong) for any problem with the data.
+    """
+    downscale, test_every = check_options(downscale, test_every)
+    root = Path(path).expanduser()
+    if not root.exists():
+        raise DataError(f"scene folder {root} does not exist")
+    if not root.is_dir():
+        raise DataError(f"{root} is not a folder; give the scene folder (the one that holds sparse/, "
+                        "transforms_*.json or poses_bounds.npy)")
+    kind = detect_kind(root)
+    rgb = parse_background(background, NAMED_BACKGROUNDS["white" if kind == "blender" else "black"])
+    loader = {"colmap": colmap.load_colmap, "blender": blender.load_blender, "llff": llff.load_llff}[kind]
+    try:
+        scene = loader(root, downscale, rgb, test_every)
+    except DataError:
+        raise
+    except (OSError, ValueError, KeyError, IndexError, TypeError, struct.error) as exc:
+        # A case the checks above did not foresee: still one line, with the cause chained for debugging.
+        reason = " ".join(str(exc).split())[:200]
+        raise DataError(f"cannot load the {kind} scene in {root}: {type(exc).__name__}: {reason}") from exc
+    scene.root = root.resolve()
+    return scene

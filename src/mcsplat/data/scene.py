@@ -1,0 +1,143 @@
+"""The loaded scene: views (camera + image) split into train and test, SfM points, normalisation radius."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import torch
+
+from mcsplat.camera import Camera
+from mcsplat.errors import MCSplatError
+
+KINDS = ("colmap", "blender", "llff")
+
+Background = tuple[float, float, float]
+NAMED_BACKGROUNDS: dict[str, Background] = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
+
+
+@dataclass
+class View:
+    """One image with the camera that took it. `image` is uint8 [H, W, 3] on the CPU; convert when used."""
+
+    camera: Camera
+    image: torch.Tensor
+    name: str
+
+    def image_float(self, device: torch.device | str = "cpu") -> torch.Tensor:
+        """The image as float32 [H, W, 3] in [0, 1] on `device` (the uint8 tensor is moved first, then converted)."""
+        return self.image.to(device, non_blocking=True).to(torch.float32).div_(255.0)
+
+    def __repr__(self) -> str:
+        return f"View(name={self.name!r}, {self.camera.width}x{self.camera.height})"
+
+
+@dataclass
+class Scene:
+    """Everything the trainer needs from a scene folder."""
+
+    train: list[View]
+    test: list[View]
+    points: torch.Tensor | None
+    point_colors: torch.Tensor | None
+    radius: float
+    background: Background
+    kind: str
+    root: Path
+    notes: list[str] = field(default_factory=list)
+    """Extra human-readable facts the loader found worth reporting (e.g. which image folder it used)."""
+
+    def summary(self) -> str:
+        """A few human lines: kind, counts, image size, points, radius."""
+        views = self.train + self.test
+        sizes = sorted({(v.camera.width, v.camera.height) for v in views})
+        if len(sizes) == 1:
+            size = f"{sizes[0][0]}x{sizes[0][1]}"
+        else:
+            size = f"{len(sizes)} sizes, from {sizes[0][0]}x{sizes[0][1]} to {sizes[-1][0]}x{sizes[-1][1]}"
+        focal = [v.camera.fx for v in views]
+        megabytes = sum(v.image.numel() for v in views) / 2**20
+        points = "none (random initialisation)" if self.points is None else f"{self.points.shape[0]:,}"
+        lines = [
+            f"scene:      {self.root} ({self.kind})",
+            f"views:      {len(self.train)} train, {len(self.test)} test",
+            f"images:     {size}, focal {min(focal):.1f}-{max(focal):.1f} px, {megabytes:.1f} MiB as uint8",
+            f"points:     {points}",
+            f"radius:     {self.radius:.4g}",
+            f"background: {_format_rgb(self.background)}",
+        ]
+        lines += [f"note:       {n}" for n in self.notes]
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return (f"Scene(kind={self.kind!r}, root={str(self.root)!r}, train={len(self.train)}, test={len(self.test)}, "
+                f"points={None if self.points is None else self.points.shape[0]}, radius={self.radius:.4g})")
+
+
+def _format_rgb(rgb: Background) -> str:
+    for name, value in NAMED_BACKGROUNDS.items():
+        if tuple(rgb) == value:
+            return name
+    return "(" + ", ".join(f"{c:.3g}" for c in rgb) + ")"
+
+
+def parse_background(background: str | Sequence[float] | None, default: Background) -> Background:
+    """`None` -> default; "white" / "black"; or three floats in [0, 1]."""
+    if background is None:
+        return default
+    if isinstance(background, str):
+        key = background.strip().lower()
+        if key in NAMED_BACKGROUNDS:
+            return NAMED_BACKGROUNDS[key]
+        parts = key.replace(",", " ").split()
+        if len(parts) != 3:
+            raise MCSplatError(f"background {background!r} is not understood: use 'white', 'black' or three numbers "
+                               "in [0, 1] such as '0.5,0.5,0.5'")
+        background = parts
+    try:
+        rgb = tuple(float(c) for c in background)
+    except (TypeError, ValueError):
+        raise MCSplatError(f"background {background!r} is not understood: use 'white', 'black' or three numbers in "
+                           "[0, 1]") from None
+    if len(rgb) != 3 or not all(0.0 <= c <= 1.0 for c in rgb):
+        raise MCSplatError(f"background {background!r} must be three numbers in [0, 1] (red, green, blue)")
+    return rgb  # type: ignore[return-value]
+
+
+def check_options(downscale: object, test_every: object) -> tuple[int, int]:
+    """Validate the integer options of load_scene; returns them as ints."""
+    if isinstance(downscale, bool) or not isinstance(downscale, int) or downscale < 1:
+        raise MCSplatError(f"downscale must be an integer >= 1 (1 = full resolution), got {downscale!r}")
+    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
+        raise MCSplatError(f"test_every must be an integer >= 0 (0 = no test views), got {test_every!r}")
+    return downscale, test_every
+
+
+def split_every(items: list, test_every: int) -> tuple[list, list]:
+    """Every `test_every`-th item (index 0, N, 2N, ...) goes to test, the rest to train (the 3DGS `llffhold`)."""
+    if test_every <= 0:
+        return list(items), []
+    train = [x for i, x in enumerate(items) if i % test_every != 0]
+    test = [x for i, x in enumerate(items) if i % test_every == 0]
+    return train, test
+
+
+def camera_radius(cameras: Sequence[Camera]) -> float:
+    """1.1 x the largest distance from a camera centre to the mean centre (3DGS `getNerfppNorm`)."""
+    if not cameras:
+        return 1.0
+    centres = torch.stack([c.center.to(torch.float64) for c in cameras])
+    distance = (centres - centres.mean(dim=0)).norm(dim=1).max().item()
+    # A single camera (or all at one spot) would give 0, which breaks every scale derived from it.
+    return 1.1 * distance if distance > 0 else 1.0
+
+
+def make_scene(train: list[View], test: list[View], points: torch.Tensor | None, colors: torch.Tensor | None,
+               background: Background, kind: str, root: Path, notes: list[str] | None = None) -> Scene:
+    assert kind in KINDS
+    if points is not None and points.shape[0] == 0:
+        points, colors = None, None
+    return Scene(train=train, test=test, points=points, point_colors=colors,
+                 radius=camera_radius([v.camera for v in train]), background=background, kind=kind,
+                 root=root, notes=list(notes or []))

@@ -1,0 +1,38 @@
+"""Shared fixtures: where the real datasets are (../shared/data next to the repository), and writable copies."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The folder of real datasets that CI clones next to the repository; the test is skipped without it."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real datasets not found at {SHARED_DATA} (clone shared/ next to the repository)")
+    return SHARED_DATA
+
+
+def writable_copy(source: Path, target: Path) -> Path:
+    """Copy a (possibly read-only) folder tree to `target` so that tests can damage the copy."""
+    shutil.copytree(source, target, copy_function=shutil.copyfile)
+    for folder, _, _ in os.walk(target):
+        os.chmod(folder, 0o755)
+    return target
+
+
+@pytest.fixture
+def copy_shared(shared_data: Path, tmp_path: Path):
+    """copy_shared("colmap_bird") -> a writable copy of shared/data/colmap_bird under tmp_path."""
+
+    def copy(relative: str) -> Path:
+        return writable_copy(shared_data / relative, tmp_path / Path(relative).name)
+
+    return copy
