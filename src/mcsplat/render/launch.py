@@ -1,8 +1,9 @@
 """Runs the compositing kernels: Warp set-up, the multi-threaded CPU launcher, and the autograd Function.
 
 On CPU one Warp launch runs on one core, so the image's tiles are cut into contiguous bands of about equal work and
-the bands are launched from a thread pool (a CPU launch releases the GIL). Each worker owns a gradient buffer, so
-backward launches never write to the same memory at once; the buffers are summed at the end. On CUDA the whole image
+the bands are launched from a thread pool (a CPU launch releases the GIL). Each worker owns a gradient buffer and a
+fixed set of bands, so backward launches never write to the same memory at once and the result does not depend on
+timing; the buffers are summed at the end in worker order. On CUDA the whole image
 is one launch and the gradients are accumulated with atomics.
 """
 
@@ -11,7 +12,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import os
-import queue
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -118,20 +118,16 @@ def _run_bands(kernel, inputs_for_worker, num_tiles: int, tile_ranges: torch.Ten
     if num_workers == 1:
         wp.launch(kernel, dim=num_tiles * PIXELS_PER_TILE, inputs=inputs_for_worker(0, 0), device="cpu")
         return
-    free_workers: queue.SimpleQueue[int] = queue.SimpleQueue()
-    for w in range(num_workers):
-        free_workers.put(w)
-
-    def run(band: tuple[int, int]) -> None:
-        worker = free_workers.get()
-        try:
-            wp.launch(kernel, dim=(band[1] - band[0]) * PIXELS_PER_TILE, inputs=inputs_for_worker(worker, band[0]),
-                      device="cpu")
-        finally:
-            free_workers.put(worker)
-
+    # Worker w launches bands w, w + W, w + 2W, ... in order: a fixed assignment, so every gradient buffer sums
+    # the same values in the same order on every run (bitwise reproducible training and resume).
     bands = _bands(tile_ranges, num_workers * BANDS_PER_THREAD)
-    for future in [_thread_pool(num_workers).submit(run, band) for band in bands]:
+
+    def run(worker: int) -> None:
+        for first, last in bands[worker::num_workers]:
+            wp.launch(kernel, dim=(last - first) * PIXELS_PER_TILE, inputs=inputs_for_worker(worker, first),
+                      device="cpu")
+
+    for future in [_thread_pool(num_workers).submit(run, w) for w in range(num_workers)]:
         future.result()
 
 
