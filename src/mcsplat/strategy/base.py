@@ -1,0 +1,46 @@
+"""The protocol the trainer drives; MCMC (the paper) and ADC (the 3DGS baseline) both implement it.
+
+Per training step the trainer calls, in this order:
+
+    loss = photometric_loss + strategy.regularization(model)
+    loss.backward()
+    strategy.step_post_backward(step, model, render_result, width, height)
+    for each optimizer: optimizer.step(); optimizer.zero_grad(set_to_none=True)
+    info = strategy.step_post_optimizer(step, model, optimizers, means_lr)
+
+Steps are 0-based. Strategies may replace the model's Parameters (through mcsplat.optim), so the trainer must read
+parameters through the model after each step rather than keep references to them.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Protocol, runtime_checkable
+
+import torch
+
+from ..gaussians import GaussianModel
+
+__all__ = ["Strategy"]
+
+
+@runtime_checkable
+class Strategy(Protocol):
+    def regularization(self, model: GaussianModel) -> torch.Tensor:
+        """A scalar added to the loss (the MCMC regularizers; zero for ADC)."""
+        ...
+
+    def step_post_backward(self, step: int, model: GaussianModel, render_result: Any, width: int,
+                           height: int) -> None:
+        """After loss.backward(), before the Adam steps (ADC gathers its screen-space gradient statistics)."""
+        ...
+
+    def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Mapping[str, torch.optim.Optimizer],
+                            means_lr: float) -> dict:
+        """After the Adam steps: densify / relocate / add noise as due; returns a small dict of counts."""
+        ...
+
+    def state_dict(self) -> dict:
+        ...
+
+    def load_state_dict(self, state: dict) -> None:
+        ...

@@ -1,0 +1,249 @@
+"""The MCMC densification of Kheradmand et al. (NeurIPS 2024): relocation, growth, SGLD position noise, regularizers.
+
+Per step, after the Adam steps (`step_post_optimizer`), in gsplat's order (since gsplat PR #431):
+
+1. if step is a refine step (0-based: refine_start < step < refine_stop and step % refine_every == 0, i.e. steps
+   600, 700, ..., 24900 with the defaults):
+   a. if there are more than cap_max Gaussians, remove the least opaque ones down to cap_max (not in the official
+      code nor in gsplat; gsplat #516 / PR #939 - an SfM init larger than the cap, or a smaller cap on resume);
+   b. relocate the dead Gaussians onto live ones (SPEC section 5);
+   c. grow by 5% up to cap_max (SPEC section 6);
+2. add the SGLD noise to the positions (SPEC section 4), on every step, with the learning rate the caller passes.
+
+How the official code (ubc-vision/3dgs-mcmc, SPEC sections 2 and 13) differs:
+- its iterations are 1-based: it relocates at iterations 600..24900 (500 < it < 25000, it % 100 == 0) *before*
+  that iteration's optimizer step, i.e. after 599 Adam updates; here (and in gsplat) the 0-based step 600 relocates
+  after its own Adam step, i.e. after 601 updates;
+- since rebuilding its Parameters drops their gradients, the official Adam update of every refine iteration that
+  relocated or added anything is skipped. Here the Adam step comes first and is never skipped;
+- its noise uses the learning rate of the current iteration, set before the step; gsplat's uses the rate after the
+  scheduler step. Here the caller chooses (`means_lr`);
+- it clamps the number of copies at 50 (gsplat: 51, the default here), and crashes when no Gaussian is alive
+  (gsplat #1027) or above 2^24 Gaussians (torch.multinomial, gsplat #338); neither happens here (SPEC section 15).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import asdict, dataclass
+from typing import Any, Mapping
+
+import torch
+
+from ..gaussians import PARAM_KEYS, GaussianModel
+from ..optim import append_rows, copy_rows, remove_rows, set_rows, zero_moments
+from .relocation import DEFAULT_MAX_COPIES, relocation_params, sample_by_weight
+
+__all__ = ["MCMCConfig", "MCMCStrategy", "inject_noise", "noise_gate", "relocate_dead", "grow", "prune_to_cap",
+           "NOISE_GATE_K", "NOISE_GATE_CENTER"]
+
+# SPEC section 4: gate(o) = sigmoid(-k (o - t)), k = 100, t = 0.005 (the code's version, not the paper's t = 0.995).
+NOISE_GATE_K = 100.0
+NOISE_GATE_CENTER = 0.005
+
+Optimizers = Mapping[str, torch.optim.Optimizer]
+
+
+@dataclass
+class MCMCConfig:
+    """The paper's defaults (SPEC sections 3-7, 11)."""
+
+    cap_max: int = 1_000_000        # the largest number of Gaussians (per scene in the official configs)
+    noise_lr: float = 5e5           # lambda_noise
+    opacity_reg: float = 0.01       # lambda_o   (mean of the activated opacities)
+    scale_reg: float = 0.01         # lambda_Sigma (mean of the activated scales)
+    refine_start: int = 500         # relocate / grow when refine_start < step < refine_stop ...
+    refine_stop: int = 25_000
+    refine_every: int = 100         # ... and step % refine_every == 0
+    grow_rate: float = 1.05         # growth factor per refine step
+    min_opacity: float = 0.005      # dead: opacity <= min_opacity
+    max_copies: int = DEFAULT_MAX_COPIES  # N clamp in Eq. 9
+
+    def __post_init__(self) -> None:
+        if int(self.cap_max) != self.cap_max or self.cap_max < 1:
+            raise ValueError(f"cap_max must be a whole number >= 1, got {self.cap_max}")
+        for name in ("noise_lr", "opacity_reg", "scale_reg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value}")
+        if self.refine_every < 1:
+            raise ValueError(f"refine_every must be >= 1, got {self.refine_every}")
+        if self.refine_start < 0 or self.refine_stop < 0:
+            raise ValueError(f"refine_start and refine_stop must be >= 0, got {self.refine_start}, {self.refine_stop}")
+        if not (math.isfinite(self.grow_rate) and self.grow_rate >= 1.0):
+            raise ValueError(f"grow_rate must be a finite number >= 1, got {self.grow_rate}")
+        if not 0.0 <= self.min_opacity < 1.0:
+            raise ValueError(f"min_opacity must be in [0, 1), got {self.min_opacity}")
+        if not 1 <= self.max_copies <= 1000:
+            raise ValueError(f"max_copies must be in [1, 1000], got {self.max_copies}")
+        self.cap_max = int(self.cap_max)
+
+
+# --------------------------------------------------------------------------------------------------- the pieces
+def noise_gate(opacities: torch.Tensor) -> torch.Tensor:
+    """sigmoid(-100 (o - 0.005)): about 0.5 at o = 0.005, 0.011 at 0.05, ~3e-22 at 0.5 (SPEC section 4)."""
+    return torch.sigmoid(-NOISE_GATE_K * (opacities - NOISE_GATE_CENTER))
+
+
+@torch.no_grad()
+def inject_noise(model: GaussianModel, factor: float, generator: torch.Generator) -> None:
+    """means += factor * gate(o) * Sigma @ eta, eta ~ N(0, I3) (SPEC section 4, Eqs. 7-8).
+
+    `factor` is lambda_noise x the current position learning rate. Sigma is the full covariance (not its square
+    root). Only the positions change, in place, bypassing the optimizer: its state is untouched.
+    """
+    n = model.num_gaussians
+    if n == 0 or factor == 0:
+        return
+    means = model.params["means"]
+    eta = torch.randn(n, 3, generator=generator, device=generator.device, dtype=means.dtype).to(means.device)
+    scale = factor * noise_gate(model.opacities)
+    noise = torch.bmm(model.covariances(), eta[:, :, None])[:, :, 0] * scale[:, None]
+    means.add_(noise)
+
+
+def _apply_eq9(model: GaussianModel, sources: torch.Tensor, min_opacity: float,
+               max_copies: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """New opacity logits and log-scales for the sampled `sources` (SPEC 5.3-5.4): N = times sampled + 1."""
+    counts = torch.bincount(sources, minlength=model.num_gaussians)[sources] + 1
+    opacities, scales = relocation_params(model.opacities.detach()[sources], model.scales.detach()[sources],
+                                          counts, n_max=max_copies, min_opacity=min_opacity)
+    logits = torch.logit(opacities.to(torch.float64)).to(opacities.dtype)
+    return logits, torch.log(scales)
+
+
+def _no_alive_warning(min_opacity: float, what: str) -> None:
+    warnings.warn(f"MCMC: every Gaussian has opacity <= {min_opacity}, so there is nothing to copy from; {what} "
+                  f"skipped (gsplat #1027)", RuntimeWarning, stacklevel=3)
+
+
+@torch.no_grad()
+def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch.Generator, *,
+                  min_opacity: float = 0.005,
+                  max_copies: int = DEFAULT_MAX_COPIES) -> tuple[torch.Tensor, torch.Tensor]:
+    """Move the dead Gaussians (opacity <= min_opacity) onto live ones (SPEC section 5).
+
+    Sources are drawn from the live Gaussians with replacement, with probability proportional to opacity. Every dead
+    slot takes its source's position, rotation and colour; the source and its copies all get the Eq. 9 opacity and
+    scale. Adam moments are zeroed at the sources only; dead slots keep theirs (paper section 3.4, official #21).
+    Returns (dead slot indices, their source indices). With nothing alive it warns and changes nothing.
+    """
+    device = model.means.device
+    empty = torch.zeros(0, dtype=torch.long, device=device)
+    opacities = model.opacities.detach()
+    dead = opacities <= min_opacity
+    num_dead = int(dead.sum())
+    if num_dead == 0:
+        return empty, empty
+    alive = torch.nonzero(~dead)[:, 0]
+    if alive.numel() == 0:
+        _no_alive_warning(min_opacity, "relocation")
+        return empty, empty
+    # All sampling happens before Eq. 9 changes anything (SPEC section 5).
+    sources = alive[sample_by_weight(opacities[alive], num_dead, generator)]
+    slots = torch.nonzero(dead)[:, 0]
+    logits, log_scales = _apply_eq9(model, sources, min_opacity, max_copies)
+    copy_rows(model, sources, slots)
+    both = torch.cat([sources, slots])
+    set_rows(model, both, {"opacity_logits": torch.cat([logits, logits]),
+                           "log_scales": torch.cat([log_scales, log_scales])})
+    zero_moments(optimizers, sources)
+    return slots, sources
+
+
+@torch.no_grad()
+def grow(model: GaussianModel, optimizers: Optimizers, generator: torch.Generator, *, cap_max: int,
+         grow_rate: float = 1.05, min_opacity: float = 0.005, max_copies: int = DEFAULT_MAX_COPIES) -> torch.Tensor:
+    """Append min(cap_max, int(grow_rate N)) - N copies of Gaussians drawn by opacity (SPEC section 6).
+
+    The sources and the appended copies (the last rows, in the order of the returned source indices) get the Eq. 9
+    opacity and scale; the copies have zero Adam moments and the sources' moments are zeroed. Note that
+    int(1.05 N) == N below N = 20: a model that small does not grow (as in the official code). Nothing is added when
+    no Gaussian is alive (with a warning) or when N >= cap_max.
+    """
+    n = model.num_gaussians
+    empty = torch.zeros(0, dtype=torch.long, device=model.means.device)
+    num_add = min(cap_max, int(grow_rate * n)) - n
+    if num_add <= 0:
+        return empty
+    opacities = model.opacities.detach()
+    if not bool((opacities > min_opacity).any()):
+        _no_alive_warning(min_opacity, "growth")
+        return empty
+    sources = sample_by_weight(opacities, num_add, generator)
+    logits, log_scales = _apply_eq9(model, sources, min_opacity, max_copies)
+    set_rows(model, sources, {"opacity_logits": logits, "log_scales": log_scales})
+    zero_moments(optimizers, sources)
+    append_rows(model, optimizers, {key: model.params[key].detach()[sources] for key in PARAM_KEYS})
+    return sources
+
+
+@torch.no_grad()
+def prune_to_cap(model: GaussianModel, optimizers: Optimizers, cap_max: int) -> int:
+    """Keep the cap_max most opaque Gaussians when there are more (gsplat #516); returns the number removed."""
+    n = model.num_gaussians
+    if n <= cap_max:
+        return 0
+    keep = torch.topk(model.opacities.detach(), cap_max, sorted=False).indices
+    remove = torch.ones(n, dtype=torch.bool, device=model.means.device)
+    remove[keep] = False
+    remove_rows(model, optimizers, remove)
+    return n - cap_max
+
+
+# ------------------------------------------------------------------------------------------------- the strategy
+class MCMCStrategy:
+    """The paper's method behind the Strategy protocol (mcsplat.strategy.base)."""
+
+    def __init__(self, config: MCMCConfig | None = None, scene_radius: float = 1.0,
+                 generator: torch.Generator | None = None) -> None:
+        if not (scene_radius > 0 and math.isfinite(scene_radius)):
+            raise ValueError(f"scene_radius must be a positive number, got {scene_radius}")
+        self.config = config or MCMCConfig()
+        self.scene_radius = scene_radius  # the noise scale comes in through the position learning rate
+        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+
+    def is_refine_step(self, step: int) -> bool:
+        c = self.config
+        return c.refine_start < step < c.refine_stop and step % c.refine_every == 0
+
+    def regularization(self, model: GaussianModel) -> torch.Tensor:
+        """opacity_reg mean(sigmoid(o)) + scale_reg mean(exp(s)) (SPEC section 3: means of activated values)."""
+        c = self.config
+        if model.num_gaussians == 0:
+            return model.means.new_zeros(())
+        return c.opacity_reg * model.opacities.mean() + c.scale_reg * model.scales.mean()
+
+    def step_post_backward(self, step: int, model: GaussianModel, render_result: Any, width: int,
+                           height: int) -> None:
+        """MCMC keeps no gradient statistics."""
+
+    def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Optimizers,
+                            means_lr: float) -> dict:
+        c = self.config
+        info: dict[str, Any] = {"relocated": 0, "added": 0, "pruned": 0}
+        if self.is_refine_step(step):
+            info["pruned"] = prune_to_cap(model, optimizers, c.cap_max)
+            opacities = model.opacities.detach()
+            if model.num_gaussians and not bool((opacities > c.min_opacity).any()):
+                warnings.warn(f"MCMC step {step}: every Gaussian has opacity <= {c.min_opacity}, so there is "
+                              f"nothing to copy from; relocation and growth skipped (gsplat #1027)", RuntimeWarning,
+                              stacklevel=2)
+            else:
+                slots, _ = relocate_dead(model, optimizers, self.generator, min_opacity=c.min_opacity,
+                                         max_copies=c.max_copies)
+                added = grow(model, optimizers, self.generator, cap_max=c.cap_max, grow_rate=c.grow_rate,
+                             min_opacity=c.min_opacity, max_copies=c.max_copies)
+                info["relocated"], info["added"] = int(slots.numel()), int(added.numel())
+        inject_noise(model, c.noise_lr * means_lr, self.generator)
+        info["num_gaussians"] = model.num_gaussians
+        return info
+
+    def state_dict(self) -> dict:
+        """MCMC keeps no state between steps besides the generator, which belongs to the caller (save it there)."""
+        return {"strategy": "mcmc", "config": asdict(self.config)}
+
+    def load_state_dict(self, state: dict) -> None:
+        if state.get("strategy") != "mcmc":
+            raise ValueError(f"this is not an MCMC strategy state (strategy={state.get('strategy')!r})")
