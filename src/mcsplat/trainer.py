@@ -9,7 +9,6 @@ One step (SPEC 2, in gsplat's order, see strategy/mcmc.py for how the official c
 from __future__ import annotations
 
 import json
-import math
 import signal
 import time
 from dataclasses import dataclass
@@ -230,6 +229,7 @@ def train(config: TrainConfig) -> dict[str, Any]:
     bar = tqdm(total=config.steps, initial=start_step, disable=config.quiet, dynamic_ncols=True, unit="step",
                mininterval=0.5)
     step = start_step
+    counts: dict[str, int] = {}
     with _StopRequest() as stop:
         while step < config.steps:
             tick = time.perf_counter()
@@ -252,6 +252,9 @@ def train(config: TrainConfig) -> dict[str, Any]:
             # The noise uses the position learning rate after this step's decay, as gsplat does (SPEC 13).
             info = strategy.step_post_optimizer(step, model, optimizers,
                                                 means_lr_at(step + 1, config.steps, config.optim, scene.radius))
+            for key, value in info.items():  # counts since the last log record (relocated, added, pruned, ...)
+                if key != "num_gaussians":
+                    counts[key] = counts.get(key, 0) + int(value)
             step += 1
             train_seconds += time.perf_counter() - tick
 
@@ -264,7 +267,8 @@ def train(config: TrainConfig) -> dict[str, Any]:
             if step % 100 == 0 or step == config.steps:
                 record = {"step": step, "loss": round(loss.item(), 6), "train_psnr": round(train_psnr, 3),
                           "num_gaussians": model.num_gaussians, "elapsed_seconds": round(train_seconds, 2)}
-                record.update({k: v for k, v in info.items() if k != "num_gaussians"})
+                record.update(counts)
+                counts = {}
             if config.eval_every and step % config.eval_every == 0 and step < config.steps:
                 result_eval = evaluate(model, scene.test, background, sh_degree, device)
                 record = (record or {"step": step, "num_gaussians": model.num_gaussians,
@@ -285,7 +289,7 @@ def train(config: TrainConfig) -> dict[str, Any]:
     bar.close()
     checkpoint(step)
 
-    final_degree = min(max(step - 1, 0) // config.sh_increase_every, config.model.sh_degree)
+    final_degree = final_sh_degree(config, step)
     evaluation = evaluate(model, scene.test, background, final_degree, device, lpips_net=config.lpips_net,
                           render_dir=run_dir / "renders" / "test" if config.save_renders else None,
                           progress=not config.quiet)

@@ -82,7 +82,7 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
     tiles_x = -(-camera.width // TILE_SIZE)
     tiles_y = -(-camera.height // TILE_SIZE)
     bins: TileBins = bin_gaussians(projection.tile_min, projection.tile_max, projection.depths, projection.radii,
-                                   tiles_x, tiles_y)
+                                   tiles_x, tiles_y, means2d=means2d, alpha_extent=projection.alpha_extent)
     rgb, alpha, depth_sum, contributed = CompositeFunction.apply(
         means2d, projection.conics, opacities, colors, projection.depths, bg, bins, camera.width, camera.height)
     depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))

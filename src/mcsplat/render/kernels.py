@@ -8,7 +8,8 @@ run bands in parallel. Per pixel, front to back (3DGS):
     skip alpha_i < 1/255; stop before the transmittance would fall below 1e-4
     C = sum_i alpha_i T_i c_i + T_final * background,   D = sum_i alpha_i T_i z_i
 
-The backward walks the same list back to front from the last contributor, recovering T_i by division, and adds
+Each pair carries a mask of the 4x4-pixel blocks of its tile the Gaussian can reach (binning.py); a pixel skips a
+pair whose block bit is clear, which only spares work. The backward walks the same list back to front from the last contributor, recovering T_i by division, and adds
 gradients for the 2D means, conics, opacities, colours and depths. Warp's automatic differentiation is not used: it
 returns wrong gradients for this loop (dynamic range with an early exit) without any error.
 """
@@ -38,6 +39,7 @@ def composite_kernels(dtype):
     def composite_forward(
         first_tile: int, tiles_x: int, width: int, height: int,
         tile_ranges: wp.array2d(dtype=wp.int32), gaussian_ids: wp.array(dtype=wp.int32),
+        pair_masks: wp.array(dtype=wp.int32),
         means2d: wp.array2d(dtype=dtype), conics: wp.array2d(dtype=dtype), opacities: wp.array(dtype=dtype),
         colors: wp.array2d(dtype=dtype), depths: wp.array(dtype=dtype), background: wp.array(dtype=dtype),
         out_rgb: wp.array3d(dtype=dtype), out_transmittance: wp.array2d(dtype=dtype),
@@ -53,6 +55,7 @@ def composite_kernels(dtype):
             return
         pix_x = dtype(px) + dtype(0.5)
         pix_y = dtype(py) + dtype(0.5)
+        block_bit = 1 << ((local / TILE / 4) * 4 + (local % TILE) / 4)
         start = tile_ranges[tile, 0]
         end = tile_ranges[tile, 1]
 
@@ -61,6 +64,8 @@ def composite_kernels(dtype):
         depth = dtype(0.0)
         last = int(0)
         for k in range(start, end):
+            if (pair_masks[k] & block_bit) == 0:
+                continue
             g = gaussian_ids[k]
             dx = means2d[g, 0] - pix_x
             dy = means2d[g, 1] - pix_y
@@ -90,6 +95,7 @@ def composite_kernels(dtype):
     def composite_backward(
         first_tile: int, tiles_x: int, width: int, height: int,
         tile_ranges: wp.array2d(dtype=wp.int32), gaussian_ids: wp.array(dtype=wp.int32),
+        pair_masks: wp.array(dtype=wp.int32),
         means2d: wp.array2d(dtype=dtype), conics: wp.array2d(dtype=dtype), opacities: wp.array(dtype=dtype),
         colors: wp.array2d(dtype=dtype), depths: wp.array(dtype=dtype), background: wp.array(dtype=dtype),
         final_transmittance: wp.array2d(dtype=dtype), last_contributor: wp.array2d(dtype=wp.int32),
@@ -107,6 +113,7 @@ def composite_kernels(dtype):
             return
         pix_x = dtype(px) + dtype(0.5)
         pix_y = dtype(py) + dtype(0.5)
+        block_bit = 1 << ((local / TILE / 4) * 4 + (local % TILE) / 4)
         start = tile_ranges[tile, 0]
         last = last_contributor[py, px]
 
@@ -124,6 +131,8 @@ def composite_kernels(dtype):
         next_rgb = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
         next_depth = dtype(0.0)
         for j in range(last - 1, -1, -1):
+            if (pair_masks[start + j] & block_bit) == 0:
+                continue
             g = gaussian_ids[start + j]
             dx = means2d[g, 0] - pix_x
             dy = means2d[g, 1] - pix_y

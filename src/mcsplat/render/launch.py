@@ -153,7 +153,7 @@ class CompositeFunction(torch.autograd.Function):
         contributed = torch.zeros(n, dtype=torch.int32, device=device)
         num_tiles = bins.tiles_x * bins.tiles_y
         forward_kernel, _ = composite_kernels(_warp_scalar(dtype))
-        shared = [_wp(bins.tile_ranges), _wp(bins.gaussian_ids)] + [_wp(t) for t in inputs]
+        shared = [_wp(bins.tile_ranges), _wp(bins.gaussian_ids), _wp(bins.pair_masks)] + [_wp(t) for t in inputs]
         outputs = [_wp(rgb), _wp(transmittance), _wp(depth), _wp(last), _wp(contributed)]
         _run_bands(forward_kernel,
                    lambda worker, first_tile: [first_tile, bins.tiles_x, width, height] + shared + outputs,
@@ -184,7 +184,7 @@ class CompositeFunction(torch.autograd.Function):
                  for _ in range(workers)]
         per_worker = [[_wp(t) for t in parts] for parts in views]
         _, backward_kernel = composite_kernels(_warp_scalar(dtype))
-        shared = ([_wp(bins.tile_ranges), _wp(bins.gaussian_ids)]
+        shared = ([_wp(bins.tile_ranges), _wp(bins.gaussian_ids), _wp(bins.pair_masks)]
                   + [_wp(t) for t in (means2d, conics, opacities, colors, depths, background, transmittance, last)]
                   + [_wp(g) for g in grads_in])
         _run_bands(backward_kernel,

@@ -29,6 +29,7 @@ class Projection:
     radii: torch.Tensor     # [N] int32 pixels, 0 where culled
     tile_min: torch.Tensor  # [N, 2] int32 (x, y), inclusive
     tile_max: torch.Tensor  # [N, 2] int32 (x, y), exclusive
+    alpha_extent: torch.Tensor  # [N, 2] half-size in pixels of the box outside which alpha < 1/255 (0: never)
 
 
 def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
@@ -90,7 +91,21 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     with torch.no_grad():
         radii, tile_min, tile_max = _screen_extent(means2d, a, b, c, opacities, valid, width, height,
                                                    opacity_aware_radius)
-    return Projection(means2d=means2d, conics=conics, depths=z, radii=radii, tile_min=tile_min, tile_max=tile_max)
+        alpha_extent = _alpha_extent(a, c, opacities)
+    return Projection(means2d=means2d, conics=conics, depths=z, radii=radii, tile_min=tile_min, tile_max=tile_max,
+                      alpha_extent=alpha_extent)
+
+
+def _alpha_extent(a: torch.Tensor, c: torch.Tensor, opacities: torch.Tensor) -> torch.Tensor:
+    """Half-widths of the axis-aligned box around the ellipse where o exp(-d^T Q d / 2) >= 1/255.
+
+    The ellipse d^T Sigma^-1 d <= k has |dx| <= sqrt(k Sigma_xx) and |dy| <= sqrt(k Sigma_yy), k = 2 ln(255 o).
+    Outside the box the compositing test alpha >= 1/255 fails, so the rasterizer may skip those pixels unseen; the
+    small relative and absolute margins cover rounding in the conic.
+    """
+    k = torch.clamp(2.0 * torch.log(torch.clamp(255.0 * opacities.detach(), min=1e-30)), min=0.0)
+    extent = torch.sqrt(k[:, None] * torch.stack([a, c], dim=-1).clamp(min=0.0))
+    return torch.where(k[:, None] > 0, extent * 1.001 + 0.01, torch.zeros_like(extent))
 
 
 def _screen_extent(means2d, a, b, c, opacities, valid, width, height, opacity_aware_radius):

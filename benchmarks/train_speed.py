@@ -1,0 +1,475 @@
+"""Training speed: median ms per full training step and the share of each phase, one JSON line per configuration.
+
+    .venv/bin/python benchmarks/train_speed.py                                  # 10k/100k/300k x 1 and 2 threads
+    .venv/bin/python benchmarks/train_speed.py --sizes 100000 --threads 2 --repeats 5
+    .venv/bin/python benchmarks/train_speed.py --device cuda                    # skips cleanly without CUDA
+
+A step is the trainer's (mcsplat.trainer.train): render a lego 400x400 training view, 0.8 L1 + 0.2 D-SSIM + the MCMC
+regularizers, backward, one Adam step per parameter, strategy.step_post_optimizer (SGLD noise; relocation every 100
+steps). The same step (`train_step`) is also run with a PhaseClock, which reads the clock after a device sync between
+phases and wraps the pieces that the real render() calls, so render() itself runs unchanged:
+
+    projection           activations, EWA projection, culling, tile rectangles, SH colours (project_gaussians,
+                         view_dependent_colors)
+    binning              (tile, depth) keys, sort, tile ranges (bin_gaussians)
+    composite_forward    the Warp forward kernels (CompositeFunction.apply)
+    loss                 L1 + SSIM + regularizers, forward
+    backward_loss        from loss.backward() until the gradient of the image is complete (SSIM/L1 backward)
+    backward_composite   CompositeFunction.backward (the hand-written Warp backward kernels)
+    backward_projection  the rest of the backward: projection, SH and activations (torch autograd)
+    optimizer            the six Adam steps and zero_grad
+    strategy             step_post_backward + step_post_optimizer (noise), plus one refine step / 100 (amortised)
+    other                the rest (learning-rate update, image to float, render()'s glue, instrumentation)
+
+Each configuration runs in a fresh subprocess so that its peak memory (ru_maxrss) is its own. The Gaussians are not
+the random initialisation (tiny splats: an unrealistically cheap step) but a calibrated stand-in for a trained model,
+see `realistic_model`; --scene-model init times the MCMC random initialisation instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+import torch
+import torch.nn.functional as F
+
+import _common as C
+from mcsplat.camera import Camera
+from mcsplat.gaussians import GaussianModel
+from mcsplat.losses import photometric_loss
+from mcsplat.optim import OptimConfig, make_optimizers, means_lr_at, set_means_lr
+import mcsplat.render as R
+from mcsplat.render import render
+from mcsplat.strategy.adc import ADCConfig, ADCStrategy
+from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
+
+PHASES = ("projection", "binning", "composite_forward", "loss", "backward_loss", "backward_composite",
+          "backward_projection", "optimizer", "strategy", "other")
+BALL_RADIUS = 1.25       # about the half-extent of the lego model, centred on the world origin like the lego
+BASE_SCALE = 0.007       # rasterizer.py's calibration: ~33 composited Gaussians per pixel at 100k, 400x400
+NUM_VIEWS = 16           # training views cycled through (evenly spaced over the 100 lego views)
+TOTAL_STEPS = 30_000     # the learning-rate schedule the steps are taken from
+REFINE_EVERY = 100
+DEAD_FRACTION = 0.01     # Gaussians made dead before each timed refine step (so relocation has work)
+SSIM_WEIGHT = 0.2
+
+
+# --------------------------------------------------------------------------------------------------- the scene
+def realistic_model(n: int, seed: int = 0) -> GaussianModel:
+    """n Gaussians in a ball of radius 1.25 around the origin, sized like a trained model's.
+
+    This is benchmarks/rasterizer.py's calibrated scene, scaled by 1.25 in space so that under the lego cameras
+    (distance 4.03, focal 1.39 x width) it projects as rasterizer.py's scene does under its own camera: at 100k and
+    400x400 about 33 Gaussians are composited per pixel (the reference configuration of the rasterizer targets).
+    Scales are log-normal around 0.00875 x (100k / n)^(1/3) (finer Gaussians as there are more of them), rotations
+    random, opacities uniform in [0.05, 0.65], SH degree 3 with small higher bands.
+    """
+    g = torch.Generator().manual_seed(seed)
+    direction = F.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    means = direction * torch.rand(n, 1, generator=g) ** (1 / 3) * BALL_RADIUS
+    base = BASE_SCALE * BALL_RADIUS * (100_000 / n) ** (1 / 3)
+    log_scales = math.log(base) + 0.3 * torch.randn(n, 3, generator=g)
+    quats = torch.randn(n, 4, generator=g)
+    opacities = torch.rand(n, generator=g) * 0.6 + 0.05
+    sh0 = torch.randn(n, 1, 3, generator=g) * 0.5
+    shN = torch.randn(n, 15, 3, generator=g) * 0.05
+    return GaussianModel(means, log_scales, quats, torch.logit(opacities), sh0, shN)
+
+
+def init_model(n: int, seed: int = 0) -> GaussianModel:
+    """The MCMC random initialisation of a Blender scene (cube [-1.3, 1.3]^3, 0.1 x kNN scales, opacity 0.5)."""
+    return GaussianModel.random_init(1.0, blender=True, num_points=n, generator=torch.Generator().manual_seed(seed))
+
+
+def training_views(scene, size: int | None = None, count: int = NUM_VIEWS) -> tuple[list[Camera], list[torch.Tensor]]:
+    """`count` evenly spaced training views: cameras and uint8 images, resized to size x size when given."""
+    views = scene.train[:: max(1, len(scene.train) // count)][:count]
+    cameras, images = [], []
+    for view in views:
+        camera, image = view.camera, view.image
+        if size is not None and (size, size) != (camera.width, camera.height):
+            camera = camera.scaled(size, size)
+            x = image.permute(2, 0, 1)[None].float()
+            x = F.interpolate(x, size=(size, size), mode="bilinear", align_corners=False, antialias=True)
+            image = x[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).contiguous()
+        cameras.append(camera)
+        images.append(image)
+    return cameras, images
+
+
+@dataclass
+class Bench:
+    """Everything one training step needs, set up as the trainer sets it up."""
+
+    model: GaussianModel
+    optimizers: dict
+    strategy: object
+    cameras: list
+    images: list
+    background: torch.Tensor
+    radius: float
+    device: torch.device
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    sh_degree: int = 3
+
+    @classmethod
+    def make(cls, model: GaussianModel, scene, cameras, images, device: str, strategy: str = "mcmc") -> "Bench":
+        device = torch.device(device)
+        model = model.to(device)
+        optim = OptimConfig()
+        optimizers = make_optimizers(model, optim, scene.radius)
+        generator = torch.Generator(device=device).manual_seed(0)
+        n = model.num_gaussians
+        if strategy == "mcmc":  # at the cap, as in a run that has grown to its budget: refine steps only relocate
+            strat = MCMCStrategy(MCMCConfig(cap_max=n), scene.radius, generator)
+        else:
+            strat = ADCStrategy(ADCConfig(cap_max=n), scene.radius, generator)
+        background = torch.tensor(scene.background, dtype=torch.float32, device=device)
+        return cls(model, optimizers, strat, [c.to(device) for c in cameras], images, background, scene.radius,
+                   device, optim, model.sh_degree)
+
+    def target(self, i: int) -> torch.Tensor:
+        return self.images[i % len(self.images)].to(self.device, non_blocking=True).to(torch.float32).div_(255.0)
+
+    def camera(self, i: int) -> Camera:
+        return self.cameras[i % len(self.cameras)]
+
+    def lr(self, step: int) -> float:
+        return means_lr_at(step, TOTAL_STEPS, self.optim, self.radius)
+
+
+def step_numbers(start: int = 1001):
+    """0-based step numbers inside the refine window that are not refine steps (1001..1099, 1101, ...)."""
+    step = start
+    while True:
+        if step % REFINE_EVERY:
+            yield step
+        step += 1
+
+
+# ------------------------------------------------------------------------------------------------------- the step
+class PhaseClock:
+    """Times the phases of train_step. While active it replaces, in mcsplat.render's namespace, the pieces render()
+    calls (project_gaussians, view_dependent_colors, bin_gaussians, CompositeFunction) by timed wrappers, so the
+    real render() runs unchanged; every reading of the clock is preceded by a device synchronisation."""
+
+    def __init__(self, device: torch.device):
+        self.device = device
+        self.seconds: dict[str, float] = {}
+        self.last = 0.0
+        self.captured: dict = {}  # the last render's bins and compositing inputs (for the per-pixel statistics)
+
+    def start(self) -> None:
+        self.seconds = dict.fromkeys(("other", "render", "loss", "backward", "optimizer", "strategy",
+                                      "projection", "binning", "composite_forward", "backward_composite"), 0.0)
+        self.image_grad_at = None
+        self.last = C.now(self.device)
+
+    def lap(self, phase: str) -> None:
+        t = C.now(self.device)
+        self.seconds[phase] += t - self.last
+        self.last = t
+
+    def add(self, phase: str, seconds: float) -> None:
+        self.seconds[phase] += seconds
+
+    def watch_image_grad(self, image: torch.Tensor) -> None:
+        """Mark when d loss / d image is complete: the end of the loss backward, the start of the composite's."""
+        def hook(grad):
+            self.image_grad_at = C.now(self.device)
+        image.register_hook(hook)
+
+    def phases(self) -> dict[str, float]:
+        """Seconds per entry of PHASES, plus 'total'. The backward splits at the image-gradient mark; whatever
+        render() does besides its three timed pieces (input checks, the depth division) counts as 'other'."""
+        s = self.seconds
+        out = {p: s[p] for p in ("projection", "binning", "composite_forward", "loss", "backward_composite",
+                                 "optimizer", "strategy")}
+        out["backward_loss"] = self.backward_loss
+        out["backward_projection"] = s["backward"] - self.backward_loss - s["backward_composite"]
+        out["other"] = s["other"] + s["render"] - s["projection"] - s["binning"] - s["composite_forward"]
+        out["total"] = sum(s[p] for p in ("other", "render", "loss", "backward", "optimizer", "strategy"))
+        return out
+
+    def __enter__(self) -> "PhaseClock":
+        clock = self
+        self._saved = {name: getattr(R, name) for name in
+                       ("project_gaussians", "view_dependent_colors", "bin_gaussians", "CompositeFunction")}
+
+        def timed(phase, fn, keep=None):
+            def wrapper(*args, **kwargs):
+                t0 = C.now(clock.device)
+                out = fn(*args, **kwargs)
+                clock.add(phase, C.now(clock.device) - t0)
+                if keep:
+                    clock.captured[keep] = out
+                return out
+            return wrapper
+
+        class TimedComposite(self._saved["CompositeFunction"]):
+            @classmethod
+            def apply(cls, *args, **kwargs):
+                t0 = C.now(clock.device)
+                out = super().apply(*args, **kwargs)
+                clock.add("composite_forward", C.now(clock.device) - t0)
+                clock.captured["composite_inputs"] = args
+                return out
+
+            @staticmethod
+            def backward(ctx, *grads):
+                t0 = C.now(clock.device)
+                out = clock._saved["CompositeFunction"].backward(ctx, *grads)
+                clock.add("backward_composite", C.now(clock.device) - t0)
+                return out
+
+        R.project_gaussians = timed("projection", self._saved["project_gaussians"])
+        R.view_dependent_colors = timed("projection", self._saved["view_dependent_colors"])
+        R.bin_gaussians = timed("binning", self._saved["bin_gaussians"], keep="bins")
+        R.CompositeFunction = TimedComposite
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for name, value in self._saved.items():
+            setattr(R, name, value)
+
+
+def train_step(b: Bench, step: int, i: int, clock: PhaseClock | None = None) -> int:
+    """One training step exactly as mcsplat.trainer.train runs it (without its logging); returns the tile pairs.
+    With a clock (see PhaseClock) the phases are timed."""
+    lap = clock.lap if clock is not None else (lambda phase: None)
+    if clock is not None:
+        clock.start()
+    set_means_lr(b.optimizers, b.lr(step))
+    target = b.target(i)
+    camera = b.camera(i)
+    lap("other")
+    result = render(b.model, camera, b.background, b.sh_degree)
+    lap("render")
+    loss = photometric_loss(result.rgb, target, SSIM_WEIGHT) + b.strategy.regularization(b.model)
+    if not torch.isfinite(loss):
+        raise RuntimeError(f"step {step}: the loss is {loss.item()}")
+    lap("loss")
+    if clock is not None:
+        clock.watch_image_grad(result.rgb)
+        backward_start = clock.last
+    loss.backward()
+    if clock is not None:
+        clock.backward_loss = (clock.image_grad_at or backward_start) - backward_start
+    lap("backward")
+    b.strategy.step_post_backward(step, b.model, result, camera.width, camera.height)
+    lap("strategy")
+    for opt in b.optimizers.values():
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+    lap("optimizer")
+    b.strategy.step_post_optimizer(step, b.model, b.optimizers, b.lr(step + 1))
+    lap("strategy")
+    return result.num_pairs
+
+
+def refine_seconds(b: Bench, repeats: int, seed: int = 0) -> list[float]:
+    """Duration of step_post_optimizer on refine steps, with DEAD_FRACTION of the Gaussians made dead first."""
+    g = torch.Generator().manual_seed(seed)
+    times = []
+    for r in range(repeats):
+        n = b.model.num_gaussians
+        with torch.no_grad():
+            dead = torch.randperm(n, generator=g)[: max(1, int(DEAD_FRACTION * n))].to(b.device)
+            b.model.params["opacity_logits"][dead] = math.log(0.003 / 0.997)
+        step = 1100 + REFINE_EVERY * r
+        t0 = C.now(b.device)
+        b.strategy.step_post_optimizer(step, b.model, b.optimizers, b.lr(step + 1))
+        times.append(C.now(b.device) - t0)
+    return times
+
+
+def composited_per_pixel(clock: PhaseClock, width: int) -> float | None:
+    """Gaussians composited per pixel in the last timed render, by rasterizer.py's sampling (square images only;
+    None otherwise)."""
+    from rasterizer import _per_pixel_counts
+    bins, args = clock.captured.get("bins"), clock.captured.get("composite_inputs")
+    if bins is None or args is None or bins.tiles_x != bins.tiles_y:
+        return None
+    return _per_pixel_counts(bins, [t.detach() for t in args[:3]], width)[1]
+
+# ------------------------------------------------------------------------------------------- one configuration
+def run_one(cfg: dict) -> dict:
+    """Measure one configuration in this process (the parent runs it in a fresh subprocess)."""
+    device = cfg["device"]
+    C.set_threads(cfg["threads"])
+    scene = C.load(cfg["data"])
+    cameras, images = training_views(scene)
+    baseline_rss = C.current_rss_mb()  # imports and the scene's images, before any Gaussian exists
+    builder = realistic_model if cfg["scene_model"] == "realistic" else init_model
+    model = builder(cfg["gaussians"], cfg["seed"])
+    if device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    b = Bench.make(model, scene, cameras, images, device, cfg["strategy"])
+    steps = step_numbers()
+    view = 0
+    for _ in range(cfg["warmup"]):
+        train_step(b, next(steps), view)
+        view += 1
+    phases: dict[str, list[float]] = {p: [] for p in PHASES + ("total",)}
+    pairs = []
+    with PhaseClock(b.device) as clock:
+        for _ in range(cfg["repeats"]):
+            pairs.append(train_step(b, next(steps), view, clock))
+            view += 1
+            for key, seconds in clock.phases().items():
+                phases[key].append(seconds)
+    composited = composited_per_pixel(clock, b.camera(view - 1).width)
+    plain = []
+    for _ in range(cfg["plain"]):
+        t0 = C.now(device)
+        train_step(b, next(steps), view)
+        plain.append(C.now(device) - t0)
+        view += 1
+    refine = refine_seconds(b, cfg["refines"], cfg["seed"]) if cfg["refines"] else []
+
+    ms = {p: C.median(v) * 1000.0 for p, v in phases.items()}
+    refine_extra_ms = max(0.0, C.median(refine) * 1000.0 - ms["strategy"]) if refine else 0.0
+    ms["strategy"] += refine_extra_ms / REFINE_EVERY
+    phase_sum = sum(ms[p] for p in PHASES)
+    ranked = sorted(PHASES, key=lambda p: -ms[p])
+    record = {
+        "benchmark": "train_speed", "device": device if device != "cpu" else f"cpu ({C.cpu_name()})",
+        "gaussians": cfg["gaussians"], "image": f"{b.camera(0).width}x{b.camera(0).height}",
+        "threads": cfg["threads"] if device == "cpu" else None, "scene_model": cfg["scene_model"],
+        "strategy": cfg["strategy"],
+        "step_ms": round(C.median(plain) * 1000.0 + refine_extra_ms / REFINE_EVERY, 1) if plain else None,
+        "instrumented_step_ms": round(ms["total"] + refine_extra_ms / REFINE_EVERY, 1),
+        "phases_ms": {p: round(ms[p], 2) for p in PHASES},
+        "shares": {p: round(ms[p] / phase_sum, 4) for p in PHASES},
+        "dominant": ranked[0], "dominant_share": round(ms[ranked[0]] / phase_sum, 3),
+        "dominant_over_next": round(ms[ranked[0]] / max(ms[ranked[1]], 1e-9), 2), "next": ranked[1],
+        "compositing_share": round((ms["composite_forward"] + ms["backward_composite"]) / phase_sum, 3),
+        "backward_share": round(sum(ms[p] for p in PHASES if p.startswith("backward")) / phase_sum, 3),
+        "refine_step_ms": round(C.median(refine) * 1000.0, 1) if refine else None,
+        "tile_pairs": int(C.median(pairs)),
+        "composited_per_pixel": round(composited, 1) if composited is not None else None,
+        "warmup": cfg["warmup"], "repeats": cfg["repeats"], "plain_repeats": cfg["plain"], "refines": cfg["refines"],
+    }
+    if device.startswith("cuda"):
+        record["peak_cuda_mb"] = round(torch.cuda.max_memory_allocated() / 2 ** 20, 1)
+    else:
+        record["peak_rss_mb"] = round(C.peak_rss_mb(), 1)
+        record["rss_before_model_mb"] = round(baseline_rss, 1) if baseline_rss is not None else None
+    return record
+
+
+def run_in_subprocess(cfg: dict) -> dict:
+    proc = subprocess.run([sys.executable, __file__, "--worker", json.dumps(cfg)], stdout=subprocess.PIPE, text=True)
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
+    if proc.returncode != 0 or not lines:
+        sys.exit(f"train_speed: the configuration {cfg} failed (exit {proc.returncode})")
+    return json.loads(lines[-1])
+
+
+# ------------------------------------------------------------------------------------------------ the reports
+def label(r: dict) -> str:
+    return C.human(r["gaussians"]) + (f" / {r['threads']}t" if r.get("threads") else "")
+
+
+def markdown(records: list[dict], info: dict, args) -> str:
+    cols = [("Gaussians", "gaussians", ""), ("threads", "threads", ""), ("step ms", "step_ms", ".1f")]
+    cols += [(p.replace("_", " "), p, lambda r, p=p: f"{r['phases_ms'][p]:.1f} ({100 * r['shares'][p]:.0f}%)")
+             for p in PHASES]
+    mem = "peak_cuda_mb" if records and "peak_cuda_mb" in records[0] else "peak_rss_mb"
+    cols += [("peak MB", mem, ".0f"), ("composited/px", "composited_per_pixel", ".1f")]
+    lines = [f"# Training speed ({records[0]['device'] if records else args.device})", "",
+             f"Machine: {C.machine_line(info)}. Commit {C.git_commit()}, {C.timestamp()}.", "",
+             f"lego {records[0]['image'] if records else ''}, scene model `{args.scene_model}`, strategy "
+             f"`{args.strategy}`; medians of {args.repeats} instrumented steps after {args.warmup} warm-up steps; "
+             f"'step ms' is the median of {args.plain} un-instrumented trainer steps; the strategy column includes "
+             f"one refine step per {REFINE_EVERY} steps. Phase ms (share of the phase sum).", "",
+             C.markdown_table(records, cols), ""]
+    for r in records:
+        lines.append(f"- {label(r)}: **{r['dominant'].replace('_', ' ')}** dominates with "
+                     f"{100 * r['dominant_share']:.0f}% of the step, {r['dominant_over_next']:.1f}x the next phase "
+                     f"({r['next'].replace('_', ' ')}); compositing forward + backward "
+                     f"{100 * r['compositing_share']:.0f}%, the whole backward {100 * r['backward_share']:.0f}%; "
+                     f"a refine step costs {r['refine_step_ms']} ms.")
+    return "\n".join(lines) + "\n"
+
+
+def plot(records: list[dict], path: Path) -> bool:
+    plt = C.pyplot()
+    if plt is None or not records:
+        return False
+    fig, ax = plt.subplots(figsize=(max(7.0, 1.1 * len(records) + 3.5), 4.8))
+    x = range(len(records))
+    bottom = [0.0] * len(records)
+    colors = plt.get_cmap("tab10").colors
+    for k, phase in enumerate(PHASES):
+        shares = [100 * r["shares"][phase] for r in records]
+        ax.bar(x, shares, bottom=bottom, color=colors[k % 10], label=phase.replace("_", " "))
+        bottom = [b + s for b, s in zip(bottom, shares)]
+    for i, r in enumerate(records):
+        ax.text(i, 101, f"{r['step_ms'] or r['instrumented_step_ms']:.0f} ms", ha="center", va="bottom", fontsize=8)
+    ax.set_xticks(list(x), [label(r) for r in records])
+    ax.set_ylabel("share of the training step (%)")
+    ax.set_ylim(0, 110)
+    ax.set_title(f"Training step phases (median ms on top), lego {records[0]['image']}\n{records[0]['device']}",
+                 fontsize=9)
+    ax.legend(loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return True
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 300_000], help="numbers of Gaussians")
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="CPU threads (ignored on CUDA)")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda")
+    parser.add_argument("--scene", default="lego", help="lego (shared data) or a scene folder")
+    parser.add_argument("--data-root", default=str(C.DATA_ROOT))
+    parser.add_argument("--scene-model", choices=("realistic", "init"), default="realistic",
+                        help="realistic: calibrated stand-in for a trained model; init: the MCMC random init")
+    parser.add_argument("--strategy", choices=("mcmc", "adc"), default="mcmc")
+    parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=10, help="instrumented steps (medians)")
+    parser.add_argument("--plain", type=int, default=5, help="un-instrumented trainer steps (the 'step ms' figure)")
+    parser.add_argument("--refines", type=int, default=3, help="timed refine steps (0: leave them out)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/train_speed)")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        C.emit(run_one(json.loads(args.worker)))
+        return
+    C.cuda_or_exit(args.device, "train_speed")
+    out = Path(args.out) if args.out else C.results_dir("train_speed")
+    out.mkdir(parents=True, exist_ok=True)
+    info = C.machine(args.device)
+    load = C.warn_if_busy()
+    threads = sorted(set(args.threads)) if args.device == "cpu" else [None]
+    records = []
+    for n in args.sizes:
+        for t in threads:
+            cfg = {"gaussians": n, "threads": t, "device": args.device, "scene_model": args.scene_model,
+                   "strategy": args.strategy, "warmup": args.warmup, "repeats": args.repeats, "plain": args.plain,
+                   "refines": args.refines, "seed": args.seed,
+                   "data": str(C.scene_path(args.scene, args.data_root))}
+            started = time.perf_counter()
+            record = run_in_subprocess(cfg)
+            record.update(wall_seconds=round(time.perf_counter() - started, 1), load_average_before=load,
+                          machine=info, commit=C.git_commit(), date=C.timestamp())
+            C.emit(record)
+            records.append(record)
+    C.append_jsonl(out / "results.jsonl", records)
+    C.write_text(out / "results.md", markdown(records, info, args))
+    plotted = plot(records, out / "phases.png")
+    print(f"wrote {out / 'results.md'}" + (f" and {out / 'phases.png'}" if plotted else ""), file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
