@@ -21,9 +21,14 @@ $(STAMP): $(PY) pyproject.toml constraints.txt
 
 install: $(STAMP)
 
-# For now the demo loads the bundled scene and prints its summary; training it comes with the trainer (a later issue).
+# The demo trains the bundled 200x200 lego on CPU in about 4 minutes (2 cores) with the paper's method, scaled down:
+# 1,200 steps instead of 30,000, 10k random points growing to a 20k cap, refinement from step 200 every 50 steps,
+# SH degree +1 every 300 steps. It prints test PSNR/SSIM/LPIPS and writes runs/demo/ (replacing an earlier demo).
+DEMO_OPTIONS := --steps 1200 --cap-max 20000 --model.num-init-points 10000 --mcmc.refine-start 200 \
+	--mcmc.refine-every 50 --sh-increase-every 300
+
 demo: $(STAMP)
-	$(VENV)/bin/mcsplat info data/lego_demo
+	$(VENV)/bin/mcsplat train data/lego_demo --out runs/demo --overwrite $(DEMO_OPTIONS)
 
 test: $(STAMP)
 	$(PY) -m pytest $(PYTEST_ARGS)
