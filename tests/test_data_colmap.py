@@ -12,16 +12,7 @@ from PIL import Image
 
 from mcsplat.data import Scene, load_scene
 from mcsplat.data.colmap_files import read_points3d_bin
-
-
-def visible_fraction(view, points: torch.Tensor) -> float:
-    """Share of `points` that project inside the view's image with positive depth."""
-    cam = view.camera
-    in_camera = points @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
-    z = in_camera[:, 2]
-    uv = (in_camera @ cam.K.T)[:, :2] / z[:, None]
-    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-    return inside.float().mean().item()
+from helpers import visible_fraction
 
 
 def pycolmap_cameras(model: Path) -> dict[str, tuple[np.ndarray, np.ndarray, tuple[int, int]]]:

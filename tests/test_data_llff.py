@@ -10,17 +10,9 @@ import torch
 
 from mcsplat.data import Scene, load_scene
 from mcsplat.data.llff import load_llff
+from helpers import visible_fraction
 
 FERN = "llff_fern/fern"
-
-
-def visible_fraction(view, points: torch.Tensor) -> float:
-    cam = view.camera
-    in_camera = points @ cam.world_to_camera[:3, :3].T + cam.world_to_camera[:3, 3]
-    z = in_camera[:, 2]
-    uv = (in_camera @ cam.K.T)[:, :2] / z[:, None]
-    inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-    return inside.float().mean().item()
 
 
 @pytest.fixture(scope="module")

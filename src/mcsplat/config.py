@@ -18,7 +18,7 @@ from .strategy.mcmc import MCMCConfig
 
 @dataclass
 class ModelConfig:
-    """Initial Gaussians (SPEC 1)."""
+    """Initial Gaussians."""
 
     init: Literal["auto", "random", "sfm"] = "auto"
     """auto: SfM points when the scene has them, else random. The official code defaults to random."""
@@ -45,6 +45,7 @@ class TrainConfig:
     cap_max: int | None = None
     """Maximum number of Gaussians (sets --mcmc.cap-max, or --adc.cap-max for the budgeted baseline)."""
     steps: int = 30_000
+    """Training steps (the paper: 30,000)."""
     downscale: int = 1
     """Image downscale factor (uses images_N/ when the scene has it)."""
     test_every: int = 8
@@ -52,7 +53,9 @@ class TrainConfig:
     background: Literal["auto", "white", "black"] = "auto"
     """auto: white for Blender scenes (as the paper), black otherwise."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
+    """auto: CUDA when available, else CPU."""
     seed: int = 0
+    """Random seed of the initialisation, the view order, relocation and noise."""
     threads: int | None = None
     """CPU threads (default: all cores)."""
     eval_every: int = 0
@@ -68,6 +71,7 @@ class TrainConfig:
     sh_increase_every: int = 1000
     """The active SH degree grows by one every N steps up to the model's degree."""
     ssim_weight: float = 0.2
+    """Weight of D-SSIM in the loss; L1 gets the rest (the paper: 0.2)."""
     lpips_net: Literal["alex", "vgg"] = "vgg"
     """LPIPS backbone for the final metrics (the paper reports VGG)."""
     save_renders: bool = True

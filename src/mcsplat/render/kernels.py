@@ -30,6 +30,17 @@ TRANSMITTANCE_MIN = 1e-4
 POWER_SKIP = -5.5413 - 1e-3
 
 
+@wp.func
+def pixel_of_thread(t: int, first_tile: int, tiles_x: int):
+    """(tile, pixel x, pixel y, bit of the pixel's 4x4 block) of thread t: 256 consecutive threads per tile."""
+    tile = first_tile + t / PIXELS_PER_TILE
+    local = t % PIXELS_PER_TILE
+    px = (tile % tiles_x) * TILE + local % TILE
+    py = (tile / tiles_x) * TILE + local / TILE
+    block_bit = 1 << ((local / TILE / 4) * 4 + (local % TILE) / 4)
+    return tile, px, py, block_bit
+
+
 @functools.lru_cache(maxsize=None)
 def composite_kernels(dtype):
     """(forward, backward) kernels for scalar type wp.float32 or wp.float64."""
@@ -46,16 +57,11 @@ def composite_kernels(dtype):
         out_depth: wp.array2d(dtype=dtype), out_last: wp.array2d(dtype=wp.int32),
         contributed: wp.array(dtype=wp.int32),
     ):
-        t = wp.tid()
-        tile = first_tile + t / PIXELS_PER_TILE
-        local = t % PIXELS_PER_TILE
-        px = (tile % tiles_x) * TILE + local % TILE
-        py = (tile / tiles_x) * TILE + local / TILE
+        tile, px, py, block_bit = pixel_of_thread(wp.tid(), first_tile, tiles_x)
         if px >= width or py >= height:
             return
         pix_x = dtype(px) + dtype(0.5)
         pix_y = dtype(py) + dtype(0.5)
-        block_bit = 1 << ((local / TILE / 4) * 4 + (local % TILE) / 4)
         start = tile_ranges[tile, 0]
         end = tile_ranges[tile, 1]
 
@@ -104,16 +110,11 @@ def composite_kernels(dtype):
         grad_opacities: wp.array(dtype=dtype), grad_colors: wp.array2d(dtype=dtype),
         grad_depths: wp.array(dtype=dtype),
     ):
-        t = wp.tid()
-        tile = first_tile + t / PIXELS_PER_TILE
-        local = t % PIXELS_PER_TILE
-        px = (tile % tiles_x) * TILE + local % TILE
-        py = (tile / tiles_x) * TILE + local / TILE
+        tile, px, py, block_bit = pixel_of_thread(wp.tid(), first_tile, tiles_x)
         if px >= width or py >= height:
             return
         pix_x = dtype(px) + dtype(0.5)
         pix_y = dtype(py) + dtype(0.5)
-        block_bit = 1 << ((local / TILE / 4) * 4 + (local % TILE) / 4)
         start = tile_ranges[tile, 0]
         last = last_contributor[py, px]
 
