@@ -180,8 +180,9 @@ def train(config: TrainConfig) -> dict[str, Any]:
     run_dir = _prepare_run_dir(config)
     if config.resume:
         saved = load_config(run_dir)
-        # The saved configuration rules, except for what only affects how this process runs.
-        for key in ("steps", "eval_every", "save_every", "quiet", "threads", "device"):
+        # The saved configuration rules (steps included: the learning-rate schedule depends on it), except for what
+        # only affects how this process runs.
+        for key in ("eval_every", "save_every", "quiet", "threads", "device"):
             setattr(saved, key, getattr(config, key))
         saved.resume, config = True, saved
     device = resolve_device(config.device)
