@@ -107,11 +107,19 @@ class Render:
     """Output folder for PNGs or .mp4 path (default: RUN/renders/<split>/ or RUN/renders/<split>.mp4)."""
     device: Device = "auto"
 
+    @staticmethod
+    def _frame(model, camera, background, degree):
+        import torch
+
+        from mcsplat.render import render
+
+        with torch.no_grad():
+            return render(model, camera, background, degree).rgb
+
     def run_command(self) -> int:
         from tqdm import tqdm
 
         from mcsplat.camera_path import loop_path
-        from mcsplat.render import render
         from mcsplat.trainer import background_of, final_sh_degree, load_trained, resolve_device, save_png
 
         if self.frames < 2 or self.fps < 1:
@@ -126,8 +134,7 @@ class Render:
         if not self.video:
             folder = self.out or self.run / "renders" / self.split
             for view in tqdm(views, desc="rendering", unit="view"):
-                with torch_no_grad():
-                    image = render(model, view.camera.to(device), background, degree).rgb
+                image = self._frame(model, view.camera.to(device), background, degree)
                 save_png(folder / f"{Path(view.name).stem}.png", image)
             print(f"wrote {len(views)} renders to {folder}")
             return 0
@@ -143,8 +150,7 @@ class Render:
             with imageio.get_writer(tmp, format="FFMPEG", fps=self.fps, codec="libx264", quality=8,
                                     macro_block_size=1) as writer:
                 for camera in tqdm(cameras, desc="video", unit="frame"):
-                    with torch_no_grad():
-                        image = render(model, camera.to(device), background, degree).rgb
+                    image = self._frame(model, camera.to(device), background, degree)
                     writer.append_data((image.clamp(0, 1) * 255 + 0.5).byte().cpu().numpy())
         print(f"wrote {path} ({self.frames} frames at {self.fps} fps)")
         return 0
@@ -167,12 +173,6 @@ class Export:
         count = export_ply(model, path)
         print(f"wrote {path} ({count:,} of {model.num_gaussians:,} Gaussians; dead ones left out)")
         return 0
-
-
-def torch_no_grad():
-    import torch
-
-    return torch.no_grad()
 
 
 def _scene_of(config):

@@ -157,7 +157,7 @@ class CompositeFunction(torch.autograd.Function):
         outputs = [_wp(rgb), _wp(transmittance), _wp(depth), _wp(last), _wp(contributed)]
         _run_bands(forward_kernel,
                    lambda worker, first_tile: [first_tile, bins.tiles_x, width, height] + shared + outputs,
-                   num_tiles, bins.tile_ranges.cpu() if device.type == "cpu" else bins.tile_ranges, device,
+                   num_tiles, bins.tile_ranges, device,
                    _num_workers(device, num_tiles))
         ctx.save_for_backward(*inputs, transmittance, last)
         ctx.bins, ctx.width, ctx.height = bins, width, height
@@ -189,7 +189,7 @@ class CompositeFunction(torch.autograd.Function):
                   + [_wp(g) for g in grads_in])
         _run_bands(backward_kernel,
                    lambda worker, first_tile: [first_tile, bins.tiles_x, width, height] + shared + per_worker[worker],
-                   num_tiles, bins.tile_ranges.cpu() if device.type == "cpu" else bins.tile_ranges, device, workers)
+                   num_tiles, bins.tile_ranges, device, workers)
         totals = [sum(v[i] for v in views) if workers > 1 else views[0][i] for i in range(5)]
         return (*totals, None, None, None, None)
 
