@@ -14,6 +14,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from mcsplat.errors import MCSplatError
+from mcsplat.io.atomic import atomic_path, remove_stale_temporaries
 from mcsplat.io.checkpoint import load_checkpoint, save_checkpoint
 from mcsplat.io.ply import read_ply, write_ply
 
@@ -118,3 +119,20 @@ def test_sigkill_during_checkpoint_writes_never_corrupts(tmp_path):
         if path.exists():
             state = load_checkpoint(path)
             assert torch.equal(state["w"], torch.full((300_000,), float(state["step"])))
+
+
+def test_stale_temporaries_are_removed_and_nothing_else(tmp_path):
+    target = tmp_path / "checkpoint.pt"
+    with pytest.raises(RuntimeError):  # a writer that fails part-way cleans up after itself ...
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"half")
+            raise RuntimeError
+    assert list(tmp_path.iterdir()) == []
+    # ... but a killed one cannot: these are the names it would leave.
+    stale = [tmp_path / ".checkpoint.ab_3x9qz.tmp.pt", tmp_path / ".checkpoint.00000000.tmp.pt"]
+    kept = [tmp_path / "checkpoint.pt", tmp_path / ".checkpoint.mine.tmp.pt", tmp_path / "checkpoint.ab_3x9qz.tmp.pt",
+            tmp_path / ".checkpoint.ab_3x9qz.tmp.pth", tmp_path / ".other.ab_3x9qz.tmp.pt"]
+    for path in stale + kept:
+        path.write_bytes(b"x")
+    assert sorted(remove_stale_temporaries(target)) == sorted(stale)
+    assert sorted(tmp_path.iterdir()) == sorted(kept)

@@ -102,7 +102,11 @@ def test_resume_after_a_crash_and_after_ctrl_c_matches_an_uninterrupted_run(tmp_
     with pytest.raises(RuntimeError, match="simulated crash"):
         train(small_config(tmp_path / "crashed", steps=steps, save_every=100))
     monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", original)
+    # A kill during a checkpoint write would also leave its temporary file: resume removes it.
+    leftover = tmp_path / "crashed" / ".checkpoint.k1ll3d_x.tmp.pt"
+    leftover.write_bytes(b"half a checkpoint")
     train(small_config(tmp_path / "crashed", steps=steps, save_every=100, resume=True))
+    assert not leftover.exists()
     resumed = final_params(tmp_path / "crashed")
     assert resumed.keys() == expected.keys()
     for key in expected:

@@ -24,7 +24,7 @@ from .config import TrainConfig, load_config, save_config, to_jsonable
 from .data import Scene, View, load_scene
 from .errors import MCSplatError
 from .gaussians import GaussianModel
-from .io.atomic import atomic_write, atomic_write_text
+from .io.atomic import atomic_write, atomic_write_text, remove_stale_temporaries
 from .io.checkpoint import load_checkpoint, save_checkpoint
 from .io.ply import write_ply
 from .losses import photometric_loss
@@ -168,6 +168,8 @@ def _prepare_run_dir(config: TrainConfig) -> Path:
     if config.resume:
         if not (run_dir / CHECKPOINT).is_file():
             raise MCSplatError(f"--resume: {run_dir} has no {CHECKPOINT} to continue from")
+        # A run killed while writing its checkpoint leaves the half-written temporary beside it.
+        remove_stale_temporaries(run_dir / CHECKPOINT)
     elif holds_run and not config.overwrite:
         raise MCSplatError(f"{run_dir} already holds a run; pass --resume to continue it, --overwrite to replace its "
                            f"files, or --out to choose another directory")

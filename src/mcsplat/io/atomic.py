@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Callable, Iterator
@@ -32,6 +33,24 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files that `atomic_path(path)` left behind when its process was killed mid-write.
+
+    Only names of exactly the form atomic_path creates are touched (".<stem>.<8 random chars>.tmp<suffix>"), so
+    nothing a user made can match. Returns the paths removed.
+    """
+    target = Path(path)
+    pattern = re.compile(rf"\.{re.escape(target.stem)}\.[a-z0-9_]{{8}}\.tmp{re.escape(target.suffix)}")
+    removed = []
+    if target.parent.is_dir():
+        for candidate in target.parent.iterdir():
+            if pattern.fullmatch(candidate.name) and candidate.is_file():
+                with contextlib.suppress(FileNotFoundError):
+                    candidate.unlink()
+                    removed.append(candidate)
+    return removed
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
