@@ -1,0 +1,141 @@
+"""Warp set-up and the multi-threaded CPU launcher that every compositing kernel goes through.
+
+On CPU one Warp launch runs on one core, so the image's tiles are cut into contiguous bands of about equal work and
+the bands are launched from a thread pool (a CPU launch releases the GIL). Each worker owns a gradient buffer and a
+fixed set of bands, so backward launches never write to the same memory at once and the result does not depend on
+timing; the buffers are summed at the end in worker order. On CUDA the whole image is one launch.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+import warp as wp
+
+_init_lock = threading.Lock()
+_initialised = False
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+_cpu_threads: int | None = None
+BANDS_PER_THREAD = 4
+
+
+def _cuda_driver_present() -> bool:
+    for name in ("libcuda.so.1", "libcuda.so", "nvcuda.dll"):
+        with contextlib.suppress(OSError):
+            ctypes.CDLL(name)
+            return True
+    return False
+
+
+@contextlib.contextmanager
+def _stderr_silenced():
+    """Silence file descriptor 2 (native code writes there directly, bypassing sys.stderr)."""
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr at all
+        yield
+        return
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def ensure_warp() -> None:
+    """Initialise Warp once, without its start-up banner or the no-CUDA-driver warning on CPU-only machines."""
+    global _initialised
+    if _initialised:
+        return
+    with _init_lock:
+        if _initialised:
+            return
+        wp.config.log_level = wp.LOG_WARNING
+        if _cuda_driver_present():
+            wp.init()
+        else:
+            with _stderr_silenced():
+                wp.init()
+        _initialised = True
+
+
+def set_cpu_threads(num_threads: int | None) -> None:
+    """Threads for CPU compositing; None follows torch.get_num_threads()."""
+    global _cpu_threads
+    if num_threads is not None and num_threads < 1:
+        raise ValueError(f"the number of CPU threads must be at least 1, got {num_threads}")
+    _cpu_threads = num_threads
+
+
+def cpu_threads() -> int:
+    return _cpu_threads or max(1, torch.get_num_threads())
+
+
+def _thread_pool(size: int) -> ThreadPoolExecutor:
+    global _pool, _pool_size
+    if _pool is None or _pool_size != size:
+        if _pool is not None:
+            _pool.shutdown(wait=True)
+        _pool = ThreadPoolExecutor(max_workers=size, thread_name_prefix="mcsplat-raster")
+        _pool_size = size
+    return _pool
+
+
+def _bands(tile_ranges: torch.Tensor, num_bands: int) -> list[tuple[int, int]]:
+    """Contiguous [first, last) tile ranges of roughly equal work (pairs to walk plus a fixed cost per tile)."""
+    work = (tile_ranges[:, 1] - tile_ranges[:, 0]).to(torch.float64) + 4.0
+    cumulative = torch.cumsum(work, 0)
+    targets = cumulative[-1] * torch.arange(1, num_bands, dtype=torch.float64) / num_bands
+    cuts = torch.searchsorted(cumulative, targets).tolist()
+    edges = [0] + cuts + [tile_ranges.shape[0]]
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
+def warp_view(tensor: torch.Tensor) -> wp.array:
+    """A Warp array over the tensor's memory (no copy)."""
+    return wp.from_torch(tensor.detach(), requires_grad=False)
+
+
+def run_bands(kernel, inputs_for_worker, num_tiles: int, tile_ranges: torch.Tensor, device: torch.device,
+              num_workers: int, threads_per_tile: int) -> None:
+    """Launch `kernel` over all tiles, `threads_per_tile` Warp threads each (256: a thread per pixel; 1: a thread
+    per tile); `inputs_for_worker(w, first_tile)` gives the argument list of worker w."""
+    if device.type == "cuda":
+        with wp.ScopedStream(wp.stream_from_torch(device)):
+            wp.launch(kernel, dim=num_tiles * threads_per_tile, inputs=inputs_for_worker(0, 0),
+                      device=wp.device_from_torch(device))
+        return
+    if num_workers == 1:
+        wp.launch(kernel, dim=num_tiles * threads_per_tile, inputs=inputs_for_worker(0, 0), device="cpu")
+        return
+    # Worker w launches bands w, w + W, w + 2W, ... in order: a fixed assignment, so every gradient buffer sums
+    # the same values in the same order on every run (bitwise reproducible training and resume).
+    bands = _bands(tile_ranges, num_workers * BANDS_PER_THREAD)
+
+    def run(worker: int) -> None:
+        for first, last in bands[worker::num_workers]:
+            wp.launch(kernel, dim=(last - first) * threads_per_tile, inputs=inputs_for_worker(worker, first),
+                      device="cpu")
+
+    for future in [_thread_pool(num_workers).submit(run, w) for w in range(num_workers)]:
+        future.result()
+
+
+def num_workers_for(device: torch.device, num_tiles: int) -> int:
+    return 1 if device.type == "cuda" else max(1, min(cpu_threads(), num_tiles))
+
+
+def warp_scalar(dtype: torch.dtype):
+    if dtype == torch.float32:
+        return wp.float32
+    if dtype == torch.float64:
+        return wp.float64
+    raise TypeError(f"the rasterizer supports float32 and float64 tensors, got {dtype}")
