@@ -1,7 +1,8 @@
 """Differentiable Gaussian rasterizer: `render(gaussians, camera, background, sh_degree) -> RenderResult`.
 
-Projection, SH colour and binning run in torch (autograd gives their backward); alpha compositing runs in Warp
-kernels with a hand-written backward (kernels.py), on every CPU core or on CUDA, wherever the tensors are.
+Projection and SH colour run in one Warp kernel (project_kernel.py), binning in torch, and alpha compositing in Warp
+kernels with a hand-written backward: SIMD kernels on the CPU (cpu/), scalar kernels on CUDA and for float64
+(kernels.py). Everything runs on every CPU core or on CUDA, wherever the tensors are.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ import torch
 from ..camera import Camera
 from .binning import TileBins, bin_gaussians
 from .launch import CompositeFunction, cpu_threads, ensure_warp, set_cpu_threads
-from .project import TILE_SIZE, project_gaussians, view_dependent_colors
+from .project import TILE_SIZE
+from .project_kernel import project_and_shade
 from .sh import degree_from_bases
 
 __all__ = ["render", "RenderResult", "Splats", "GaussiansLike", "set_cpu_threads", "cpu_threads", "ensure_warp"]
@@ -73,12 +75,11 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
     bg = torch.zeros(3, dtype=dtype, device=device) if background is None else \
         torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
 
-    projection = project_gaussians(means, quats, scales, opacities, camera, near=near, far=far, eps2d=eps2d,
-                                   opacity_aware_radius=opacity_aware_radius)
+    projection, colors = project_and_shade(means, quats, scales, opacities, sh, camera, degree, near=near, far=far,
+                                           eps2d=eps2d, opacity_aware_radius=opacity_aware_radius)
     means2d = projection.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
-    colors = view_dependent_colors(means, sh, camera, degree)
     tiles_x = -(-camera.width // TILE_SIZE)
     tiles_y = -(-camera.height // TILE_SIZE)
     bins: TileBins = bin_gaussians(projection.tile_min, projection.tile_max, projection.depths, projection.radii,

@@ -79,7 +79,7 @@ def cpu_threads() -> int:
     return _cpu_threads or max(1, torch.get_num_threads())
 
 
-def _thread_pool(size: int) -> ThreadPoolExecutor:
+def thread_pool(size: int) -> ThreadPoolExecutor:
     global _pool, _pool_size
     if _pool is None or _pool_size != size:
         if _pool is not None:
@@ -125,7 +125,7 @@ def run_bands(kernel, inputs_for_worker, num_tiles: int, tile_ranges: torch.Tens
             wp.launch(kernel, dim=(last - first) * threads_per_tile, inputs=inputs_for_worker(worker, first),
                       device="cpu")
 
-    for future in [_thread_pool(num_workers).submit(run, w) for w in range(num_workers)]:
+    for future in [thread_pool(num_workers).submit(run, w) for w in range(num_workers)]:
         future.result()
 
 
