@@ -5,7 +5,9 @@
 
 Scene: N Gaussians in a ball in front of the camera, scaled so that about 32 Gaussians are composited per pixel at
 100k and 400x400 (the reference configuration of the targets). Timed separately: the compositing kernels alone
-(forward, backward) and the whole render + backward (projection, SH, binning, compositing, autograd).
+(forward, backward) and the whole render + backward (projection, SH, binning, compositing, autograd). On the CPU the
+same scene is also timed, in the same process, through the kernels as they were before the SIMD work (the scalar
+compositing kernels; torch projection, SH and binning), and the speed-ups are reported as ratios.
 """
 
 from __future__ import annotations
@@ -20,10 +22,11 @@ import time
 
 import torch
 
+import _common as C
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import Splats, render, set_cpu_threads
 from mcsplat.render.binning import bin_gaussians
-from mcsplat.render.launch import CompositeFunction
+from mcsplat.render.launch import CompositeFunction, set_cpu_kernels
 from mcsplat.render.project import TILE_SIZE, project_gaussians, view_dependent_colors
 
 
@@ -61,7 +64,7 @@ def timed(fn, device: str, repeats: int) -> list[float]:
     return times
 
 
-def bench(n: int, size: int, threads: int, device: str, repeats: int) -> dict:
+def bench(n: int, size: int, threads: int, device: str, repeats: int, baseline: bool = True) -> dict:
     set_cpu_threads(threads)
     torch.set_num_threads(threads)
     splats, camera = make_scene(n, size, device)
@@ -78,29 +81,39 @@ def bench(n: int, size: int, threads: int, device: str, repeats: int) -> dict:
                                                             proj.depths)]
     grad_rgb = torch.rand(size, size, 3, device=device)
 
-    def composite_forward():
-        return CompositeFunction.apply(*inputs, background, bins, size, size)
+    def composite_times(kernels: str) -> tuple[list[float], list[float]]:
+        set_cpu_kernels(kernels)
+        state = {}
 
-    state = {}
+        def forward_only():
+            state["out"] = CompositeFunction.apply(*inputs, background, bins, size, size)
 
-    def forward_only():
-        state["out"] = composite_forward()
+        def backward_only():
+            torch.autograd.backward(state["out"][0], grad_rgb, inputs=inputs)
 
-    def backward_only():
-        torch.autograd.backward(state["out"][0], grad_rgb, inputs=inputs)
-
-    composite_forward()  # compile / warm up
-    fwd, bwd = [], []
-    for _ in range(repeats):
-        fwd += timed(forward_only, device, 1)
-        bwd += timed(backward_only, device, 1)
+        forward_only()  # compile / warm up
+        backward_only()
+        fwd, bwd = [], []
+        for _ in range(repeats):
+            fwd += timed(forward_only, device, 1)
+            bwd += timed(backward_only, device, 1)
+        set_cpu_kernels("simd")
+        return fwd, bwd
 
     def full_step():
         out = render(splats, camera, background, 3)
         (out.rgb * grad_rgb).sum().backward()
 
+    fwd, bwd = composite_times("simd")
     full_step()
     full = timed(full_step, device, repeats)
+    peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # before the baseline runs
+    record_baseline = baseline and device == "cpu"
+    if record_baseline:  # the same scene through the kernels as they were, in this process
+        base_fwd, base_bwd = composite_times("scalar")
+        with C.baseline_render_path():
+            full_step()
+            base_full = timed(full_step, device, repeats)
 
     walked, composited = _per_pixel_counts(bins, inputs, size)
     record = {
@@ -114,8 +127,15 @@ def bench(n: int, size: int, threads: int, device: str, repeats: int) -> dict:
         "render_forward_backward_ms": round(statistics.median(full), 1),
         "repeats": repeats,
     }
+    if record_baseline:
+        base_total = statistics.median(base_fwd) + statistics.median(base_bwd)
+        record.update({
+            "baseline_composite_total_ms": round(base_total, 1),
+            "composite_speedup": round(base_total / (statistics.median(fwd) + statistics.median(bwd)), 2),
+            "baseline_render_forward_backward_ms": round(statistics.median(base_full), 1),
+            "render_speedup": round(statistics.median(base_full) / statistics.median(full), 2)})
     if device == "cpu":
-        record["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+        record["peak_rss_mb"] = round(peak_rss_mb, 1)
     else:
         record["peak_cuda_mb"] = round(torch.cuda.max_memory_allocated() / 2 ** 20, 1)
     return record
@@ -153,12 +173,14 @@ def main() -> None:
     parser.add_argument("--threads", type=int, nargs="+", default=[1, torch.get_num_threads()])
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--no-baseline", action="store_true",
+                        help="skip the in-process baseline (the scalar kernels and the torch projection/binning)")
     args = parser.parse_args()
     threads = sorted(set(args.threads)) if args.device == "cpu" else [1]
     for size in args.resolutions:
         for n in args.sizes:
             for t in threads:
-                print(json.dumps(bench(n, size, t, args.device, args.repeats)), flush=True)
+                print(json.dumps(bench(n, size, t, args.device, args.repeats, not args.no_baseline)), flush=True)
 
 
 if __name__ == "__main__":

@@ -9,8 +9,7 @@ regularizers, backward, one Adam step per parameter, strategy.step_post_optimize
 steps). The same step (`train_step`) is also run with a PhaseClock, which reads the clock after a device sync between
 phases and wraps the pieces that the real render() calls, so render() itself runs unchanged:
 
-    projection           activations, EWA projection, culling, tile rectangles, SH colours (project_gaussians,
-                         view_dependent_colors)
+    projection           activations, EWA projection, culling, tile rectangles, SH colours (project_and_shade)
     binning              (tile, depth) keys, sort, tile ranges (bin_gaussians)
     composite_forward    the Warp forward kernels (CompositeFunction.apply)
     loss                 L1 + SSIM + regularizers, forward
@@ -20,6 +19,10 @@ phases and wraps the pieces that the real render() calls, so render() itself run
     optimizer            the six Adam steps and zero_grad
     strategy             step_post_backward + step_post_optimizer (noise), plus one refine step / 100 (amortised)
     other                the rest (learning-rate update, image to float, render()'s glue, instrumentation)
+
+With --baseline the same process also times plain steps through the render path as it was before the CPU kernels
+(torch projection, SH and binning, scalar Warp compositing: `_common.baseline_render_path`), on the same model and
+views, and reports the ratio.
 
 Each configuration runs in a fresh subprocess so that its peak memory (ru_maxrss) is its own. The Gaussians are not
 the random initialisation (tiny splats: an unrealistically cheap step) but a calibrated stand-in for a trained model,
@@ -156,7 +159,7 @@ def step_numbers(start: int = 1001):
 # ------------------------------------------------------------------------------------------------------- the step
 class PhaseClock:
     """Times the phases of train_step. While active it replaces, in mcsplat.render's namespace, the pieces render()
-    calls (project_gaussians, view_dependent_colors, bin_gaussians, CompositeFunction) by timed wrappers, so the
+    calls (project_and_shade, bin_gaussians, CompositeFunction) by timed wrappers, so the
     real render() runs unchanged; every reading of the clock is preceded by a device synchronisation."""
 
     def __init__(self, device: torch.device):
@@ -200,7 +203,7 @@ class PhaseClock:
     def __enter__(self) -> "PhaseClock":
         clock = self
         self._saved = {name: getattr(R, name) for name in
-                       ("project_gaussians", "view_dependent_colors", "bin_gaussians", "CompositeFunction")}
+                       ("project_and_shade", "bin_gaussians", "CompositeFunction")}
 
         def timed(phase, fn, keep=None):
             def wrapper(*args, **kwargs):
@@ -228,8 +231,7 @@ class PhaseClock:
                 clock.add("backward_composite", C.now(clock.device) - t0)
                 return out
 
-        R.project_gaussians = timed("projection", self._saved["project_gaussians"])
-        R.view_dependent_colors = timed("projection", self._saved["view_dependent_colors"])
+        R.project_and_shade = timed("projection", self._saved["project_and_shade"])
         R.bin_gaussians = timed("binning", self._saved["bin_gaussians"], keep="bins")
         R.CompositeFunction = TimedComposite
         return self
@@ -331,6 +333,14 @@ def run_one(cfg: dict) -> dict:
         train_step(b, next(steps), view)
         plain.append(C.now(device) - t0)
         view += 1
+    baseline = []
+    if cfg.get("baseline"):
+        with C.baseline_render_path():
+            for _ in range(cfg["plain"]):
+                t0 = C.now(device)
+                train_step(b, next(steps), view)
+                baseline.append(C.now(device) - t0)
+                view += 1
     refine = refine_seconds(b, cfg["refines"], cfg["seed"]) if cfg["refines"] else []
 
     ms = {p: C.median(v) * 1000.0 for p, v in phases.items()}
@@ -345,6 +355,8 @@ def run_one(cfg: dict) -> dict:
         "strategy": cfg["strategy"],
         "step_ms": round(C.median(plain) * 1000.0 + refine_extra_ms / REFINE_EVERY, 1) if plain else None,
         "instrumented_step_ms": round(ms["total"] + refine_extra_ms / REFINE_EVERY, 1),
+        "baseline_step_ms": round(C.median(baseline) * 1000.0, 1) if baseline else None,
+        "speedup_over_baseline": round(C.median(baseline) / C.median(plain), 2) if baseline and plain else None,
         "phases_ms": {p: round(ms[p], 2) for p in PHASES},
         "shares": {p: round(ms[p] / phase_sum, 4) for p in PHASES},
         "dominant": ranked[0], "dominant_share": round(ms[ranked[0]] / phase_sum, 3),
@@ -379,6 +391,8 @@ def label(r: dict) -> str:
 
 def markdown(records: list[dict], info: dict, args) -> str:
     cols = [("Gaussians", "gaussians", ""), ("threads", "threads", ""), ("step ms", "step_ms", ".1f")]
+    if records and records[0].get("baseline_step_ms"):
+        cols += [("baseline ms", "baseline_step_ms", ".1f"), ("speed-up", "speedup_over_baseline", ".2f")]
     cols += [(p.replace("_", " "), p, lambda r, p=p: f"{r['phases_ms'][p]:.1f} ({100 * r['shares'][p]:.0f}%)")
              for p in PHASES]
     mem = "peak_cuda_mb" if records and "peak_cuda_mb" in records[0] else "peak_rss_mb"
@@ -440,6 +454,8 @@ def main() -> None:
     parser.add_argument("--plain", type=int, default=5, help="un-instrumented trainer steps (the 'step ms' figure)")
     parser.add_argument("--refines", type=int, default=3, help="timed refine steps (0: leave them out)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--baseline", action="store_true",
+                        help="also time plain steps through the pre-kernel render path, in the same process")
     parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/train_speed)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -457,7 +473,7 @@ def main() -> None:
         for t in threads:
             cfg = {"gaussians": n, "threads": t, "device": args.device, "scene_model": args.scene_model,
                    "strategy": args.strategy, "warmup": args.warmup, "repeats": args.repeats, "plain": args.plain,
-                   "refines": args.refines, "seed": args.seed,
+                   "refines": args.refines, "seed": args.seed, "baseline": args.baseline,
                    "data": str(C.scene_path(args.scene, args.data_root))}
             started = time.perf_counter()
             record = run_in_subprocess(cfg)

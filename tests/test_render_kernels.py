@@ -1,5 +1,5 @@
-"""Projection + SH and binning as Warp kernels, against the torch versions they replaced (project.py, and the torch
-binning kept in tests/torch_binning.py): the same values, the same gradients, the same lists."""
+"""Projection + SH and binning as Warp kernels, against the torch versions they replaced (project.py and
+binning_torch.py): the same values, the same gradients, the same lists."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import torch
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import set_cpu_threads
 from mcsplat.render.binning import bin_gaussians
+from mcsplat.render.binning_torch import torch_bin_gaussians
 from mcsplat.render.project import project_gaussians, view_dependent_colors
 from mcsplat.render.project_kernel import project_and_shade
 
 from test_render import PARAMS, make_camera, random_splats
-from torch_binning import torch_bin_gaussians
 
 OUTPUTS = ("means2d", "conics", "depths", "radii", "tile_min", "tile_max", "alpha_extent")
 

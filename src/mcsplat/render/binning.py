@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from .runtime import ensure_warp
+from .runtime import ensure_warp, run_ranges
 
 
 @dataclass
@@ -77,10 +77,10 @@ def _spans(means2d: wp.array2d(dtype=float), alpha_extent: wp.array2d(dtype=floa
 
 
 @wp.kernel
-def _count_pairs(tile_min: wp.array2d(dtype=wp.int32), tile_max: wp.array2d(dtype=wp.int32),
+def _count_pairs(offset: int, tile_min: wp.array2d(dtype=wp.int32), tile_max: wp.array2d(dtype=wp.int32),
                  means2d: wp.array2d(dtype=float), alpha_extent: wp.array2d(dtype=float), use_masks: int,
                  counts: wp.array(dtype=wp.int32)):
-    i = wp.tid()
+    i = offset + wp.tid()
     first_x, last_x, first_y, last_y = _spans(means2d, alpha_extent, i, use_masks)
     count = int(0)
     for ty in range(tile_min[i, 1], tile_max[i, 1]):
@@ -91,12 +91,12 @@ def _count_pairs(tile_min: wp.array2d(dtype=wp.int32), tile_max: wp.array2d(dtyp
 
 
 @wp.kernel
-def _write_pairs(tile_min: wp.array2d(dtype=wp.int32), tile_max: wp.array2d(dtype=wp.int32),
+def _write_pairs(offset: int, tile_min: wp.array2d(dtype=wp.int32), tile_max: wp.array2d(dtype=wp.int32),
                  means2d: wp.array2d(dtype=float), alpha_extent: wp.array2d(dtype=float), use_masks: int,
                  depth_keys: wp.array(dtype=wp.int64), tiles_x: int, offsets: wp.array(dtype=wp.int32),
                  keys: wp.array(dtype=wp.int64), gaussian_ids: wp.array(dtype=wp.int32),
                  masks: wp.array(dtype=wp.int32)):
-    i = wp.tid()
+    i = offset + wp.tid()
     first_x, last_x, first_y, last_y = _spans(means2d, alpha_extent, i, use_masks)
     slot = offsets[i]
     for ty in range(tile_min[i, 1], tile_max[i, 1]):
@@ -138,12 +138,10 @@ def bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.
         spans = [means2d.detach().float().contiguous(), alpha_extent.detach().float().contiguous()]
     else:
         spans = [torch.zeros(1, 2, device=device)] * 2
-    wp_device = wp.device_from_torch(device)
     rectangles = [wp.from_torch(t.contiguous()) for t in (tile_min, tile_max)]
     rectangles += [wp.from_torch(t) for t in spans] + [int(use_masks)]
     counts = torch.zeros(n, dtype=torch.int32, device=device)
-    if n:
-        wp.launch(_count_pairs, dim=n, inputs=rectangles + [wp.from_torch(counts)], device=wp_device)
+    run_ranges(_count_pairs, n, device, rectangles + [wp.from_torch(counts)])
     ends = torch.cumsum(counts, 0, dtype=torch.int64)
     total = int(ends[-1]) if n else 0
     # The radix sort needs room for twice the pairs; the pair's slot rides along as the value.
@@ -153,7 +151,7 @@ def bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.
     masks = torch.empty(total, dtype=torch.int32, device=device)
     if total:
         offsets = (ends - counts).to(torch.int32)
-        wp.launch(_write_pairs, dim=n, device=wp_device, inputs=rectangles + [
+        run_ranges(_write_pairs, n, device, rectangles + [
             wp.from_torch(_depth_keys(depths, radii > 0)), tiles_x, wp.from_torch(offsets), wp.from_torch(keys),
             wp.from_torch(ids), wp.from_torch(masks)])
         torch.arange(total, dtype=torch.int32, device=device, out=slots[:total])

@@ -17,7 +17,7 @@ import warp as wp
 
 from ..camera import Camera
 from .project import TILE_SIZE, Projection
-from .runtime import cpu_threads, ensure_warp, thread_pool, warp_scalar
+from .runtime import ensure_warp, run_ranges, warp_scalar
 from .sh import SH_C0, SH_C1, SH_C2, SH_C3
 
 # Warp kernels read module constants only as plain numbers.
@@ -378,34 +378,6 @@ def _scalar_view(tensor: torch.Tensor):
     return wp.from_torch(tensor.detach(), requires_grad=False)
 
 
-def _ranges(n: int, device: torch.device) -> list[tuple[int, int]]:
-    """[first, last) ranges of Gaussians, one per CPU thread (one range on CUDA)."""
-    parts = 1 if device.type == "cuda" else max(1, min(cpu_threads(), n // 4096))
-    edges = [n * k // parts for k in range(parts + 1)]
-    return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
-
-
-def _launch(kernel, n: int, device: torch.device, arguments: list) -> None:
-    """One thread per Gaussian; `arguments` follow the kernel's first argument (the offset of a range)."""
-    wp_device = wp.device_from_torch(device)
-
-    def run(first: int, last: int) -> None:
-        wp.launch(kernel, dim=last - first, inputs=[first] + arguments, device=wp_device)
-
-    if n == 0:
-        return
-    if device.type == "cuda":
-        with wp.ScopedStream(wp.stream_from_torch(device)):
-            run(0, n)
-        return
-    ranges = _ranges(n, device)
-    if len(ranges) == 1:
-        run(*ranges[0])
-        return
-    for future in [thread_pool(len(ranges)).submit(run, a, b) for a, b in ranges]:
-        future.result()
-
-
 class _ProjectFunction(torch.autograd.Function):
     """(means, quats, scales, sh) -> (means2d, conics, depths, colors); radii, tile rectangles and alpha extents
     come along without gradient (opacities enter only those)."""
@@ -422,7 +394,7 @@ class _ProjectFunction(torch.autograd.Function):
         means2d, conics, depths, colors = empty(n, 2), empty(n, 3), empty(n), empty(n, 3)
         radii, tile_min, tile_max, alpha_extent = empty_int(n), empty_int(n, 2), empty_int(n, 2), empty(n, 2)
         forward_kernel, _ = projection_kernels(scalar)
-        _launch(forward_kernel, n, device, [
+        run_ranges(forward_kernel, n, device, [
             *camera_args, sh_degree, int(opacity_aware_radius),
             _vector_view(means, 3, scalar), _vector_view(quats, 4, scalar), _vector_view(scales, 3, scalar),
             _scalar_view(opacities), _vector_view(sh, 3, scalar),
@@ -443,7 +415,7 @@ class _ProjectFunction(torch.autograd.Function):
         grads = [torch.zeros_like(t) for t in (means, quats, scales, sh)]
         _, backward_kernel = projection_kernels(scalar)
         camera_args = ctx.camera_args[:9] + ctx.camera_args[11:]  # the backward has no use for the tile counts
-        _launch(backward_kernel, n, means.device, [
+        run_ranges(backward_kernel, n, means.device, [
             *camera_args, ctx.sh_degree,
             _vector_view(means, 3, scalar), _vector_view(quats, 4, scalar), _vector_view(scales, 3, scalar),
             _vector_view(sh, 3, scalar),

@@ -139,3 +139,27 @@ def warp_scalar(dtype: torch.dtype):
     if dtype == torch.float64:
         return wp.float64
     raise TypeError(f"the rasterizer supports float32 and float64 tensors, got {dtype}")
+
+
+def run_ranges(kernel, n: int, device: torch.device, arguments: list, min_per_thread: int = 4096) -> None:
+    """Launch a kernel whose first argument is an offset over items [0, n): on the CPU as contiguous ranges from the
+    thread pool (each item is written by one thread only, so the result does not depend on timing), on CUDA as
+    one launch."""
+    if n == 0:
+        return
+    wp_device = wp.device_from_torch(device)
+
+    def run(first: int, last: int) -> None:
+        wp.launch(kernel, dim=last - first, inputs=[first] + arguments, device=wp_device)
+
+    if device.type == "cuda":
+        with wp.ScopedStream(wp.stream_from_torch(device)):
+            run(0, n)
+        return
+    parts = max(1, min(cpu_threads(), n // max(1, min_per_thread)))
+    edges = [n * k // parts for k in range(parts + 1)]
+    if parts == 1:
+        run(0, n)
+        return
+    for future in [thread_pool(parts).submit(run, a, b) for a, b in zip(edges[:-1], edges[1:])]:
+        future.result()

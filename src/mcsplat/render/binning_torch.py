@@ -1,15 +1,13 @@
-"""The binning as it was written in torch before it became Warp kernels: the oracle for tests/test_render_kernels.py.
-
-Sorting by (tile, depth rank) with ties broken by index, and the 4x4-block masks of each (tile, Gaussian) pair.
-"""
+"""The binning in plain torch, as it was before binning.py became Warp kernels: the tests' oracle and the benchmarks'
+baseline, never used for rendering. Sorting by (tile, depth rank), ties broken by index, and the 4x4-block masks of
+each (tile, Gaussian) pair, with the same results as binning.py."""
 
 from __future__ import annotations
 
 import torch
 
-from mcsplat.render.binning import ALL_BLOCKS, BLOCK, TileBins
-
-TILE_SIZE = 16
+from .binning import ALL_BLOCKS, BLOCK, TileBins
+from .project import TILE_SIZE
 
 
 def torch_bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.Tensor, radii: torch.Tensor,
