@@ -133,6 +133,9 @@ _GRADIENT_DOWN_COLUMNS = _HELPERS + """
     }
 """
 
+# Fused multiply-add in the blur loops (Warp's default keeps a * b + c as two roundings).
+wp.set_module_options({"cpu_compiler_flags": "-march=native -ffp-contract=fast"})
+
 _floats = wp.array(dtype=wp.float32)
 
 
