@@ -305,11 +305,16 @@ def run_one(cfg: dict) -> dict:
     """Measure one configuration in this process (the parent runs it in a fresh subprocess)."""
     device = cfg["device"]
     C.set_threads(cfg["threads"])
-    scene = C.load(cfg["data"])
+    scene = C.load(cfg["data"], cfg.get("downscale", 1))
     cameras, images = training_views(scene)
     baseline_rss = C.current_rss_mb()  # imports and the scene's images, before any Gaussian exists
-    builder = realistic_model if cfg["scene_model"] == "realistic" else init_model
-    model = builder(cfg["gaussians"], cfg["seed"])
+    if cfg["scene_model"] == "sfm":  # the scene's own SfM points, as `mcsplat train` initialises a capture
+        if scene.points is None:
+            sys.exit(f"train_speed: {cfg['data']} has no SfM points for --scene-model sfm")
+        model = GaussianModel.from_points(scene.points, scene.point_colors)
+    else:
+        builder = realistic_model if cfg["scene_model"] == "realistic" else init_model
+        model = builder(cfg["gaussians"], cfg["seed"])
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     b = Bench.make(model, scene, cameras, images, device, cfg["strategy"])
@@ -333,6 +338,7 @@ def run_one(cfg: dict) -> dict:
         train_step(b, next(steps), view)
         plain.append(C.now(device) - t0)
         view += 1
+    peak_rss = C.peak_rss_mb()  # before the baseline's steps, which need more memory
     baseline = []
     if cfg.get("baseline"):
         with C.baseline_render_path():
@@ -350,7 +356,7 @@ def run_one(cfg: dict) -> dict:
     ranked = sorted(PHASES, key=lambda p: -ms[p])
     record = {
         "benchmark": "train_speed", "device": device if device != "cpu" else f"cpu ({C.cpu_name()})",
-        "gaussians": cfg["gaussians"], "image": f"{b.camera(0).width}x{b.camera(0).height}",
+        "gaussians": b.model.num_gaussians, "image": f"{b.camera(0).width}x{b.camera(0).height}",
         "threads": cfg["threads"] if device == "cpu" else None, "scene_model": cfg["scene_model"],
         "strategy": cfg["strategy"],
         "step_ms": round(C.median(plain) * 1000.0 + refine_extra_ms / REFINE_EVERY, 1) if plain else None,
@@ -371,7 +377,7 @@ def run_one(cfg: dict) -> dict:
     if device.startswith("cuda"):
         record["peak_cuda_mb"] = round(torch.cuda.max_memory_allocated() / 2 ** 20, 1)
     else:
-        record["peak_rss_mb"] = round(C.peak_rss_mb(), 1)
+        record["peak_rss_mb"] = round(peak_rss, 1)
         record["rss_before_model_mb"] = round(baseline_rss, 1) if baseline_rss is not None else None
     return record
 
@@ -446,8 +452,10 @@ def main() -> None:
     parser.add_argument("--device", default="cpu", help="cpu or cuda")
     parser.add_argument("--scene", default="lego", help="lego (shared data) or a scene folder")
     parser.add_argument("--data-root", default=str(C.DATA_ROOT))
-    parser.add_argument("--scene-model", choices=("realistic", "init"), default="realistic",
-                        help="realistic: calibrated stand-in for a trained model; init: the MCMC random init")
+    parser.add_argument("--scene-model", choices=("realistic", "init", "sfm"), default="realistic",
+                        help="realistic: calibrated stand-in for a trained model; init: the MCMC random init; "
+                             "sfm: the scene's SfM points (--sizes is then ignored)")
+    parser.add_argument("--downscale", type=int, default=1, help="image downscale factor of the scene")
     parser.add_argument("--strategy", choices=("mcmc", "adc"), default="mcmc")
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=10, help="instrumented steps (medians)")
@@ -469,11 +477,13 @@ def main() -> None:
     load = C.warn_if_busy()
     threads = sorted(set(args.threads)) if args.device == "cpu" else [None]
     records = []
-    for n in args.sizes:
+    sizes = [0] if args.scene_model == "sfm" else args.sizes  # the SfM points fix the count
+    for n in sizes:
         for t in threads:
             cfg = {"gaussians": n, "threads": t, "device": args.device, "scene_model": args.scene_model,
                    "strategy": args.strategy, "warmup": args.warmup, "repeats": args.repeats, "plain": args.plain,
                    "refines": args.refines, "seed": args.seed, "baseline": args.baseline,
+                   "downscale": args.downscale,
                    "data": str(C.scene_path(args.scene, args.data_root))}
             started = time.perf_counter()
             record = run_in_subprocess(cfg)

@@ -94,3 +94,18 @@ def test_binning_with_nothing_visible():
     zeros = torch.zeros(5, 2, dtype=torch.int32)
     bins = bin_gaussians(zeros, zeros, torch.ones(5), torch.zeros(5, dtype=torch.int32), 3, 2)
     assert bins.num_pairs == 0 and bins.tile_ranges.shape == (6, 2) and not bins.tile_ranges.any()
+
+
+def test_compile_kernels_leaves_nothing_to_compile(tmp_path):
+    import warp as wp
+
+    from mcsplat.render.compile import compile_kernels, modules_to_compile
+
+    compile_kernels(torch.device("cpu"))
+    assert modules_to_compile(torch.device("cpu")) == 0
+    cache = wp.config.kernel_cache_dir
+    wp.config.kernel_cache_dir = str(tmp_path)  # an empty cache: every module would need a compile
+    try:
+        assert modules_to_compile(torch.device("cpu")) >= 4
+    finally:
+        wp.config.kernel_cache_dir = cache
