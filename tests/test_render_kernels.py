@@ -109,3 +109,25 @@ def test_compile_kernels_leaves_nothing_to_compile(tmp_path):
         assert modules_to_compile(torch.device("cpu")) >= 4
     finally:
         wp.config.kernel_cache_dir = cache
+
+
+def test_split_sh_of_a_model_renders_like_the_concatenated_coefficients():
+    """GaussianModel hands render() sh0 and shN apart; the image and every gradient match the concatenated path."""
+    from mcsplat.gaussians import GaussianModel
+    from mcsplat.render import Splats, render
+
+    splats = random_splats(200, 12)
+    g = torch.Generator().manual_seed(3)
+    model = GaussianModel(splats.means, torch.log(splats.scales), splats.quats, torch.logit(splats.opacities),
+                          splats.sh[:, :1].clone(), splats.sh[:, 1:].clone())
+    camera = make_camera()
+    weights = torch.randn(camera.height, camera.width, 3, generator=g)
+    split = render(model, camera, background=(0.1, 0.2, 0.3))
+    (split.rgb * weights).sum().backward()
+    together = Splats(model.means.detach(), model.quats.detach(), model.scales.detach(), model.opacities.detach(),
+                      model.sh.detach().clone().requires_grad_())
+    joined = render(together, camera, background=(0.1, 0.2, 0.3))
+    (joined.rgb * weights).sum().backward()
+    assert torch.equal(split.rgb, joined.rgb)
+    assert torch.equal(model.params["sh0"].grad, together.sh.grad[:, :1])
+    assert torch.equal(model.params["shN"].grad, together.sh.grad[:, 1:])

@@ -207,6 +207,11 @@ class GaussianModel(torch.nn.Module):
         return torch.cat([self.params["sh0"], self.params["shN"]], dim=1)
 
     @property
+    def sh_parts(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(sh0 [N, 1, 3], shN [N, K - 1, 3]) as stored: render() reads them without concatenating."""
+        return self.params["sh0"], self.params["shN"]
+
+    @property
     def sh_degree(self) -> int:
         """The largest SH degree the model stores."""
         return math.isqrt(self.params["shN"].shape[1] + 1) - 1

@@ -64,19 +64,20 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
            sh_degree: int | None = None, *, near: float = 0.01, far: float = 1e10, eps2d: float = 0.3,
            opacity_aware_radius: bool = False) -> RenderResult:
     """Render one view. `sh_degree` None uses every SH coefficient given; `background` defaults to black."""
-    means, quats, scales = gaussians.means, gaussians.quats, gaussians.scales
-    opacities, sh = gaussians.opacities, gaussians.sh
-    _check_inputs(means, quats, scales, opacities, sh)
+    means, quats, scales, opacities = gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities
+    sh, sh_rest = _sh_arrays(gaussians)
+    _check_inputs(means, quats, scales, opacities, sh, sh_rest)
     dtype, device = means.dtype, means.device
-    max_degree = degree_from_bases(sh.shape[1])
+    max_degree = degree_from_bases(sh.shape[1] + (0 if sh_rest is None else sh_rest.shape[1]))
     degree = max_degree if sh_degree is None else sh_degree
     if not 0 <= degree <= max_degree:
         raise ValueError(f"sh_degree must be in 0..{max_degree} for these coefficients, got {sh_degree}")
     bg = torch.zeros(3, dtype=dtype, device=device) if background is None else \
         torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
 
-    projection, colors = project_and_shade(means, quats, scales, opacities, sh, camera, degree, near=near, far=far,
-                                           eps2d=eps2d, opacity_aware_radius=opacity_aware_radius)
+    projection, colors = project_and_shade(means, quats, scales, opacities, sh, camera, degree, sh_rest=sh_rest,
+                                           near=near, far=far, eps2d=eps2d,
+                                           opacity_aware_radius=opacity_aware_radius)
     means2d = projection.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
@@ -91,7 +92,13 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
                         depths=projection.depths, contributed=contributed, num_pairs=bins.num_pairs)
 
 
-def _check_inputs(means, quats, scales, opacities, sh) -> None:
+def _sh_arrays(gaussians: GaussiansLike) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """(all coefficients, None), or (DC band, the rest) from a model that keeps them apart (no concatenation)."""
+    parts = getattr(gaussians, "sh_parts", None)
+    return parts if parts is not None else (gaussians.sh, None)
+
+
+def _check_inputs(means, quats, scales, opacities, sh, sh_rest=None) -> None:
     n = means.shape[0]
     expected = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 3)),
                 "opacities": (opacities, (n,))}
@@ -100,7 +107,12 @@ def _check_inputs(means, quats, scales, opacities, sh) -> None:
             raise ValueError(f"render: {name} must have shape {list(shape)}, got {list(tensor.shape)}")
     if sh.dim() != 3 or sh.shape[0] != n or sh.shape[2] != 3:
         raise ValueError(f"render: sh must have shape [{n}, K, 3], got {list(sh.shape)}")
-    for name, tensor in (("quats", quats), ("scales", scales), ("opacities", opacities), ("sh", sh)):
+    if sh_rest is not None and (sh.shape[1] != 1 or sh_rest.dim() != 3 or sh_rest.shape[0] != n
+                                or sh_rest.shape[2] != 3):
+        raise ValueError(f"render: split SH must be [{n}, 1, 3] and [{n}, K - 1, 3], got {list(sh.shape)} and "
+                         f"{list(sh_rest.shape)}")
+    extra = () if sh_rest is None else (("sh_rest", sh_rest),)
+    for name, tensor in (("quats", quats), ("scales", scales), ("opacities", opacities), ("sh", sh), *extra):
         if tensor.dtype != means.dtype or tensor.device != means.device:
             raise ValueError(f"render: {name} is {tensor.dtype} on {tensor.device}, but means are {means.dtype} "
                              f"on {means.device}; all parameters must share one dtype and device")

@@ -37,6 +37,37 @@ def projection_kernels(dtype):
     one = dtype(1.0)
     two = dtype(2.0)
 
+    @wp.func
+    def sh_color(sh_dc: wp.array2d(dtype=vec3), sh_rest: wp.array2d(dtype=vec3), shift: int, i: int,
+                 sh_degree: int, d: vec3):
+        """SH colour (before + 0.5 and the clamp) along the unit direction d; sh_rest[i, shift + k - 1] is the
+        coefficient of basis function k (shift 0 when sh_rest holds bands 1-3 alone, 1 when it holds all)."""
+        x = d[0]
+        y = d[1]
+        z = d[2]
+        color = dtype(SH_C0) * sh_dc[i, 0]
+        if sh_degree >= 1:
+            color = color + dtype(SH_C1) * (-y * sh_rest[i, shift] + z * sh_rest[i, shift + 1]
+                                             - x * sh_rest[i, shift + 2])
+        if sh_degree >= 2:
+            xx = x * x
+            yy = y * y
+            zz = z * z
+            color = color + (dtype(SH_C2_0) * x * y * sh_rest[i, shift + 3]
+                             + dtype(SH_C2_1) * y * z * sh_rest[i, shift + 4]
+                             + dtype(SH_C2_2) * (two * zz - xx - yy) * sh_rest[i, shift + 5]
+                             + dtype(SH_C2_3) * x * z * sh_rest[i, shift + 6]
+                             + dtype(SH_C2_4) * (xx - yy) * sh_rest[i, shift + 7])
+            if sh_degree >= 3:
+                color = color + (dtype(SH_C3_0) * y * (dtype(3.0) * xx - yy) * sh_rest[i, shift + 8]
+                                 + dtype(SH_C3_1) * x * y * z * sh_rest[i, shift + 9]
+                                 + dtype(SH_C3_2) * y * (dtype(4.0) * zz - xx - yy) * sh_rest[i, shift + 10]
+                                 + dtype(SH_C3_3) * z * (two * zz - dtype(3.0) * (xx + yy)) * sh_rest[i, shift + 11]
+                                 + dtype(SH_C3_4) * x * (dtype(4.0) * zz - xx - yy) * sh_rest[i, shift + 12]
+                                 + dtype(SH_C3_5) * z * (xx - yy) * sh_rest[i, shift + 13]
+                                 + dtype(SH_C3_6) * x * (xx - dtype(3.0) * yy) * sh_rest[i, shift + 14])
+        return color
+
     @wp.kernel(module="unique")
     def project(
         offset: int, rotation: mat33, translation: vec3, camera_center: vec3,
@@ -44,7 +75,8 @@ def projection_kernels(dtype):
         near: dtype, far: dtype,
         eps2d: dtype, sh_degree: int, opacity_aware_radius: int,
         means: wp.array(dtype=vec3), quats: wp.array(dtype=vec4), scales: wp.array(dtype=vec3),
-        opacities: wp.array(dtype=dtype), sh: wp.array2d(dtype=vec3),
+        opacities: wp.array(dtype=dtype), sh_dc: wp.array2d(dtype=vec3), sh_rest: wp.array2d(dtype=vec3),
+        rest_shift: int,  # sh_rest[i, rest_shift + k - 1] is band coefficient k: 0 for the rest alone, 1 for all
         means2d: wp.array(dtype=vec2), conics: wp.array(dtype=vec3), depths: wp.array(dtype=dtype),
         colors: wp.array(dtype=vec3),
         radii: wp.array(dtype=wp.int32), tile_min: wp.array2d(dtype=wp.int32), tile_max: wp.array2d(dtype=wp.int32),
@@ -93,27 +125,7 @@ def projection_kernels(dtype):
 
         # View-dependent colour along the camera-to-Gaussian direction (3DGS's SH order and signs).
         d = wp.normalize(mean - camera_center)
-        dx = d[0]
-        dy = d[1]
-        dz = d[2]
-        color = dtype(SH_C0) * sh[i, 0]
-        if sh_degree >= 1:
-            color = color + dtype(SH_C1) * (-dy * sh[i, 1] + dz * sh[i, 2] - dx * sh[i, 3])
-        if sh_degree >= 2:
-            xx = dx * dx
-            yy = dy * dy
-            zz = dz * dz
-            color = color + (dtype(SH_C2_0) * dx * dy * sh[i, 4] + dtype(SH_C2_1) * dy * dz * sh[i, 5]
-                             + dtype(SH_C2_2) * (two * zz - xx - yy) * sh[i, 6]
-                             + dtype(SH_C2_3) * dx * dz * sh[i, 7] + dtype(SH_C2_4) * (xx - yy) * sh[i, 8])
-            if sh_degree >= 3:
-                color = color + (dtype(SH_C3_0) * dy * (dtype(3.0) * xx - yy) * sh[i, 9]
-                                 + dtype(SH_C3_1) * dx * dy * dz * sh[i, 10]
-                                 + dtype(SH_C3_2) * dy * (dtype(4.0) * zz - xx - yy) * sh[i, 11]
-                                 + dtype(SH_C3_3) * dz * (two * zz - dtype(3.0) * xx - dtype(3.0) * yy) * sh[i, 12]
-                                 + dtype(SH_C3_4) * dx * (dtype(4.0) * zz - xx - yy) * sh[i, 13]
-                                 + dtype(SH_C3_5) * dz * (xx - yy) * sh[i, 14]
-                                 + dtype(SH_C3_6) * dx * (xx - dtype(3.0) * yy) * sh[i, 15])
+        color = sh_color(sh_dc, sh_rest, rest_shift, i, sh_degree, d)
         colors[i] = vec3(wp.max(color[0] + dtype(0.5), zero), wp.max(color[1] + dtype(0.5), zero),
                          wp.max(color[2] + dtype(0.5), zero))
 
@@ -165,11 +177,11 @@ def projection_kernels(dtype):
         fx: dtype, fy: dtype, cx: dtype, cy: dtype, width: int, height: int, near: dtype, far: dtype,
         eps2d: dtype, sh_degree: int,
         means: wp.array(dtype=vec3), quats: wp.array(dtype=vec4), scales: wp.array(dtype=vec3),
-        sh: wp.array2d(dtype=vec3),
+        sh_dc: wp.array2d(dtype=vec3), sh_rest: wp.array2d(dtype=vec3), rest_shift: int,
         grad_means2d: wp.array(dtype=vec2), grad_conics: wp.array(dtype=vec3), grad_depths: wp.array(dtype=dtype),
         grad_colors: wp.array(dtype=vec3),
         out_means: wp.array(dtype=vec3), out_quats: wp.array(dtype=vec4), out_scales: wp.array(dtype=vec3),
-        out_sh: wp.array2d(dtype=vec3),
+        out_dc: wp.array2d(dtype=vec3), out_rest: wp.array2d(dtype=vec3),
     ):
         """Recomputes the forward and applies the chain rule by hand, step by step in reverse."""
         i = offset + wp.tid()
@@ -284,51 +296,37 @@ def projection_kernels(dtype):
         # ---- colour = max(SH(d) + 0.5, 0), d = normalize(mean - camera centre)
         offset_dir = mean - camera_center
         d = wp.normalize(offset_dir)
-        color = dtype(SH_C0) * sh[i, 0]
+        color = sh_color(sh_dc, sh_rest, rest_shift, i, sh_degree, d)
         dx = d[0]
         dy = d[1]
         dz = d[2]
         xx = dx * dx
         yy = dy * dy
         zz = dz * dz
-        if sh_degree >= 1:
-            color = color + dtype(SH_C1) * (-dy * sh[i, 1] + dz * sh[i, 2] - dx * sh[i, 3])
-        if sh_degree >= 2:
-            color = color + (dtype(SH_C2_0) * dx * dy * sh[i, 4] + dtype(SH_C2_1) * dy * dz * sh[i, 5]
-                             + dtype(SH_C2_2) * (two * zz - xx - yy) * sh[i, 6]
-                             + dtype(SH_C2_3) * dx * dz * sh[i, 7] + dtype(SH_C2_4) * (xx - yy) * sh[i, 8])
-        if sh_degree >= 3:
-            color = color + (dtype(SH_C3_0) * dy * (dtype(3.0) * xx - yy) * sh[i, 9]
-                             + dtype(SH_C3_1) * dx * dy * dz * sh[i, 10]
-                             + dtype(SH_C3_2) * dy * (dtype(4.0) * zz - xx - yy) * sh[i, 11]
-                             + dtype(SH_C3_3) * dz * (two * zz - dtype(3.0) * xx - dtype(3.0) * yy) * sh[i, 12]
-                             + dtype(SH_C3_4) * dx * (dtype(4.0) * zz - xx - yy) * sh[i, 13]
-                             + dtype(SH_C3_5) * dz * (xx - yy) * sh[i, 14]
-                             + dtype(SH_C3_6) * dx * (xx - dtype(3.0) * yy) * sh[i, 15])
         g = vec3(wp.where(color[0] + dtype(0.5) >= zero, g_color[0], zero),
                  wp.where(color[1] + dtype(0.5) >= zero, g_color[1], zero),
                  wp.where(color[2] + dtype(0.5) >= zero, g_color[2], zero))
-        out_sh[i, 0] = dtype(SH_C0) * g
+        out_dc[i, 0] = dtype(SH_C0) * g
         g_d = vec3(zero, zero, zero)
         if sh_degree >= 1:
-            s1 = wp.dot(g, sh[i, 1])
-            s2 = wp.dot(g, sh[i, 2])
-            s3 = wp.dot(g, sh[i, 3])
-            out_sh[i, 1] = -dtype(SH_C1) * dy * g
-            out_sh[i, 2] = dtype(SH_C1) * dz * g
-            out_sh[i, 3] = -dtype(SH_C1) * dx * g
+            s1 = wp.dot(g, sh_rest[i, rest_shift])
+            s2 = wp.dot(g, sh_rest[i, rest_shift + 1])
+            s3 = wp.dot(g, sh_rest[i, rest_shift + 2])
+            out_rest[i, rest_shift] = -dtype(SH_C1) * dy * g
+            out_rest[i, rest_shift + 1] = dtype(SH_C1) * dz * g
+            out_rest[i, rest_shift + 2] = -dtype(SH_C1) * dx * g
             g_d = dtype(SH_C1) * vec3(-s3, -s1, s2)
         if sh_degree >= 2:
-            s4 = wp.dot(g, sh[i, 4])
-            s5 = wp.dot(g, sh[i, 5])
-            s6 = wp.dot(g, sh[i, 6])
-            s7 = wp.dot(g, sh[i, 7])
-            s8 = wp.dot(g, sh[i, 8])
-            out_sh[i, 4] = dtype(SH_C2_0) * dx * dy * g
-            out_sh[i, 5] = dtype(SH_C2_1) * dy * dz * g
-            out_sh[i, 6] = dtype(SH_C2_2) * (two * zz - xx - yy) * g
-            out_sh[i, 7] = dtype(SH_C2_3) * dx * dz * g
-            out_sh[i, 8] = dtype(SH_C2_4) * (xx - yy) * g
+            s4 = wp.dot(g, sh_rest[i, rest_shift + 3])
+            s5 = wp.dot(g, sh_rest[i, rest_shift + 4])
+            s6 = wp.dot(g, sh_rest[i, rest_shift + 5])
+            s7 = wp.dot(g, sh_rest[i, rest_shift + 6])
+            s8 = wp.dot(g, sh_rest[i, rest_shift + 7])
+            out_rest[i, rest_shift + 3] = dtype(SH_C2_0) * dx * dy * g
+            out_rest[i, rest_shift + 4] = dtype(SH_C2_1) * dy * dz * g
+            out_rest[i, rest_shift + 5] = dtype(SH_C2_2) * (two * zz - xx - yy) * g
+            out_rest[i, rest_shift + 6] = dtype(SH_C2_3) * dx * dz * g
+            out_rest[i, rest_shift + 7] = dtype(SH_C2_4) * (xx - yy) * g
             g_d = g_d + vec3(
                 dtype(SH_C2_0) * dy * s4 - two * dtype(SH_C2_2) * dx * s6 + dtype(SH_C2_3) * dz * s7
                 + two * dtype(SH_C2_4) * dx * s8,
@@ -336,20 +334,20 @@ def projection_kernels(dtype):
                 - two * dtype(SH_C2_4) * dy * s8,
                 dtype(SH_C2_1) * dy * s5 + dtype(4.0) * dtype(SH_C2_2) * dz * s6 + dtype(SH_C2_3) * dx * s7)
         if sh_degree >= 3:
-            s9 = wp.dot(g, sh[i, 9])
-            s10 = wp.dot(g, sh[i, 10])
-            s11 = wp.dot(g, sh[i, 11])
-            s12 = wp.dot(g, sh[i, 12])
-            s13 = wp.dot(g, sh[i, 13])
-            s14 = wp.dot(g, sh[i, 14])
-            s15 = wp.dot(g, sh[i, 15])
-            out_sh[i, 9] = dtype(SH_C3_0) * dy * (dtype(3.0) * xx - yy) * g
-            out_sh[i, 10] = dtype(SH_C3_1) * dx * dy * dz * g
-            out_sh[i, 11] = dtype(SH_C3_2) * dy * (dtype(4.0) * zz - xx - yy) * g
-            out_sh[i, 12] = dtype(SH_C3_3) * dz * (two * zz - dtype(3.0) * xx - dtype(3.0) * yy) * g
-            out_sh[i, 13] = dtype(SH_C3_4) * dx * (dtype(4.0) * zz - xx - yy) * g
-            out_sh[i, 14] = dtype(SH_C3_5) * dz * (xx - yy) * g
-            out_sh[i, 15] = dtype(SH_C3_6) * dx * (xx - dtype(3.0) * yy) * g
+            s9 = wp.dot(g, sh_rest[i, rest_shift + 8])
+            s10 = wp.dot(g, sh_rest[i, rest_shift + 9])
+            s11 = wp.dot(g, sh_rest[i, rest_shift + 10])
+            s12 = wp.dot(g, sh_rest[i, rest_shift + 11])
+            s13 = wp.dot(g, sh_rest[i, rest_shift + 12])
+            s14 = wp.dot(g, sh_rest[i, rest_shift + 13])
+            s15 = wp.dot(g, sh_rest[i, rest_shift + 14])
+            out_rest[i, rest_shift + 8] = dtype(SH_C3_0) * dy * (dtype(3.0) * xx - yy) * g
+            out_rest[i, rest_shift + 9] = dtype(SH_C3_1) * dx * dy * dz * g
+            out_rest[i, rest_shift + 10] = dtype(SH_C3_2) * dy * (dtype(4.0) * zz - xx - yy) * g
+            out_rest[i, rest_shift + 11] = dtype(SH_C3_3) * dz * (two * zz - dtype(3.0) * xx - dtype(3.0) * yy) * g
+            out_rest[i, rest_shift + 12] = dtype(SH_C3_4) * dx * (dtype(4.0) * zz - xx - yy) * g
+            out_rest[i, rest_shift + 13] = dtype(SH_C3_5) * dz * (xx - yy) * g
+            out_rest[i, rest_shift + 14] = dtype(SH_C3_6) * dx * (xx - dtype(3.0) * yy) * g
             g_d = g_d + vec3(
                 dtype(SH_C3_0) * dtype(6.0) * dx * dy * s9 + dtype(SH_C3_1) * dy * dz * s10
                 - dtype(SH_C3_2) * two * dx * dy * s11 - dtype(SH_C3_3) * dtype(6.0) * dx * dz * s12
@@ -379,16 +377,21 @@ def _scalar_view(tensor: torch.Tensor):
 
 
 class _ProjectFunction(torch.autograd.Function):
-    """(means, quats, scales, sh) -> (means2d, conics, depths, colors); radii, tile rectangles and alpha extents
-    come along without gradient (opacities enter only those)."""
+    """(means, quats, scales, sh_dc, sh_rest) -> (means2d, conics, depths, colors); radii, tile rectangles and alpha
+    extents come along without gradient (opacities enter only those). The SH coefficients come as the DC band
+    [N, 1, 3] and the rest [N, K - 1, 3] (GaussianModel keeps them apart: no concatenation per render), or, with
+    sh_rest None, all together in sh_dc [N, K, 3]."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, sh, opacities, camera_args: tuple, sh_degree: int,
+    def forward(ctx, means, quats, scales, sh_dc, sh_rest, opacities, camera_args: tuple, sh_degree: int,
                 opacity_aware_radius: bool):
         ensure_warp()
         n, dtype, device = means.shape[0], means.dtype, means.device
         scalar = warp_scalar(dtype)
-        means, quats, scales, sh, opacities = (t.detach().contiguous() for t in (means, quats, scales, sh, opacities))
+        ctx.together = sh_rest is None
+        means, quats, scales, sh_dc, opacities = (t.detach().contiguous()
+                                                  for t in (means, quats, scales, sh_dc, opacities))
+        sh_rest = sh_dc if ctx.together else sh_rest.detach().contiguous()
         empty = functools.partial(torch.empty, dtype=dtype, device=device)
         empty_int = functools.partial(torch.empty, dtype=torch.int32, device=device)
         means2d, conics, depths, colors = empty(n, 2), empty(n, 3), empty(n), empty(n, 3)
@@ -397,33 +400,35 @@ class _ProjectFunction(torch.autograd.Function):
         run_ranges(forward_kernel, n, device, [
             *camera_args, sh_degree, int(opacity_aware_radius),
             _vector_view(means, 3, scalar), _vector_view(quats, 4, scalar), _vector_view(scales, 3, scalar),
-            _scalar_view(opacities), _vector_view(sh, 3, scalar),
-            _vector_view(means2d, 2, scalar), _vector_view(conics, 3, scalar), _scalar_view(depths),
-            _vector_view(colors, 3, scalar), _scalar_view(radii), _scalar_view(tile_min), _scalar_view(tile_max),
-            _vector_view(alpha_extent, 2, scalar)])
-        ctx.save_for_backward(means, quats, scales, sh)
+            _scalar_view(opacities), _vector_view(sh_dc, 3, scalar), _vector_view(sh_rest, 3, scalar),
+            int(ctx.together), _vector_view(means2d, 2, scalar), _vector_view(conics, 3, scalar),
+            _scalar_view(depths), _vector_view(colors, 3, scalar), _scalar_view(radii), _scalar_view(tile_min),
+            _scalar_view(tile_max), _vector_view(alpha_extent, 2, scalar)])
+        ctx.save_for_backward(means, quats, scales, sh_dc, sh_rest)
         ctx.camera_args, ctx.sh_degree = camera_args, sh_degree
         ctx.mark_non_differentiable(radii, tile_min, tile_max, alpha_extent)
         return means2d, conics, depths, colors, radii, tile_min, tile_max, alpha_extent
 
     @staticmethod
     def backward(ctx, grad_means2d, grad_conics, grad_depths, grad_colors, *_no_grad):
-        means, quats, scales, sh = ctx.saved_tensors
+        means, quats, scales, sh_dc, sh_rest = ctx.saved_tensors
         n, scalar = means.shape[0], warp_scalar(means.dtype)
         upstream = [torch.zeros_like(like) if g is None else g.contiguous() for g, like in (
             (grad_means2d, means[:, :2]), (grad_conics, means), (grad_depths, means[:, 0]), (grad_colors, means))]
-        grads = [torch.zeros_like(t) for t in (means, quats, scales, sh)]
+        grads = [torch.zeros_like(t) for t in (means, quats, scales, sh_dc)]
+        grads.append(grads[3] if ctx.together else torch.zeros_like(sh_rest))
         _, backward_kernel = projection_kernels(scalar)
         camera_args = ctx.camera_args[:9] + ctx.camera_args[11:]  # the backward has no use for the tile counts
         run_ranges(backward_kernel, n, means.device, [
             *camera_args, ctx.sh_degree,
             _vector_view(means, 3, scalar), _vector_view(quats, 4, scalar), _vector_view(scales, 3, scalar),
-            _vector_view(sh, 3, scalar),
+            _vector_view(sh_dc, 3, scalar), _vector_view(sh_rest, 3, scalar), int(ctx.together),
             _vector_view(upstream[0], 2, scalar), _vector_view(upstream[1], 3, scalar), _scalar_view(upstream[2]),
             _vector_view(upstream[3], 3, scalar),
             _vector_view(grads[0], 3, scalar), _vector_view(grads[1], 4, scalar), _vector_view(grads[2], 3, scalar),
-            _vector_view(grads[3], 3, scalar)])
-        return (*grads, None, None, None, None)
+            _vector_view(grads[3], 3, scalar), _vector_view(grads[4], 3, scalar)])
+        grad_rest = None if ctx.together else grads[4]
+        return (*grads[:4], grad_rest, None, None, None, None)
 
 
 def _camera_arguments(camera: Camera, near: float, far: float, eps2d: float, scalar) -> tuple:
@@ -439,11 +444,15 @@ def _camera_arguments(camera: Camera, near: float, far: float, eps2d: float, sca
 
 
 def project_and_shade(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
-                      sh: torch.Tensor, camera: Camera, sh_degree: int, *, near: float = 0.01, far: float = 1e10,
-                      eps2d: float = 0.3, opacity_aware_radius: bool = False) -> tuple[Projection, torch.Tensor]:
-    """project_gaussians + view_dependent_colors of project.py in one kernel -> (Projection, colors [N, 3])."""
+                      sh: torch.Tensor, camera: Camera, sh_degree: int, *, sh_rest: torch.Tensor | None = None,
+                      near: float = 0.01, far: float = 1e10, eps2d: float = 0.3,
+                      opacity_aware_radius: bool = False) -> tuple[Projection, torch.Tensor]:
+    """project_gaussians + view_dependent_colors of project.py in one kernel -> (Projection, colors [N, 3]).
+
+    `sh` holds every SH coefficient [N, K, 3], or, with `sh_rest` [N, K - 1, 3] given, the DC band [N, 1, 3] only.
+    """
     camera_args = _camera_arguments(camera, near, far, eps2d, warp_scalar(means.dtype))
     means2d, conics, depths, colors, radii, tile_min, tile_max, alpha_extent = _ProjectFunction.apply(
-        means, quats, scales, sh, opacities, camera_args, sh_degree, opacity_aware_radius)
+        means, quats, scales, sh, sh_rest, opacities, camera_args, sh_degree, opacity_aware_radius)
     return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii, tile_min=tile_min,
                       tile_max=tile_max, alpha_extent=alpha_extent), colors
