@@ -39,7 +39,9 @@ def baseline_render_path():
     from mcsplat.render.launch import cpu_kernels, set_cpu_kernels
     from mcsplat.render.project import project_gaussians, view_dependent_colors
 
-    def torch_project_and_shade(means, quats, scales, opacities, sh, camera, sh_degree, **options):
+    def torch_project_and_shade(means, quats, scales, opacities, sh, camera, sh_degree, sh_rest=None, **options):
+        if sh_rest is not None:  # as render() passed them before: concatenated
+            sh = torch.cat([sh, sh_rest], dim=1)
         return (project_gaussians(means, quats, scales, opacities, camera, **options),
                 view_dependent_colors(means, sh, camera, sh_degree))
 

@@ -29,6 +29,8 @@ Evaluation: lego has 200 test views; LPIPS-VGG on CPU costs ~1 s a view, so by d
 
 from __future__ import annotations
 
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
 import argparse
 import contextlib
 import json

@@ -12,6 +12,8 @@ compositing kernels; torch projection, SH and binning), and the speed-ups are re
 
 from __future__ import annotations
 
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
 import argparse
 import json
 import math

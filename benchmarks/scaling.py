@@ -16,6 +16,8 @@ so the two effects can be told apart.
 
 from __future__ import annotations
 
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
 import argparse
 import math
 import sys

@@ -31,6 +31,8 @@ see `realistic_model`; --scene-model init times the MCMC random initialisation i
 
 from __future__ import annotations
 
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
 import argparse
 import json
 import math

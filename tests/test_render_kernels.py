@@ -131,3 +131,20 @@ def test_split_sh_of_a_model_renders_like_the_concatenated_coefficients():
     assert torch.equal(split.rgb, joined.rgb)
     assert torch.equal(model.params["sh0"].grad, together.sh.grad[:, :1])
     assert torch.equal(model.params["shN"].grad, together.sh.grad[:, 1:])
+
+
+def test_covariance_times_matches_the_batched_matrix_product():
+    from mcsplat.render.covariance import covariance_times
+    from mcsplat.render.project import covariance_3d
+
+    g = torch.Generator().manual_seed(5)
+    n = 10_000  # several ranges of the CPU thread pool
+    quats, scales = torch.randn(n, 4, generator=g, dtype=torch.float64), torch.rand(n, 3, generator=g) + 0.1
+    vectors = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    set_cpu_threads(2)
+    try:
+        got = covariance_times(quats, scales.double(), vectors)
+    finally:
+        set_cpu_threads(None)
+    expected = torch.bmm(covariance_3d(quats, scales.double()), vectors[:, :, None])[:, :, 0]
+    torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-14)

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from .render.covariance import covariance_times
 from .render.project import covariance_3d
 from .render.sh import SH_C0, num_sh_bases
 
@@ -226,6 +227,11 @@ class GaussianModel(torch.nn.Module):
     def covariances(self) -> torch.Tensor:
         """The full 3D covariance Sigma = R S S^T R^T, [N, 3, 3] (SPEC section 4)."""
         return covariance_3d(self.params["quats"], self.scales)
+
+    @torch.no_grad()
+    def covariance_times(self, vectors: torch.Tensor) -> torch.Tensor:
+        """Sigma_i @ vectors_i [N, 3] for every Gaussian, without gradient (one Warp kernel: the MCMC noise)."""
+        return covariance_times(self.params["quats"], self.scales, vectors)
 
     def extra_repr(self) -> str:
         return f"num_gaussians={self.num_gaussians}, sh_degree={self.sh_degree}"

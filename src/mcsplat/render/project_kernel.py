@@ -17,6 +17,7 @@ import warp as wp
 
 from ..camera import Camera
 from .project import TILE_SIZE, Projection
+from .covariance import rotation_function
 from .runtime import ensure_warp, run_ranges, warp_scalar
 from .sh import SH_C0, SH_C1, SH_C2, SH_C3
 
@@ -36,6 +37,7 @@ def projection_kernels(dtype):
     zero = dtype(0.0)
     one = dtype(1.0)
     two = dtype(2.0)
+    quat_rotation = rotation_function(dtype)
 
     @wp.func
     def sh_color(sh_dc: wp.array2d(dtype=vec3), sh_rest: wp.array2d(dtype=vec3), shift: int, i: int,
@@ -102,13 +104,7 @@ def projection_kernels(dtype):
 
         q = quats[i]
         q = q / wp.max(wp.length(q), dtype(1e-12))
-        w = q[0]
-        x = q[1]
-        y = q[2]
-        qz = q[3]
-        rot = mat33(one - two * (y * y + qz * qz), two * (x * y - w * qz), two * (x * qz + w * y),
-                    two * (x * y + w * qz), one - two * (x * x + qz * qz), two * (y * qz - w * x),
-                    two * (x * qz - w * y), two * (y * qz + w * x), one - two * (x * x + y * y))
+        rot = quat_rotation(q[0], q[1], q[2], q[3])
         m = rot @ wp.diag(scales[i])
         cov_cam = rotation @ (m @ wp.transpose(m)) @ wp.transpose(rotation)
         cov2d = jacobian @ cov_cam @ wp.transpose(jacobian)
@@ -165,12 +161,6 @@ def projection_kernels(dtype):
         else:
             alpha_extent[i] = vec2(zero, zero)
 
-    @wp.func
-    def rotation_of(w: dtype, x: dtype, y: dtype, qz: dtype):
-        return mat33(one - two * (y * y + qz * qz), two * (x * y - w * qz), two * (x * qz + w * y),
-                     two * (x * y + w * qz), one - two * (x * x + qz * qz), two * (y * qz - w * x),
-                     two * (x * qz - w * y), two * (y * qz + w * x), one - two * (x * x + y * y))
-
     @wp.kernel(module="unique")
     def project_backward(
         offset: int, rotation: mat33, translation: vec3, camera_center: vec3,
@@ -217,7 +207,7 @@ def projection_kernels(dtype):
         q_raw = quats[i]
         q_norm = wp.max(wp.length(q_raw), dtype(1e-12))
         q = q_raw / q_norm
-        rot = rotation_of(q[0], q[1], q[2], q[3])
+        rot = quat_rotation(q[0], q[1], q[2], q[3])
         scale = scales[i]
         m = rot @ wp.diag(scale)
         cov_cam = rotation @ (m @ wp.transpose(m)) @ wp.transpose(rotation)

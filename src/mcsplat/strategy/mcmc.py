@@ -99,7 +99,7 @@ def inject_noise(model: GaussianModel, factor: float, generator: torch.Generator
     means = model.params["means"]
     eta = torch.randn(n, 3, generator=generator, device=generator.device, dtype=means.dtype).to(means.device)
     scale = factor * noise_gate(model.opacities)
-    noise = torch.bmm(model.covariances(), eta[:, :, None])[:, :, 0] * scale[:, None]
+    noise = model.covariance_times(eta) * scale[:, None]
     means.add_(noise)
 
 
