@@ -76,14 +76,3 @@ def test_simd_path_is_the_default_for_float32_on_cpu_and_float64_keeps_the_scala
     with pytest.raises(ValueError, match="CPU kernels must be one of"):
         set_cpu_kernels("avx")
 
-
-def test_block_work_counts_the_mask_bits_of_each_tile():
-    from mcsplat.render.cpu.run import block_work
-
-    splats = random_splats(300, 21, log_scale=(-4.5, -2.0))
-    camera = make_camera(width=96, height=80)
-    proj = project_gaussians(*(getattr(splats, p) for p in PARAMS[:4]), camera)
-    bins = bin_gaussians(proj.tile_min, proj.tile_max, proj.depths, proj.radii, 6, 5, means2d=proj.means2d,
-                         alpha_extent=proj.alpha_extent)
-    expected = [sum(bin(m).count("1") for m in bins.pair_masks[a:b].tolist()) for a, b in bins.tile_ranges.tolist()]
-    assert block_work(bins).tolist() == expected and sum(expected) > bins.num_pairs

@@ -89,12 +89,9 @@ def thread_pool(size: int) -> ThreadPoolExecutor:
     return _pool
 
 
-def _bands(tile_ranges: torch.Tensor, num_bands: int, tile_work: torch.Tensor | None = None
-           ) -> list[tuple[int, int]]:
-    """Contiguous [first, last) tile ranges of roughly equal work: `tile_work` per tile when given, else the pairs
-    to walk; plus a fixed cost per tile."""
-    work = (tile_ranges[:, 1] - tile_ranges[:, 0]) if tile_work is None else tile_work
-    work = work.to(torch.float64) + 4.0
+def _bands(tile_ranges: torch.Tensor, num_bands: int) -> list[tuple[int, int]]:
+    """Contiguous [first, last) tile ranges of roughly equal work (pairs to walk plus a fixed cost per tile)."""
+    work = (tile_ranges[:, 1] - tile_ranges[:, 0]).to(torch.float64) + 4.0
     cumulative = torch.cumsum(work, 0)
     targets = cumulative[-1] * torch.arange(1, num_bands, dtype=torch.float64) / num_bands
     cuts = torch.searchsorted(cumulative, targets).tolist()
@@ -108,10 +105,9 @@ def warp_view(tensor: torch.Tensor) -> wp.array:
 
 
 def run_bands(kernel, inputs_for_worker, num_tiles: int, tile_ranges: torch.Tensor, device: torch.device,
-              num_workers: int, threads_per_tile: int, tile_work: torch.Tensor | None = None) -> None:
+              num_workers: int, threads_per_tile: int) -> None:
     """Launch `kernel` over all tiles, `threads_per_tile` Warp threads each (256: a thread per pixel; 1: a thread
-    per tile); `inputs_for_worker(w, first_tile)` gives the argument list of worker w. `tile_work` (optional, per
-    tile) balances the CPU bands better than the pair counts do."""
+    per tile); `inputs_for_worker(w, first_tile)` gives the argument list of worker w."""
     if device.type == "cuda":
         with wp.ScopedStream(wp.stream_from_torch(device)):
             wp.launch(kernel, dim=num_tiles * threads_per_tile, inputs=inputs_for_worker(0, 0),
@@ -122,7 +118,7 @@ def run_bands(kernel, inputs_for_worker, num_tiles: int, tile_ranges: torch.Tens
         return
     # Worker w launches bands w, w + W, w + 2W, ... in order: a fixed assignment, so every gradient buffer sums
     # the same values in the same order on every run (bitwise reproducible training and resume).
-    bands = _bands(tile_ranges, num_workers * BANDS_PER_THREAD, tile_work)
+    bands = _bands(tile_ranges, num_workers * BANDS_PER_THREAD)
 
     def run(worker: int) -> None:
         for first, last in bands[worker::num_workers]:

@@ -15,19 +15,6 @@ def pack_records(means2d, conics, opacities, colors, depths) -> torch.Tensor:
     return torch.cat([means2d, conics, opacities[:, None], colors, depths[:, None]], dim=1).contiguous()
 
 
-def block_work(bins: TileBins) -> torch.Tensor:
-    """Per tile, the (Gaussian, 4x4 block) visits of the SIMD walk: the set bits of its pairs' masks. This balances
-    the CPU bands (a pair costs 1 to 16 vector steps)."""
-    x = bins.pair_masks
-    x = x - ((x >> 1) & 0x5555)
-    x = (x & 0x3333) + ((x >> 2) & 0x3333)
-    x = (x + (x >> 4)) & 0x0F0F
-    x = (x + (x >> 8)) & 0x1F
-    ends = torch.cumsum(x.to(torch.int64), 0)
-    ends = torch.cat([ends.new_zeros(1), ends])
-    return ends[bins.tile_ranges[:, 1].long()] - ends[bins.tile_ranges[:, 0].long()]
-
-
 def _flat(tensor: torch.Tensor):
     return warp_view(tensor.reshape(-1))
 
@@ -46,8 +33,7 @@ def forward(records: torch.Tensor, background: torch.Tensor, bins: TileBins, wid
         bins.tile_ranges, bins.gaussian_ids, bins.pair_masks, records, background, rgb, transmittance, depth, last,
         contributed)]
     run_bands(composite_forward_simd, lambda worker, first_tile: [first_tile] + arguments, num_tiles,
-              bins.tile_ranges, records.device, num_workers_for(records.device, num_tiles), threads_per_tile=1,
-              tile_work=block_work(bins))
+              bins.tile_ranges, records.device, num_workers_for(records.device, num_tiles), threads_per_tile=1)
     return rgb, transmittance, depth, last, contributed
 
 
@@ -63,7 +49,7 @@ def backward(records, background, transmittance, last, rgb, depth, grad_rgb, gra
         grad_rgb, grad_alpha, grad_depth)]
     per_worker = [_flat(b) for b in buffers]
     run_bands(composite_backward_simd, lambda worker, first_tile: [first_tile] + arguments + [per_worker[worker]],
-              num_tiles, bins.tile_ranges, records.device, workers, threads_per_tile=1, tile_work=block_work(bins))
+              num_tiles, bins.tile_ranges, records.device, workers, threads_per_tile=1)
     total = buffers[0]
     for extra in buffers[1:]:
         total = total + extra
