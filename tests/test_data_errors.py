@@ -136,30 +136,31 @@ def test_truncated_text_images(bird: Path) -> None:
     assert str(model / "images.txt") in load_error(bird)
 
 
-def test_unsupported_camera_model_text(bird: Path) -> None:
+def test_camera_model_that_cannot_be_undistorted_text(bird: Path) -> None:
     model = bird / "sparse" / "0"
     pycolmap.Reconstruction(str(model)).write_text(str(model))
     for name in ("cameras.bin", "images.bin", "points3D.bin"):
         (model / name).unlink()
     lines = (model / "cameras.txt").read_text().splitlines()
     index = next(i for i, line in enumerate(lines) if line.startswith("7 "))
-    lines[index] = lines[index].replace("SIMPLE_PINHOLE", "SIMPLE_RADIAL") + " 0.01"
+    lines[index] = lines[index].replace("SIMPLE_PINHOLE", "SIMPLE_DIVISION") + " 0.01"
     (model / "cameras.txt").write_text("\n".join(lines) + "\n")
     message = load_error(bird)
     assert str(model / "cameras.txt") in message
-    assert "SIMPLE_RADIAL" in message and "camera 7" in message and "image_undistorter" in message
+    assert "SIMPLE_DIVISION" in message and "camera 7" in message and "cannot undistort" in message
 
 
-def test_unsupported_camera_model_binary(bird: Path) -> None:
+def test_fisheye_wider_than_180_degrees_binary(bird: Path) -> None:
+    """An OPENCV_FISHEYE camera whose image edge is 1.6 rad (92 degrees) off its axis: no pinhole image holds it."""
     model = bird / "sparse" / "0"
     reconstruction = pycolmap.Reconstruction(str(model))
     camera = reconstruction.cameras[3]
     f, cx, cy = camera.params
-    camera.model = pycolmap.CameraModelId.OPENCV
-    camera.params = [f, f, cx, cy, 0.01, 0.0, 0.0, 0.0]
+    camera.model = pycolmap.CameraModelId.OPENCV_FISHEYE
+    camera.params = [cy / 1.6, cy / 1.6, cx, cy, 0.0, 0.0, 0.0, 0.0]
     reconstruction.write_binary(str(model))
     message = load_error(bird)
-    assert str(model / "cameras.bin") in message and "OPENCV" in message and "image_undistorter" in message
+    assert str(model / "cameras.bin") in message and "OPENCV_FISHEYE" in message and "180 degrees" in message
 
 
 @pytest.mark.parametrize("value, offset", [(math.nan, 12), (math.inf, 8 + 4 + 32 + 8)])
@@ -256,13 +257,19 @@ def test_blender_json_without_frames(mini_lego: Path) -> None:
     assert str(path) in load_error(mini_lego)
 
 
-def test_blender_distortion_is_refused(mini_lego: Path) -> None:
+@pytest.mark.parametrize("change, expected", [
+    ({"camera_model": "EQUIRECTANGULAR"}, "camera_model 'EQUIRECTANGULAR' is not supported"),
+    ({"k1": 0.05, "camera_model": "PINHOLE"}, "k1=0.05"),
+    ({"k4": 0.01}, "OPENCV_FISHEYE"),
+    ({"camera_model": "OPENCV_FISHEYE", "p1": 0.001}, "no tangential terms"),
+])
+def test_blender_distortion_that_cannot_be_undistorted(mini_lego: Path, change: dict, expected: str) -> None:
     path = mini_lego / "transforms_train.json"
     meta = json.loads(path.read_text())
-    meta["k1"] = 0.05
+    meta.update(change)
     path.write_text(json.dumps(meta))
     message = load_error(mini_lego)
-    assert str(path) in message and "distortion" in message and "k1=0.05" in message
+    assert str(path) in message and expected in message
 
 
 def test_transforms_json_all_images_missing(tmp_path: Path) -> None:

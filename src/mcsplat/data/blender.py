@@ -10,7 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from mcsplat.data import images
+from mcsplat.data import images, undistort
+from mcsplat.data.image_store import ImageStore, store_note
 from mcsplat.data.poses import intrinsic_matrix, make_camera, opengl_c2w_to_opencv_w2c, scale_intrinsics
 from mcsplat.data.scene import Background, Scene, View, make_scene, split_every
 from mcsplat.errors import DataError
@@ -18,7 +19,8 @@ from mcsplat.errors import DataError
 SPLIT_FILES = ("transforms_train.json", "transforms_test.json", "transforms_val.json")
 SINGLE_FILE = "transforms.json"
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-_PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")  # OPENCV is fine when its distortion terms are zero
+_PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+_DISTORTED_MODELS = ("OPENCV", "FULL_OPENCV", "OPENCV_FISHEYE")
 
 
 def is_blender(root: Path) -> bool:
@@ -92,17 +94,41 @@ def _frames(path: Path, data: dict[str, Any], root: Path, skip_missing: bool) ->
     return frames
 
 
-def _intrinsics(frame: _Frame, size: tuple[int, int], source: Path) -> np.ndarray:
-    """K for the image at its file size, from fl_x/fl_y/cx/cy (or camera_angle_x/_y); checks w/h and distortion."""
+def _distortion(frame: _Frame, source: Path) -> tuple[str, list[float]] | None:
+    """(COLMAP model name, its distortion parameters) of a frame, or None for a pinhole camera.
+
+    nerfstudio's convention: k1..k4 radial, p1, p2 tangential; OPENCV (k1, k2, p1, p2), FULL_OPENCV when k3 is set
+    (k3 is OpenCV's r^6 term), OPENCV_FISHEYE (k1..k4, no tangential terms).
+    """
     meta, where = frame.meta, f"{source} ('{frame.path.name}')"
     model = meta.get("camera_model")
-    if model is not None and model not in _PINHOLE_MODELS:
-        raise DataError(f"{where}: camera_model {model} is not supported (pinhole only); undistort the images and "
-                        "write a pinhole transforms file (e.g. ns-process-data, or colmap image_undistorter)")
-    distortion = {k: _number(meta[k], k, where) for k in _DISTORTION_KEYS if k in meta}
-    if any(v != 0.0 for v in distortion.values()):
-        raise DataError(f"{where} has lens distortion ({', '.join(f'{k}={v:g}' for k, v in distortion.items())}), "
-                        "which mcsplat does not support; undistort the images first (colmap image_undistorter)")
+    known = _PINHOLE_MODELS + _DISTORTED_MODELS
+    if model is not None and model not in known:
+        raise DataError(f"{where}: camera_model {model!r} is not supported (use one of {', '.join(known)}); "
+                        "undistort the images with the tool that made them and write a PINHOLE transforms file")
+    d = {k: _number(meta[k], k, where) if k in meta else 0.0 for k in _DISTORTION_KEYS}
+    if model == "OPENCV_FISHEYE":
+        if d["p1"] or d["p2"]:
+            raise DataError(f"{where}: camera_model OPENCV_FISHEYE has no tangential terms, but p1={d['p1']:g}, "
+                            f"p2={d['p2']:g}; remove them or use camera_model OPENCV")
+        return "OPENCV_FISHEYE", [d["k1"], d["k2"], d["k3"], d["k4"]]
+    if not any(d.values()):
+        return None
+    if model in _PINHOLE_MODELS:
+        raise DataError(f"{where}: camera_model {model} but distortion terms are set "
+                        f"({', '.join(f'{k}={v:g}' for k, v in d.items() if v)}); set camera_model OPENCV (or remove "
+                        "the terms if the images are already undistorted)")
+    if d["k4"]:
+        raise DataError(f"{where}: k4={d['k4']:g} with a perspective (OPENCV) camera is not a model COLMAP knows; "
+                        "use camera_model OPENCV_FISHEYE if the lens is a fisheye, else undistort the images first")
+    if d["k3"] or model == "FULL_OPENCV":
+        return "FULL_OPENCV", [d["k1"], d["k2"], d["p1"], d["p2"], d["k3"], 0.0, 0.0, 0.0]
+    return "OPENCV", [d["k1"], d["k2"], d["p1"], d["p2"]]
+
+
+def _intrinsics(frame: _Frame, size: tuple[int, int], source: Path) -> np.ndarray:
+    """K for the image at its file size, from fl_x/fl_y/cx/cy (or camera_angle_x/_y); checks w/h."""
+    meta, where = frame.meta, f"{source} ('{frame.path.name}')"
     width, height = size
     if "w" in meta or "h" in meta:
         stated = (round(_number(meta.get("w", width), "w", where)), round(_number(meta.get("h", height), "h", where)))
@@ -125,22 +151,49 @@ def _intrinsics(frame: _Frame, size: tuple[int, int], source: Path) -> np.ndarra
     return intrinsic_matrix(fx, fy, cx, cy)
 
 
-def _views(frames: list[_Frame], sources: list[Path], downscale: int, background: Background) -> list[View]:
+def _views(frames: list[_Frame], sources: list[Path], downscale: int, background: Background
+           ) -> tuple[list[View], list[str]]:
     sizes = images.probe_sizes([f.path for f in frames])
     first_size, first = sizes[0], frames[0]
-    intrinsics, targets = [], []
+    intrinsics, targets, jobs = [], [], []
+    pinholes: dict[tuple, Any] = {}  # one undistorted camera per distinct distorted camera
     for frame, size, source in zip(frames, sizes, sources):
         explicit = "w" in frame.meta or "h" in frame.meta
         if not explicit and size != first_size:
             raise DataError(f"image {frame.path} is {size[0]}x{size[1]} but {first.path} is "
                             f"{first_size[0]}x{first_size[1]}; all images of a Blender scene must have one size")
         K = _intrinsics(frame, size, source)
+        distortion = _distortion(frame, source)
+        if distortion is not None:
+            import pycolmap
+
+            model, extra = distortion
+            params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *extra]
+            key = (model, size, tuple(params))
+            if key not in pinholes:
+                camera = pycolmap.Camera(model=model, width=size[0], height=size[1], params=params)
+                pinholes[key] = (camera, undistort.pinhole_camera(camera, f"{source} ('{frame.path.name}')"))
+            camera, pinhole = pinholes[key]
+            size = (pinhole.width, pinhole.height)
+            K = intrinsic_matrix(*pinhole.params[:4])
         target = images.downscaled_size(*size, downscale)
+        jobs.append(undistort.Job(frame.path, camera, pinhole, target) if distortion is not None else None)
         intrinsics.append(scale_intrinsics(K, size, target))
         targets.append(target)
-    pixels = images.load_images([f.path for f in frames], targets, background)
-    return [View(camera=make_camera(K, f.w2c, *t), image=p, name=f.name)
-            for f, K, t, p in zip(frames, intrinsics, targets, pixels)]
+    paths = [f.path for f in frames]
+    distorted_jobs = [job for job in jobs if job is not None]
+    if distorted_jobs:
+        cached = iter(undistort.undistort_to_cache(distorted_jobs, background))
+        paths = [next(cached) if job is not None else path for path, job in zip(paths, jobs)]
+    store = ImageStore(paths, targets, background)
+    views = [View(camera=make_camera(K, f.w2c, *t), image=store.handle(i), name=f.name)
+             for i, (f, K, t) in enumerate(zip(frames, intrinsics, targets))]
+    notes = store_note(store)
+    if distorted_jobs:
+        models = sorted({job.camera.model.name for job in distorted_jobs})
+        notes.insert(0, f"{len(distorted_jobs)} images with {'/'.join(models)} cameras undistorted to PINHOLE "
+                        f"(cached in {undistort.cache_root()})")
+    return views, notes
 
 
 def load_blender(root: Path, downscale: int, background: Background, test_every: int) -> Scene:
@@ -166,7 +219,8 @@ def load_blender(root: Path, downscale: int, background: Background, test_every:
         frames = train_frames + test_frames
         notes.append(f"frames from {single.name}; " + (f"every {test_every}th is a test view" if test_every
                                                          else "no test split"))
-    views = _views(frames, sources, downscale, background)
+    views, image_notes = _views(frames, sources, downscale, background)
+    notes += image_notes
     if downscale > 1:
         notes.append(f"images resized to 1/{downscale}")
     return make_scene(views[:len(train_frames)], views[len(train_frames):], None, None, background, "blender", root,

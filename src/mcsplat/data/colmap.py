@@ -8,15 +8,13 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 import torch
 
-from mcsplat.data import colmap_files, images
+from mcsplat.data import colmap_files, images, undistort
+from mcsplat.data.image_store import ImageStore, store_note
 from mcsplat.data.poses import check_translation, intrinsic_matrix, make_camera, rigid_rotation, scale_intrinsics
 from mcsplat.data.scene import Background, Scene, View, make_scene, split_every
 from mcsplat.errors import DataError
 
 MODEL_FILES = ("cameras", "images", "points3D")
-SUPPORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
-UNDISTORT_HINT = ("undistort the images first: colmap image_undistorter --image_path images --input_path sparse/0 "
-                  "--output_path undistorted, then load the undistorted folder")
 
 
 def model_candidates(root: Path) -> list[Path]:
@@ -73,10 +71,8 @@ def _read_reconstruction(folder: Path, ext: str):
 
 
 def _intrinsics(camera, cameras_file: Path) -> np.ndarray:
+    """K of a SIMPLE_PINHOLE or PINHOLE camera."""
     model = camera.model.name
-    if model not in SUPPORTED_MODELS:
-        raise DataError(f"{cameras_file}: camera {camera.camera_id} uses the {model} model (lens distortion), which "
-                        f"mcsplat does not support (only {' and '.join(SUPPORTED_MODELS)}); {UNDISTORT_HINT}")
     params = np.asarray(camera.params, dtype=np.float64)
     if model == "SIMPLE_PINHOLE":
         fx = fy = params[0]
@@ -104,6 +100,9 @@ def load_colmap(root: Path, downscale: int, background: Background, test_every: 
     cameras_file, images_file = folder / f"cameras.{ext}", folder / f"images.{ext}"
     reconstruction, xyz, rgb = _read_reconstruction(folder, ext)
 
+    # Distorted cameras are replaced by the pinhole camera their images are undistorted to (undistort.py).
+    pinholes = {camera_id: undistort.pinhole_camera(camera, str(cameras_file))
+                for camera_id, camera in reconstruction.cameras.items() if undistort.is_distorted(camera)}
     records = []  # (name, camera_id, K at camera size, camera size, world_to_camera)
     unposed = []
     for image in reconstruction.images.values():
@@ -111,7 +110,7 @@ def load_colmap(root: Path, downscale: int, background: Background, test_every: 
             unposed.append(image.name)
             continue
         camera = reconstruction.cameras[image.camera_id]
-        K = _intrinsics(camera, cameras_file)
+        K = _intrinsics(pinholes.get(image.camera_id, camera), cameras_file)
         where = f"{images_file}: image '{image.name}'"
         matrix = np.asarray(image.cam_from_world().matrix(), dtype=np.float64)
         w2c = np.eye(4)
@@ -133,7 +132,7 @@ def load_colmap(root: Path, downscale: int, background: Background, test_every: 
     sizes = images.probe_sizes(paths)
 
     size_of_camera: dict[int, tuple[tuple[int, int], Path]] = {}
-    targets, intrinsics = [], []
+    targets, intrinsics, jobs = [], [], []
     for path, size, (name, camera_id, K, camera_size, _) in zip(paths, sizes, records):
         if not _fits(size, camera_size, factor):
             expected = f"{camera_size[0]}x{camera_size[1]}" + (f" / {factor}" if factor > 1 else "")
@@ -143,13 +142,31 @@ def load_colmap(root: Path, downscale: int, background: Background, test_every: 
         if first[0] != size:
             raise DataError(f"image {path} is {size[0]}x{size[1]} but {first[1]} of the same camera {camera_id} is "
                             f"{first[0][0]}x{first[0][1]}; all images of one camera must have the same size")
+        if camera_id in pinholes:
+            # Undistort at the file's size (an images_N/ copy has the camera shrunk by N), then resize like the rest.
+            distorted = _rescaled(reconstruction.cameras[camera_id], size)
+            pinhole = undistort.pinhole_camera(distorted, str(cameras_file)) if factor > 1 else pinholes[camera_id]
+            undistorted_size = (pinhole.width, pinhole.height)
+            K = _intrinsics(pinhole, cameras_file)
+            target = images.downscaled_size(*undistorted_size, downscale / factor) if downscale > factor \
+                else undistorted_size
+            jobs.append(undistort.Job(path, distorted, pinhole, target))
+            targets.append(target)
+            intrinsics.append(scale_intrinsics(K, undistorted_size, target))
+            continue
+        jobs.append(None)
         target = images.downscaled_size(*camera_size, downscale) if downscale > factor else size
         targets.append(target)
         intrinsics.append(scale_intrinsics(K, camera_size, target))
 
-    pixels = images.load_images(paths, targets, background)
-    views = [View(camera=make_camera(K, w2c, *target), image=pixels_i, name=str(PurePosixPath(name).with_suffix("")))
-             for (name, _, _, _, w2c), K, target, pixels_i in zip(records, intrinsics, targets, pixels)]
+    distorted_jobs = [job for job in jobs if job is not None]
+    if distorted_jobs:
+        cached = iter(undistort.undistort_to_cache(distorted_jobs, background))
+        paths = [next(cached) if job is not None else path for path, job in zip(paths, jobs)]
+    store = ImageStore(paths, targets, background)
+    views = [View(camera=make_camera(K, w2c, *target), image=store.handle(i),
+                  name=str(PurePosixPath(name).with_suffix("")))
+             for i, ((name, _, _, _, w2c), K, target) in enumerate(zip(records, intrinsics, targets))]
     train, test = split_every(views, test_every)
 
     finite = np.isfinite(xyz).all(axis=1)
@@ -162,5 +179,22 @@ def load_colmap(root: Path, downscale: int, background: Background, test_every: 
     note = f"images from {image_dir.name}/" + (f", resized to 1/{downscale} of the camera size" if resized else "")
     if downscale < factor:
         note += f" (no folder for downscale {downscale}; using the smaller images as they are)"
-    return make_scene(train, test, points, colors, background, "colmap", root,
-                      notes=[f"model: {folder.relative_to(root)}/*.{ext}", note])
+    notes = [f"model: {folder.relative_to(root)}/*.{ext}", note]
+    if pinholes:
+        models = sorted({reconstruction.cameras[i].model.name for i in pinholes})
+        notes.append(f"{len(distorted_jobs)} images with {'/'.join(models)} cameras undistorted to PINHOLE (cached "
+                     f"in {undistort.cache_root()})")
+    notes += store_note(store)
+    return make_scene(train, test, points, colors, background, "colmap", root, notes=notes)
+
+
+def _rescaled(camera, size: tuple[int, int]):
+    """A copy of a pycolmap camera for images of `size` (width, height)."""
+    import pycolmap
+
+    if (camera.width, camera.height) == tuple(size):
+        return camera
+    copy = pycolmap.Camera(model=camera.model.name, width=camera.width, height=camera.height,
+                           params=np.asarray(camera.params, dtype=np.float64))
+    copy.rescale(int(size[0]), int(size[1]))
+    return copy

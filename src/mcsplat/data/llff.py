@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from mcsplat.data import colmap_files, images
+from mcsplat.data.image_store import ImageStore, store_note
 from mcsplat.data.poses import intrinsic_matrix, llff_to_opencv_w2c, make_camera
 from mcsplat.data.scene import Background, Scene, View, make_scene, split_every
 from mcsplat.errors import DataError
@@ -77,11 +78,11 @@ def load_llff(root: Path, downscale: int, background: Background, test_every: in
 
     target = images.downscaled_size(width, height, downscale / factor) if downscale > factor else (width, height)
     views = []
-    pixels = images.load_images(paths, [target] * len(paths), background)
-    for path, row_hwf, w2c, image in zip(paths, hwf, world_to_camera, pixels):
+    store = ImageStore(paths, [target] * len(paths), background)
+    for index, (path, row_hwf, w2c) in enumerate(zip(paths, hwf, world_to_camera)):
         focal = row_hwf[2] * target[1] / row_hwf[0]
         K = intrinsic_matrix(focal, focal, target[0] / 2, target[1] / 2)
-        views.append(View(camera=make_camera(K, w2c, *target), image=image, name=path.stem))
+        views.append(View(camera=make_camera(K, w2c, *target), image=store.handle(index), name=path.stem))
     train, test = split_every(views, test_every)
 
     notes = [f"images from {image_dir.name}/" + (f", resized to {target[0]}x{target[1]}" if target != (width, height)
@@ -89,6 +90,7 @@ def load_llff(root: Path, downscale: int, background: Background, test_every: in
     if downscale < factor:
         asked = "images/" if downscale == 1 else f"images_{downscale}/ or images/"
         notes.append(f"no {asked} folder; using the smaller {image_dir.name}/ as it is")
+    notes += store_note(store)
     found = _points(root)
     points = colors = None
     if found is not None:

@@ -9,6 +9,7 @@ from typing import Sequence
 import torch
 
 from mcsplat.camera import Camera
+from mcsplat.data.image_store import LazyImage
 from mcsplat.errors import MCSplatError
 
 KINDS = ("colmap", "blender", "llff")
@@ -17,13 +18,25 @@ Background = tuple[float, float, float]
 NAMED_BACKGROUNDS: dict[str, Background] = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
-@dataclass
 class View:
-    """One image with the camera that took it. `image` is uint8 [H, W, 3] on the CPU; convert when used."""
+    """One image with the camera that took it. `image` is uint8 [H, W, 3] on the CPU; convert when used.
 
-    camera: Camera
-    image: torch.Tensor
-    name: str
+    The pixels are either a tensor or a LazyImage (decoded on demand from the scene's ImageStore); `image` returns
+    the tensor in both cases, and `prefetch()` asks for it ahead of time.
+    """
+
+    __slots__ = ("camera", "name", "_image")
+
+    def __init__(self, camera: Camera, image: "torch.Tensor | LazyImage", name: str):
+        self.camera, self.name, self._image = camera, name, image
+
+    @property
+    def image(self) -> torch.Tensor:
+        return self._image if isinstance(self._image, torch.Tensor) else self._image.get()
+
+    def prefetch(self) -> None:
+        if not isinstance(self._image, torch.Tensor):
+            self._image.prefetch()
 
     def image_float(self, device: torch.device | str = "cpu") -> torch.Tensor:
         """The image as float32 [H, W, 3] in [0, 1] on `device` (the uint8 tensor is moved first, then converted)."""
@@ -57,7 +70,7 @@ class Scene:
         else:
             size = f"{len(sizes)} sizes, from {sizes[0][0]}x{sizes[0][1]} to {sizes[-1][0]}x{sizes[-1][1]}"
         focal = [v.camera.fx for v in views]
-        megabytes = sum(v.image.numel() for v in views) / 2**20
+        megabytes = sum(v.camera.width * v.camera.height * 3 for v in views) / 2**20
         points = "none (random initialisation)" if self.points is None else f"{self.points.shape[0]:,}"
         lines = [
             f"scene:      {self.root} ({self.kind})",

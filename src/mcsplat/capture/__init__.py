@@ -1,0 +1,10 @@
+"""`mcsplat process`: photos or a video to a scene folder (SCENE/images + SCENE/sparse/0, PINHOLE) with pycolmap.
+
+frames.py gathers the input (a folder of photos, or the sharpest frames of a video), sfm.py runs feature extraction,
+matching and incremental mapping, process.py orchestrates them, undistorts the best model and moves the finished
+scene into place in one rename.
+"""
+
+from mcsplat.capture.process import ProcessOptions, ProcessSummary, process
+
+__all__ = ["ProcessOptions", "ProcessSummary", "process"]

@@ -1,0 +1,121 @@
+"""The input of `process`: the photos of a folder, or the sharpest frames of a video written as numbered JPEGs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from mcsplat.errors import DataError
+
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
+VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
+
+
+@dataclass
+class Photos:
+    folder: Path
+    names: list[str]  # relative to folder, sorted
+    sizes: list[tuple[int, int]]
+
+
+def is_video(path: Path) -> bool:
+    return path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES
+
+
+def list_photos(folder: Path) -> Photos:
+    """The jpg/png files of `folder` (any names, sub-folders included), each checked to be a readable image."""
+    names = sorted(str(p.relative_to(folder)) for p in folder.rglob("*")
+                   if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES and not p.name.startswith("."))
+    if not names:
+        raise DataError(f"no images in {folder}: put the photos (.jpg or .png) in it, or give a video file")
+    sizes = []
+    for name in names:
+        try:
+            with Image.open(folder / name) as im:
+                im.verify()
+            with Image.open(folder / name) as im:
+                sizes.append(im.size)
+        except Exception as exc:
+            reason = " ".join(str(exc).split())[:120] or type(exc).__name__
+            raise DataError(f"cannot read image {folder / name} ({reason}); remove or replace it and run again") \
+                from None
+    return Photos(folder, names, sizes)
+
+
+def sharpness(frame: np.ndarray) -> float:
+    """Variance of the Laplacian of the grey image, on a copy at most ~640 px wide: higher is sharper."""
+    step = max(1, frame.shape[1] // 640)
+    grey = frame[::step, ::step].astype(np.float32) @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
+    laplacian = (grey[1:-1, :-2] + grey[1:-1, 2:] + grey[:-2, 1:-1] + grey[2:, 1:-1] - 4.0 * grey[1:-1, 1:-1])
+    return float(laplacian.var())
+
+
+def video_frames(video: Path, out_dir: Path, num_frames: int | None, fps: float | None,
+                 progress: bool = True) -> Photos:
+    """Split the video into windows (one per wanted frame) and write the sharpest frame of each window.
+
+    num_frames: how many frames to keep (default 200 when fps is not given); fps: frames to keep per second.
+    """
+    import imageio_ffmpeg
+    from tqdm import tqdm
+
+    try:
+        reader = imageio_ffmpeg.read_frames(str(video))
+        meta = next(reader)
+    except Exception as exc:
+        reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+        raise DataError(f"cannot read video {video} ({reason}); give an mp4/mov file that ffmpeg can decode, or a "
+                        "folder of photos") from None
+    width, height = meta["size"]
+    video_fps = float(meta.get("fps") or 30.0)
+    total = int(round(float(meta.get("duration") or 0.0) * video_fps))
+    try:
+        total = max(total, imageio_ffmpeg.count_frames_and_secs(str(video))[0])
+    except Exception:  # counting is only for the window size; the reader below is what matters
+        pass
+    if fps is not None:
+        wanted = max(1, int(round(total / video_fps * fps)))
+    else:
+        wanted = num_frames or 200
+    window = max(1.0, total / wanted) if total else 1.0
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names, best, best_score, current = [], None, -1.0, 0
+    digits = max(5, len(str(wanted)))
+
+    def flush() -> None:
+        nonlocal best, best_score
+        if best is not None:
+            name = f"frame_{len(names) + 1:0{digits}d}.jpg"  # zero-padded: sequential matching follows name order
+            Image.fromarray(best).save(out_dir / name, quality=95)
+            names.append(name)
+        best, best_score = None, -1.0
+
+    count = 0
+    try:
+        with tqdm(total=total or None, desc="frames", unit="frame", disable=not progress, leave=False) as bar:
+            for raw in reader:
+                frame = np.frombuffer(raw, dtype=np.uint8).reshape(height, width, 3)
+                index = int(count / window)
+                if index != current:
+                    flush()
+                    current = index
+                score = sharpness(frame)
+                if score > best_score:
+                    best, best_score = frame.copy(), score
+                count += 1
+                bar.update(1)
+            flush()
+    except Exception as exc:
+        if isinstance(exc, DataError):
+            raise
+        reason = " ".join(str(exc).split())[:160] or type(exc).__name__
+        raise DataError(f"cannot decode video {video} after {count} frames ({reason}); re-encode it (e.g. ffmpeg "
+                        "-i in.mov out.mp4) or give a folder of photos") from None
+    finally:
+        reader.close()
+    if not names:
+        raise DataError(f"video {video} has no frames that can be decoded")
+    return Photos(out_dir, names, [(width, height)] * len(names))

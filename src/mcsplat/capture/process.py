@@ -1,0 +1,172 @@
+"""Photos or a video in, a scene folder out: SCENE/images + SCENE/sparse/0 (undistorted, PINHOLE).
+
+Everything is built in a hidden folder beside SCENE and moved into place by one rename at the end, so an interrupted
+or failed run leaves no half-written scene that `mcsplat train` would load as if it were complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from mcsplat.capture import frames
+from mcsplat.capture.sfm import Matcher, describe_camera
+from mcsplat.errors import MCSplatError
+
+MIN_SFM_SIZE = 1000  # long side in pixels under which SIFT starts to fragment the model (the cup at 200x150 did)
+SCENE_MARKERS = ("images", "sparse", "transforms.json", "transforms_train.json", "poses_bounds.npy")
+
+
+@dataclass
+class ProcessOptions:
+    matcher: Matcher = "auto"
+    camera_model: str = "SIMPLE_RADIAL"
+    sfm_max_size: int = 1600
+    num_frames: int | None = None
+    fps: float | None = None
+    overlap: int = 15
+    threads: int | None = None
+    overwrite: bool = False
+    progress: bool = True
+
+
+@dataclass
+class ProcessSummary:
+    scene: str
+    input: str
+    registered: int
+    images: int
+    points: int
+    mean_reprojection_error: float
+    matcher: str
+    models: int
+    camera: str
+    undistorted_camera: str
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def lines(self) -> list[str]:
+        stages = ", ".join(f"{name} {value:.1f} s" for name, value in self.seconds.items())
+        return [f"registered: {self.registered} of {self.images} images ({self.models} model"
+                f"{'s' if self.models != 1 else ''} found, the largest kept; {self.matcher} matching)",
+                f"points:     {self.points:,}, mean reprojection error {self.mean_reprojection_error:.2f} px",
+                f"camera:     {self.camera} -> {self.undistorted_camera}",
+                f"time:       {stages} (total {sum(self.seconds.values()):.1f} s)",
+                f"wrote:      {self.scene} (images/ + sparse/0/); next: mcsplat train {self.scene}"]
+
+
+def process(source: str | os.PathLike, out: str | os.PathLike, options: ProcessOptions | None = None
+            ) -> ProcessSummary:
+    options = options or ProcessOptions()
+    source, out = Path(source).expanduser().resolve(), Path(out).expanduser().resolve()
+    if not source.exists():
+        raise MCSplatError(f"input {source} does not exist: give a folder of photos or a video file")
+    from_video = frames.is_video(source)
+    if not from_video and not source.is_dir():
+        raise MCSplatError(f"input {source} is neither a folder of photos nor a video "
+                           f"({', '.join(frames.VIDEO_SUFFIXES)})")
+    if source.is_dir() and (out == source or out.is_relative_to(source)):
+        raise MCSplatError(f"--out {out} is inside the input folder {source}; write the scene somewhere else")
+    _check_output(out, options.overwrite)
+    photos = None if from_video else frames.list_photos(source)  # fail on a bad input before any work
+    out.parent.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        return _process(source, out, work, photos, from_video, options)
+    except KeyboardInterrupt:  # while reading the video (the SfM child handles its own)
+        raise MCSplatError("interrupted: no scene was written (the partial work is removed)") from None
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _check_output(out: Path, overwrite: bool) -> None:
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise MCSplatError(f"--out {out} is a file; give a folder for the scene")
+    entries = [p.name for p in out.iterdir()]
+    if not entries:
+        return
+    holds_scene = any(name in SCENE_MARKERS for name in entries)
+    if holds_scene and not overwrite:
+        raise MCSplatError(f"--out {out} already holds a scene; choose another folder or add --overwrite to "
+                           "replace it")
+    if not holds_scene:
+        raise MCSplatError(f"--out {out} is not empty and holds no scene ({', '.join(sorted(entries)[:3])} ...); "
+                           "give a new or empty folder")
+
+
+def _run_in_child(work: Path, photos: frames.Photos, from_video: bool, options: ProcessOptions) -> dict:
+    """Run SfM and undistortion in a child process (worker.py) and return what it reports (work/result.json).
+
+    A child, not a thread: Ctrl-C cannot interrupt the main thread inside a long pycolmap call, and cancelling
+    pycolmap from another thread left its threads running into interpreter shutdown (an abort). The child ignores
+    SIGINT; on Ctrl-C the parent stops it and the partial work is thrown away with the work folder.
+    """
+    job = {"folder": str(photos.folder), "names": photos.names, "from_video": from_video, "options": asdict(options)}
+    (work / "job.json").write_text(json.dumps(job))
+    child = subprocess.Popen([sys.executable, "-m", "mcsplat.capture.worker", str(work)])
+    try:
+        child.wait()
+    except KeyboardInterrupt:
+        child.terminate()
+        child.wait()
+        raise MCSplatError("interrupted: no scene was written (the partial work is removed)") from None
+    result_file = work / "result.json"
+    if not result_file.is_file():
+        raise MCSplatError(f"structure from motion stopped unexpectedly (exit code {child.returncode}); run again, "
+                           "or with --threads 1 if it keeps failing")
+    result = json.loads(result_file.read_text())
+    if "error" in result:
+        raise MCSplatError(result["error"])
+    return result
+
+
+def _process(source: Path, out: Path, work: Path, photos, from_video: bool, options: ProcessOptions
+             ) -> ProcessSummary:
+    import pycolmap
+
+    seconds: dict[str, float] = {}
+    if from_video:
+        start = time.perf_counter()
+        photos = frames.video_frames(source, work / "frames", options.num_frames, options.fps, options.progress)
+        seconds["frames"] = time.perf_counter() - start
+    long_side = min(max(size) for size in photos.sizes)
+    if long_side < MIN_SFM_SIZE:
+        warnings.warn(f"some images are only {long_side} px on the long side; SIFT works best at "
+                      f"{MIN_SFM_SIZE}-{options.sfm_max_size} px and may register fewer images", stacklevel=3)
+    if len(photos.names) < 3:
+        raise MCSplatError(f"{len(photos.names)} image(s) in {source}: structure from motion needs at least 3 "
+                           "overlapping views (20 or more for a good scene)")
+    result = _run_in_child(work, photos, from_video, options)
+    seconds.update(result["seconds"])
+
+    scene = work / "scene"
+    model = pycolmap.Reconstruction(str(scene / "sparse" / "0"))
+    summary = ProcessSummary(
+        scene=str(out), input=str(source), registered=model.num_reg_images(), images=len(photos.names),
+        points=model.num_points3D(), mean_reprojection_error=float(model.compute_mean_reprojection_error()),
+        matcher=result["matcher"], models=result["models"], camera=result["camera"],
+        undistorted_camera=describe_camera(next(iter(model.cameras.values()))),
+        seconds={k: round(v, 2) for k, v in seconds.items()})
+    (scene / "process.json").write_text(json.dumps(asdict(summary), indent=2) + "\n")
+    _move_into_place(scene, out, work)
+    return summary
+
+
+def _move_into_place(scene: Path, out: Path, work: Path) -> None:
+    """One rename makes the scene appear complete; an old scene (--overwrite) is moved aside first, then removed."""
+    if out.exists() and not any(out.iterdir()):
+        out.rmdir()
+    old = None
+    if out.exists():
+        old = work / "replaced"
+        os.replace(out, old)
+    os.replace(scene, out)

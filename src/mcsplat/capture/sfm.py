@@ -1,0 +1,113 @@
+"""Structure from motion with pycolmap (no COLMAP binary): SIFT features, matching, incremental mapping."""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from mcsplat.errors import MCSplatError
+
+Matcher = Literal["auto", "exhaustive", "sequential"]
+EXTRACT_CHUNK = 16  # images per extract_features call: the progress bar moves between calls
+
+
+@dataclass
+class SfmOptions:
+    matcher: Matcher = "auto"
+    camera_model: str = "SIMPLE_RADIAL"
+    max_size: int = 1600
+    overlap: int = 15
+    threads: int | None = None
+    use_gpu: bool = True  # used only where pycolmap was built with CUDA
+
+
+@dataclass
+class SfmResult:
+    reconstruction: object  # pycolmap.Reconstruction: the model with the most registered images
+    models: int
+    matcher: str
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def choose_matcher(matcher: Matcher, from_video: bool, count: int) -> str:
+    """Sequential for video frames (neighbours in time overlap), exhaustive for photos in no particular order."""
+    if matcher != "auto":
+        return matcher
+    return "sequential" if from_video else "exhaustive"
+
+
+def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, from_video: bool,
+            progress: bool = True) -> SfmResult:
+    import pycolmap
+    from tqdm import tqdm
+
+    threads = options.threads or os.cpu_count() or 1
+    gpu = options.use_gpu and pycolmap.has_cuda
+    device = pycolmap.Device.cuda if gpu else pycolmap.Device.cpu
+    database = work / "database.db"
+    seconds: dict[str, float] = {}
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = options.camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = threads
+    extraction.max_image_size = options.max_size
+    extraction.use_gpu = gpu
+    start = time.perf_counter()
+    with tqdm(total=len(names), desc="features", unit="image", disable=not progress, leave=False) as bar:
+        for first in range(0, len(names), EXTRACT_CHUNK):
+            chunk = names[first:first + EXTRACT_CHUNK]
+            # One camera for all images: one phone or one video, so its intrinsics are shared and well constrained.
+            pycolmap.extract_features(database, image_dir, image_names=chunk, camera_mode=pycolmap.CameraMode.SINGLE,
+                                      reader_options=reader, extraction_options=extraction, device=device)
+            reader.existing_camera_id = 1  # later chunks join the first chunk's camera (the database's first)
+            bar.update(len(chunk))
+    seconds["features"] = time.perf_counter() - start
+
+    matcher = choose_matcher(options.matcher, from_video, len(names))
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    matching.use_gpu = gpu
+    start = time.perf_counter()
+    with tqdm(total=1, desc=f"matching ({matcher})", disable=not progress, leave=False) as bar:
+        if matcher == "sequential":
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = options.overlap
+            pairing.loop_detection = False  # needs a vocabulary tree file, which cannot be had offline
+            pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=device)
+        else:
+            pycolmap.match_exhaustive(database, matching_options=matching, device=device)
+        bar.update(1)
+    seconds["matching"] = time.perf_counter() - start
+
+    mapping = pycolmap.IncrementalPipelineOptions()
+    mapping.num_threads = threads
+    mapping.random_seed = 0
+    sparse = work / "sparse"
+    sparse.mkdir(exist_ok=True)
+    start = time.perf_counter()
+    with tqdm(total=len(names), desc="mapping", unit="image", disable=not progress, leave=False) as bar:
+        models = pycolmap.incremental_mapping(database, image_dir, sparse, options=mapping,
+                                              next_image_callback=lambda: bar.update(1))
+    seconds["mapping"] = time.perf_counter() - start
+    if not models:
+        raise MCSplatError(_too_few(0, len(names), matcher))
+    best = max(models.values(), key=lambda r: r.num_reg_images())
+    if best.num_reg_images() < 3:
+        raise MCSplatError(_too_few(best.num_reg_images(), len(names), matcher))
+    return SfmResult(best, len(models), matcher, seconds)
+
+
+def _too_few(registered: int, total: int, matcher: str) -> str:
+    other = "exhaustive" if matcher == "sequential" else "sequential (if the images are in capture order)"
+    return (f"structure from motion registered only {registered} of {total} images (at least 3 are needed); try "
+            f"--matcher {other}, photos with more overlap and texture, or a larger --sfm-max-size")
+
+
+
+def describe_camera(camera) -> str:
+    params = ", ".join(f"{p:.4g}" for p in camera.params)
+    return f"{camera.model.name} {camera.width}x{camera.height} ({params})"

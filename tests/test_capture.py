@@ -1,0 +1,169 @@
+"""`mcsplat process`: the real cup photos (resized to 400x300) and a video made from the real bird photos.
+
+One SfM reconstruction of the cup is shared by the tests that need it (module fixture, 2 threads, about 20 s).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+from PIL import Image, ImageFilter
+
+from mcsplat.capture import ProcessOptions, process
+from mcsplat.capture.frames import sharpness
+from mcsplat.data import load_scene
+from mcsplat.errors import MCSplatError
+
+SMALL = (400, 300)
+
+
+@pytest.fixture(scope="module")
+def cup_photos(tmp_path_factory) -> Path:
+    source = Path(__file__).resolve().parents[2] / "shared" / "data" / "colmap_cup" / "images"
+    if not source.is_dir():
+        pytest.skip(f"real datasets not found at {source}")
+    folder = tmp_path_factory.mktemp("cup_photos")
+    for path in source.glob("*.jpg"):
+        Image.open(path).resize(SMALL, Image.Resampling.BOX).save(folder / path.name, quality=95)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def cup_scene(cup_photos, tmp_path_factory):
+    out = tmp_path_factory.mktemp("processed") / "cup"
+    start = time.perf_counter()
+    with pytest.warns(UserWarning, match="400 px on the long side"):
+        summary = process(cup_photos, out, ProcessOptions(threads=2, progress=False))
+    print(f"cup at 400x300: {summary.registered}/{summary.images} registered, {summary.points} points, "
+          f"{time.perf_counter() - start:.1f} s {summary.seconds}")
+    return out, summary
+
+
+def test_cup_photos_register_and_agree_with_the_cup_model(cup_scene, shared_data):
+    out, summary = cup_scene
+    assert summary.images == 77 and summary.registered >= 70
+    assert summary.matcher == "exhaustive" and summary.points > 1000 and summary.mean_reprojection_error < 1.5
+    ours = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    assert {camera.model.name for camera in ours.cameras.values()} == {"PINHOLE"}
+    reference = pycolmap.Reconstruction(str(shared_data / "colmap_cup" / "sparse" / "0"))
+    comparison = pycolmap.compare_reconstructions(ours, reference, alignment_error="proj_center")
+    rotation = [error.rotation_error_deg for error in comparison["errors"]]
+    print(f"median rotation error {np.median(rotation):.2f} deg over {len(rotation)} images")
+    assert len(rotation) >= 70 and np.median(rotation) < 3.0
+
+
+def test_processed_scene_loads_and_nothing_is_left_beside_it(cup_scene, cup_photos):
+    out, summary = cup_scene
+    scene = load_scene(out)
+    assert scene.kind == "colmap" and len(scene.train) + len(scene.test) == summary.registered
+    assert scene.points is not None and scene.points.shape[0] == summary.points
+    assert sorted(p.name for p in out.parent.iterdir()) == ["cup"]  # no partial work folder
+    assert len(list(cup_photos.iterdir())) == 77  # the input folder is untouched
+
+
+def test_an_existing_scene_is_not_overwritten(cup_scene, cup_photos):
+    out, _ = cup_scene
+    before = sorted(p.name for p in (out / "images").iterdir())
+    with pytest.raises(MCSplatError, match="already holds a scene.*--overwrite"):
+        process(cup_photos, out, ProcessOptions(threads=2, progress=False))
+    assert sorted(p.name for p in (out / "images").iterdir()) == before
+
+
+def test_bad_inputs_get_one_line_errors(tmp_path, cup_photos):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    cases = [(tmp_path / "missing", tmp_path / "a", "does not exist"),
+             (empty, tmp_path / "b", "no images in"),
+             (cup_photos, cup_photos / "scene", "inside the input folder")]
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for name in ("1.jpg", "10.jpg", "11.jpg"):
+        (broken / name).write_bytes((cup_photos / name).read_bytes())
+    (broken / "12.jpg").write_bytes(b"not a jpeg")
+    cases.append((broken, tmp_path / "c", "cannot read image"))
+    bad_video = tmp_path / "clip.mp4"
+    bad_video.write_bytes(b"\x00" * 1000)
+    cases.append((bad_video, tmp_path / "d", "cannot read video"))
+    two = tmp_path / "two"
+    two.mkdir()
+    for name in ("1.jpg", "10.jpg"):
+        (two / name).write_bytes((cup_photos / name).read_bytes())
+    cases.append((two, tmp_path / "e", "at least 3"))
+    for source, out, expected in cases:
+        with pytest.raises(MCSplatError, match=expected) as info:
+            with pytest.warns(UserWarning) if source == two else _nothing():
+                process(source, out, ProcessOptions(threads=2, progress=False))
+        assert "\n" not in str(info.value)
+        assert not out.exists()
+    assert len(list(cup_photos.iterdir())) == 77
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *args):
+        return False
+
+
+def test_ctrl_c_leaves_no_scene(cup_photos, tmp_path):
+    """SIGINT once feature extraction has started: exit status 2, a one-line message, and nothing on disk."""
+    out = tmp_path / "scene"
+    command = [sys.executable, "-m", "mcsplat.cli", "process", str(cup_photos), "--out", str(out), "--threads", "1"]
+    # SIGINT as a terminal delivers it (a parent started in the background may have left it ignored).
+    child = subprocess.Popen(command, stderr=subprocess.PIPE,
+                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    seen = b""
+    try:
+        deadline = time.monotonic() + 120
+        while b"features:" not in seen and time.monotonic() < deadline:
+            chunk = os.read(child.stderr.fileno(), 4096)
+            if not chunk:
+                break
+            seen += chunk
+        assert b"features:" in seen, seen[-2000:]
+        time.sleep(1.0)
+        child.send_signal(signal.SIGINT)
+        stderr = (seen + child.communicate(timeout=60)[1]).decode(errors="replace")
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    assert child.returncode == 2, stderr[-3000:]
+    assert "mcsplat: error: interrupted: no scene was written" in stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_video_path_keeps_the_sharp_frames_and_registers_them(shared_data, tmp_path):
+    """A video of 24 real bird photos, each followed by a blurred copy: the sharp one of each pair is kept."""
+    import imageio.v2 as imageio
+
+    names = sorted((shared_data / "colmap_bird" / "images").glob("*.jpg"))[:24]
+    video = tmp_path / "bird.mp4"
+    with imageio.get_writer(video, format="FFMPEG", fps=10, codec="libx264", quality=9, macro_block_size=1) as writer:
+        for path in names:
+            photo = Image.open(path).convert("RGB")
+            writer.append_data(np.asarray(photo))
+            writer.append_data(np.asarray(photo.filter(ImageFilter.GaussianBlur(4))))
+    out = tmp_path / "scene"
+    with pytest.warns(UserWarning, match="960 px on the long side"):
+        summary = process(video, out, ProcessOptions(num_frames=24, threads=2, progress=False))
+    frames = sorted((out / "images").iterdir())
+    assert summary.matcher == "sequential" and summary.images == 24
+    assert summary.registered >= 22, summary
+    assert frames[0].name == "frame_00001.jpg"
+    # Every kept frame is a sharp one: as sharp as the original photo, not the blurred copy (both measured on the
+    # undistorted output, which resamples slightly).
+    originals = [sharpness(np.asarray(Image.open(p).convert("RGB"))) for p in names]
+    blurred = [sharpness(np.asarray(Image.open(p).convert("RGB").filter(ImageFilter.GaussianBlur(4)))) for p in names]
+    kept = [sharpness(np.asarray(Image.open(p).convert("RGB"))) for p in frames]
+    threshold = 3 * max(blurred)
+    assert min(originals) > threshold and min(kept) > threshold, (min(kept), threshold)
