@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import mcsplat  # noqa: F401  (before torch: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 import os
 import shutil
 from pathlib import Path
@@ -36,3 +37,18 @@ def copy_shared(shared_data: Path, tmp_path: Path):
         return writable_copy(shared_data / relative, tmp_path / Path(relative).name)
 
     return copy
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory) -> Path:
+    """A short training run of the bundled demo scene (60 steps, one evaluation on the way), shared by the tests
+    of export, report and viewer."""
+    from mcsplat.config import ModelConfig, TrainConfig
+    from mcsplat.strategy.mcmc import MCMCConfig
+    from mcsplat.trainer import train
+
+    run = tmp_path_factory.mktemp("tiny") / "run"
+    train(TrainConfig(data=REPO / "data" / "lego_demo", out=run, steps=60, quiet=True, lpips_net="alex",
+                      eval_every=30, save_every=0, model=ModelConfig(num_init_points=2000),
+                      mcmc=MCMCConfig(cap_max=2400, refine_start=20, refine_every=20)))
+    return run

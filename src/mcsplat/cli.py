@@ -158,21 +158,116 @@ class Render:
 
 @dataclass
 class Export:
-    """Export a trained run's Gaussians in the standard 3DGS .ply layout (dead Gaussians left out)."""
+    """Export a trained run's Gaussians for viewers: the 3DGS .ply, antimatter15 .splat, PlayCanvas compressed .ply
+    or Niantic .spz, leaving out near-transparent Gaussians."""
 
     run: RunDir
-    format: Literal["ply"] = "ply"
+    format: Literal["ply", "splat", "compressed-ply", "spz"] = "ply"
+    """ply: every viewer, full SH. splat: 32 bytes each, no SH. compressed-ply: SuperSplat/PlayCanvas, ~4x smaller.
+    spz: Niantic's gzip format, ~10x smaller."""
     out: Path | None = None
-    """Output file (default: RUN/point_cloud.ply)."""
+    """Output file (default: RUN/point_cloud.ply, .splat, .compressed.ply or .spz)."""
+    min_opacity: float = 0.005
+    """Leave out Gaussians of this opacity or less (0.005: the dead ones MCMC relocates)."""
+    max_gaussians: int | None = None
+    """Keep at most N: those that contribute most (opacity x largest cross-section)."""
 
     def run_command(self) -> int:
-        from mcsplat.trainer import export_ply, load_trained
+        import torch
 
-        _, model, _ = load_trained(self.run, "cpu")
-        path = self.out or self.run / "point_cloud.ply"
-        count = export_ply(model, path)
-        print(f"wrote {path} ({count:,} of {model.num_gaussians:,} Gaussians; dead ones left out)")
+        from mcsplat.io.formats import EXTENSIONS, select_gaussians, write_gaussians
+        from mcsplat.io.ply import write_ply
+        from mcsplat.trainer import load_trained
+
+        _, model, _ = load_trained(self.run, torch.device("cpu"))
+        params = {k: v.detach().cpu().numpy() for k, v in model.params.items()}
+        keep = select_gaussians(params, self.min_opacity, self.max_gaussians)
+        if keep.size == 0:
+            raise MCSplatError(f"no Gaussian has opacity above --min-opacity {self.min_opacity}; lower it")
+        ending = ".ply" if self.format == "ply" else EXTENSIONS[self.format]
+        path = self.out or self.run / f"point_cloud{ending}"
+        if self.format == "ply":
+            mask = torch.zeros(model.num_gaussians, dtype=torch.bool)
+            mask[torch.from_numpy(keep)] = True
+            write_ply(path, dict(model.params.items()), keep=mask)
+        else:
+            write_gaussians(self.format, path, {k: v[keep] for k, v in params.items()})
+        print(f"wrote {path} ({keep.size:,} of {model.num_gaussians:,} Gaussians, {path.stat().st_size:,} bytes)")
         return 0
+
+
+@dataclass
+class Report:
+    """Make a run's report.html again (plots of quality, loss, Gaussians, refinement, opacity/scale distributions,
+    step time; worst test views), or compare several runs on the same plots."""
+
+    runs: Annotated[list[Path], tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]
+    """One run directory, or several to compare."""
+    out: Path | None = None
+    """Folder for report.html and plots/ (default: the run directory; required to compare runs)."""
+    device: Device = "auto"
+
+    def run_command(self) -> int:
+        from mcsplat.report import make_report
+
+        test_views, render_view = (), None
+        if len(self.runs) == 1:
+            test_views, render_view = _test_views_and_renderer(self.runs[0], self.device)
+        page = make_report(self.runs, out=self.out, test_views=test_views, render_view=render_view)
+        print(f"wrote {page}")
+        return 0
+
+
+@dataclass
+class ViewSaved:
+    """Look at a trained run (or any 3DGS .ply) in the browser: our rasterizer renders what you point the camera at.
+    Needs `pip install mcsplat[viewer]`. Stop with Ctrl-C."""
+
+    path: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN|PLY")]
+    """Run directory written by `mcsplat train`, or a .ply file."""
+    port: int = 8080
+    host: str = "127.0.0.1"
+    """Address to listen on; 0.0.0.0 exposes the viewer to the network."""
+    device: Device = "auto"
+
+    def run_command(self) -> int:
+        from mcsplat.viewer import require_viser
+
+        require_viser()
+        from mcsplat.trainer import resolve_device
+        from mcsplat.viewer.saved import view_saved
+
+        if not self.path.exists():
+            raise MCSplatError(f"{self.path}: no such run directory or .ply file")
+        try:
+            view_saved(self.path, self.host, self.port, resolve_device(self.device))
+        except KeyboardInterrupt:
+            print("mcsplat: viewer stopped", file=sys.stderr)
+        return 0
+
+
+def _test_views_and_renderer(run: Path, device_name: str):
+    """The run's test views and a function rendering one, for the report's grid (none when the scene is gone)."""
+    import torch
+
+    from mcsplat.render import render
+    from mcsplat.trainer import background_of, final_sh_degree, load_trained, resolve_device
+
+    device = resolve_device(device_name)
+    config, model, step = load_trained(run, device)
+    try:
+        scene = _scene_of(config)
+    except MCSplatError as error:
+        warnings.warn(f"the report has no test-view grid: the scene cannot be loaded ({error})")
+        return (), None
+    background, degree = background_of(config, scene), final_sh_degree(config, step)
+
+    @torch.no_grad()
+    def render_view(view):
+        image = render(model, view.camera.to(device), background, degree).rgb.clamp(0, 1)
+        return (image * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+
+    return scene.test, render_view
 
 
 def _scene_of(config):
@@ -182,8 +277,44 @@ def _scene_of(config):
                       background=None if config.background == "auto" else config.background)
 
 
+@dataclass
+class Process:
+    """Photos or a video to a scene folder that `mcsplat train` loads: pycolmap SIFT features, matching, incremental
+    mapping, then undistortion to SCENE/images + SCENE/sparse/0 (PINHOLE). No COLMAP binary needed."""
+
+    input: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="INPUT")]
+    """A folder of photos (jpg/png, any names) or a video file (mp4/mov)."""
+    out: Path
+    """The scene folder to write (created; an existing scene is only replaced with --overwrite)."""
+    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
+    """auto: sequential for a video's frames, exhaustive for photos."""
+    num_frames: int | None = None
+    """Video: how many frames to keep, the sharpest of each stretch (default 200)."""
+    fps: float | None = None
+    """Video: frames to keep per second of video, instead of --num-frames."""
+    camera_model: Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"] = "SIMPLE_RADIAL"
+    """Lens model estimated by SfM, one camera shared by all images (SIMPLE_RADIAL: COLMAP's default, steadier than
+    OPENCV on few or small images)."""
+    sfm_max_size: int = 1600
+    """SIFT runs on images shrunk to at most this many pixels on the long side (the scene keeps full size)."""
+    threads: int | None = None
+    """CPU threads for pycolmap (default: all cores)."""
+    overwrite: bool = False
+
+    def run_command(self) -> int:
+        from mcsplat.capture import ProcessOptions, process
+
+        if self.num_frames is not None and self.num_frames < 3 or self.fps is not None and self.fps <= 0:
+            raise MCSplatError("--num-frames must be at least 3 and --fps positive")
+        summary = process(self.input, self.out, ProcessOptions(
+            matcher=self.matcher, camera_model=self.camera_model, sfm_max_size=self.sfm_max_size,
+            num_frames=self.num_frames, fps=self.fps, threads=self.threads, overwrite=self.overwrite))
+        print("\n".join(summary.lines()))
+        return 0
+
+
 COMMANDS: dict[str, type] = {"train": TrainConfig, "eval": Eval, "render": Render, "export": Export,
-                             "info": Info}
+                             "info": Info, "report": Report, "view": ViewSaved, "process": Process}
 
 
 def _run(command) -> int:

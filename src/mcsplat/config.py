@@ -76,6 +76,12 @@ class TrainConfig:
     """LPIPS backbone for the final metrics (the paper reports VGG)."""
     save_renders: bool = True
     """Write the final test renders as PNG."""
+    viewer: bool = False
+    """Serve a live web viewer of the training (needs `pip install mcsplat[viewer]`)."""
+    port: int = 8080
+    """Port of the live viewer."""
+    host: str = "127.0.0.1"
+    """Address the live viewer listens on; 0.0.0.0 exposes it to the network."""
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)

@@ -5,10 +5,11 @@ OpenCV camera, pixel centres at +0.5, the 3DGS low-pass filter (+eps2d on the 2D
 view direction clamped to 1.3x the field of view, SH colour + 0.5 clamped at 0. One thread per Gaussian; the kernel is
 straight-line code; the backward kernel recomputes it and applies the chain rule by hand (Warp's generated adjoint
 is correct here but 5x slower than the forward on the CPU). The tests hold both against the torch version, the
-dense reference renderer and torch's gradcheck in float64. On the CPU, ranges of Gaussians run from
-the rasterizer's thread pool; each thread writes only its own Gaussians, so the result does not depend on timing.
-"""
+dense reference renderer and torch's gradcheck in float64. On the CPU, ranges of Gaussians run from the rasterizer's
+thread pool; each thread writes only its own Gaussians, so the result does not depend on timing.
 
+(No `from __future__ import annotations` here: Warp reads the kernels' annotations as live objects.)
+"""
 
 import functools
 
@@ -16,14 +17,15 @@ import torch
 import warp as wp
 
 from ..camera import Camera
-from .project import TILE_SIZE, Projection
 from .covariance import rotation_function
+from .project import TILE_SIZE, Projection
 from .runtime import ensure_warp, run_ranges, warp_scalar
 from .sh import SH_C0, SH_C1, SH_C2, SH_C3
 
 # Warp kernels read module constants only as plain numbers.
 SH_C2_0, SH_C2_1, SH_C2_2, SH_C2_3, SH_C2_4 = SH_C2
 SH_C3_0, SH_C3_1, SH_C3_2, SH_C3_3, SH_C3_4, SH_C3_5, SH_C3_6 = SH_C3
+
 
 @functools.lru_cache(maxsize=None)
 def projection_kernels(dtype):

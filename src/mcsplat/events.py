@@ -1,0 +1,135 @@
+"""What a training run tells its consumers, and the one interface through which they steer it (DESIGN.md, "The
+training loop as a stream of events").
+
+The run (trainer.TrainingRun) emits, in this order:
+
+    RunStarted
+    KernelsCompiling (only on a machine whose kernel cache lacks some of the kernels)
+    per step:  RefineDone (a step that relocated / grew / densified / pruned)
+               EvalDone   (a periodic evaluation of the test views)
+               StepDone   (always the last event of a step: its loss, PSNR, size, time)
+               CheckpointWritten (whenever the checkpoint file was replaced)
+    RunFinished (after the final evaluation and the exported .ply)
+
+Consumers (the progress bar, the log.jsonl writer, the checkpointer, the report, the viewer) are Subscribers: any
+callable taking an event. A Subscriber subclass gets `on_<kind>(event)` called for the kinds it defines. They run in
+the training thread, between steps; anything slow (the viewer's rendering) belongs in its own thread.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, ClassVar
+
+
+@dataclass(frozen=True)
+class RunStarted:
+    kind: ClassVar[str] = "run_started"
+    run: Any  # the TrainingRun: model, scene, config, control, for consumers that show or save the state
+    start_step: int
+    init_note: str
+
+
+@dataclass(frozen=True)
+class KernelsCompiling:
+    kind: ClassVar[str] = "kernels_compiling"
+    modules: int  # Warp kernel modules not yet in the cache for this device: compiled now, once per machine
+
+
+@dataclass(frozen=True)
+class RefineDone:
+    kind: ClassVar[str] = "refine_done"
+    step: int  # the step index as the strategy saw it (counted from 0)
+    counts: dict[str, int]  # relocated / added / pruned (MCMC), cloned / split / pruned (ADC)
+    num_gaussians: int
+
+
+@dataclass(frozen=True)
+class EvalDone:
+    kind: ClassVar[str] = "eval_done"
+    step: int  # steps done
+    psnr: float
+    ssim: float
+    num_gaussians: int
+
+
+@dataclass(frozen=True)
+class StepDone:
+    kind: ClassVar[str] = "step_done"
+    step: int  # steps done (1 after the first step)
+    total_steps: int
+    loss: float
+    train_psnr: float
+    num_gaussians: int
+    sh_degree: int
+    train_seconds: float  # training time so far, pauses and consumers not counted
+    counts: dict[str, int] = field(default_factory=dict)  # the strategy's counts of this step (zeros included)
+
+
+@dataclass(frozen=True)
+class CheckpointWritten:
+    kind: ClassVar[str] = "checkpoint_written"
+    step: int
+    path: Path
+
+
+@dataclass(frozen=True)
+class RunFinished:
+    kind: ClassVar[str] = "run_finished"
+    run: Any
+    metrics: dict[str, Any]
+    evaluation: Any  # trainer.Evaluation of the final model, per-view scores included
+
+
+Event = RunStarted | RefineDone | EvalDone | StepDone | CheckpointWritten | RunFinished
+Listener = Callable[[Any], None]
+
+
+class Subscriber:
+    """Base for consumers: `on_step_done(event)` etc. are called for the events they define, the rest ignored."""
+
+    def __call__(self, event) -> None:
+        handler = getattr(self, f"on_{event.kind}", None)
+        if handler is not None:
+            handler(event)
+
+    def close(self) -> None:
+        """Called once when the run ends, normally or not (release threads, files, servers)."""
+
+
+@dataclass
+class Control:
+    """Steering a run from outside its thread: pause / resume / stop, and the lock that the loop holds during a step
+    so that a consumer can read the model consistently (the viewer renders under it, between steps)."""
+
+    lock: threading.RLock = field(default_factory=threading.RLock)
+    _running: threading.Event = field(default_factory=threading.Event)
+    _stop: threading.Event = field(default_factory=threading.Event)
+
+    def __post_init__(self) -> None:
+        self._running.set()
+
+    def pause(self) -> None:
+        self._running.clear()
+
+    def resume(self) -> None:
+        self._running.set()
+
+    def stop(self) -> None:
+        """Ask the loop to stop after the current step (it saves a checkpoint and says how to resume)."""
+        self._stop.set()
+        self._running.set()
+
+    @property
+    def paused(self) -> bool:
+        return not self._running.is_set()
+
+    @property
+    def stop_requested(self) -> bool:
+        return self._stop.is_set()
+
+    def wait_while_paused(self) -> None:
+        while not self._running.wait(timeout=0.5):
+            pass

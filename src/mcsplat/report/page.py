@@ -1,0 +1,51 @@
+"""The report as one self-contained HTML page: the PNGs are embedded as data URIs, so it opens offline and can be
+mailed as one file."""
+
+from __future__ import annotations
+
+import base64
+import html
+
+from .runs import RunRecord
+
+STYLE = """body{font-family:system-ui,sans-serif;margin:2em auto;max-width:1100px;color:#222}
+table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:4px 10px;text-align:right}
+th{background:#f3f3f3}td:first-child{text-align:left}img{max-width:100%;display:block;margin:0.5em 0 1.5em}
+figcaption{color:#555;font-size:0.9em}"""
+
+SUMMARY_COLUMNS = [("psnr", "PSNR (dB)", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("lpips", "LPIPS", "{:.4f}"),
+                   ("num_gaussians", "Gaussians", "{:,}"), ("exported_gaussians", "exported", "{:,}"),
+                   ("steps", "steps", "{:,}"), ("train_seconds", "train s", "{:.0f}"), ("device", "device", "{}")]
+
+
+def data_uri(png: bytes) -> str:
+    return "data:image/png;base64," + base64.b64encode(png).decode("ascii")
+
+
+def _summary(runs: list[RunRecord]) -> str:
+    head = "".join(f"<th>{html.escape(title)}</th>" for _, title, _ in SUMMARY_COLUMNS)
+    rows = []
+    for run in runs:
+        cells = [f"<td>{html.escape(run.name)} ({html.escape(str(run.config.get('strategy', '')))})</td>"]
+        for key, _, fmt in SUMMARY_COLUMNS:
+            value = run.metrics.get(key)
+            cells.append(f"<td>{html.escape(fmt.format(value)) if value is not None else 'n/a'}</td>")
+        cells.append(f"<td>{run.dead_fraction:.1%}</td>")
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table><tr><th>run</th>{head}<th>dead</th></tr>{''.join(rows)}</table>"
+
+
+def render_page(title: str, runs: list[RunRecord], figures: list[tuple[str, str, bytes]]) -> str:
+    """figures: (file name, caption, PNG bytes) in page order."""
+    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
+             f"<style>{STYLE}</style></head><body><h1>{html.escape(title)}</h1>", _summary(runs)]
+    for run in runs:
+        data = html.escape(str(run.config.get("data", "")))
+        parts.append(f"<p><b>{html.escape(run.name)}</b>: {data}, cap "
+                     f"{html.escape(str(run.config.get('mcmc', {}).get('cap_max', 'n/a')))}, "
+                     f"{html.escape(str(run.path))}</p>")
+    for name, caption, png in figures:
+        parts.append(f"<figure><figcaption>{html.escape(caption)}</figcaption>"
+                     f"<img alt='{html.escape(name)}' src='{data_uri(png)}'></figure>")
+    parts.append("</body></html>\n")
+    return "\n".join(parts)

@@ -1,0 +1,136 @@
+"""The report's plots as PNG bytes (matplotlib's object API, no pyplot: no global state, safe in any thread).
+
+Each function takes one or more RunRecords and draws one line (or histogram) per run, so the same code makes a
+single run's report and a comparison of runs.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from .runs import DEAD_OPACITY, RunRecord
+
+WIDTH, HEIGHT, DPI = 6.4, 3.6, 100
+
+
+def _png(figure: Figure) -> bytes:
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=DPI, bbox_inches="tight")
+    return buffer.getvalue()
+
+
+def _axes(title: str, xlabel: str, ylabel: str, panels: int = 1):
+    figure = Figure(figsize=(WIDTH * (1 + 0.6 * (panels - 1)), HEIGHT))
+    axes = figure.subplots(1, panels, squeeze=False)[0]
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+    figure.suptitle(title)
+    return figure, axes
+
+
+def _legend(ax) -> None:
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+
+
+def quality(runs: list[RunRecord]) -> bytes:
+    """Test PSNR and SSIM over steps (periodic evaluations, then the final one marked), final LPIPS in the legend."""
+    figure, (left, right) = _axes("Test quality", "step", "PSNR (dB)", panels=2)
+    right.set_ylabel("SSIM")
+    for run in runs:
+        for ax, key, final in ((left, "test_psnr", "psnr"), (right, "test_ssim", "ssim")):
+            steps, values = run.series(key)
+            if run.metrics.get(final) is not None:
+                steps = np.append(steps, run.metrics.get("steps", steps[-1] if steps.size else 0))
+                values = np.append(values, run.metrics[final])
+            label = run.name
+            if ax is left and run.metrics.get("lpips") is not None:
+                label += f" (LPIPS-{run.metrics.get('lpips_net', '')} {run.metrics['lpips']:.3f})"
+            if steps.size:
+                line, = ax.plot(steps, values, marker=".", label=label)
+                ax.plot(steps[-1:], values[-1:], marker="*", markersize=12, color=line.get_color())
+    _legend(left)
+    return _png(figure)
+
+
+def loss(runs: list[RunRecord]) -> bytes:
+    figure, (ax,) = _axes("Training loss (0.8 L1 + 0.2 D-SSIM + regularizers)", "step", "loss")
+    for run in runs:
+        steps, values = run.series("loss")
+        ax.plot(steps, values, label=run.name)
+    _legend(ax)
+    return _png(figure)
+
+
+def gaussians(runs: list[RunRecord]) -> bytes:
+    figure, (ax,) = _axes("Number of Gaussians", "step", "Gaussians")
+    for run in runs:
+        steps, values = run.series("num_gaussians")
+        ax.plot(steps, values, label=run.name)
+    _legend(ax)
+    return _png(figure)
+
+
+REFINE_KEYS = ("relocated", "added", "cloned", "split", "pruned")
+
+
+def refinement(runs: list[RunRecord]) -> bytes:
+    """Relocated / added (MCMC) or cloned / split (ADC) and pruned Gaussians per log record (every 100 steps: one
+    refine step at the paper's schedule)."""
+    figure, (ax,) = _axes("Refinement per 100 steps", "step", "Gaussians")
+    styles = {"relocated": "-", "added": "--", "cloned": "-", "split": "--", "pruned": ":"}
+    for run in runs:
+        for key in REFINE_KEYS:
+            steps, values = run.series(key)
+            if values.size and values.any():
+                ax.plot(steps, values, styles[key], label=f"{run.name}: {key}" if len(runs) > 1 else key)
+    _legend(ax)
+    return _png(figure)
+
+
+def distributions(runs: list[RunRecord]) -> bytes:
+    """Opacity and largest-scale histograms of the final Gaussians; the share of dead ones (opacity <= 0.005) is
+    what a lower cap would save."""
+    figure, (left, right) = _axes("Final Gaussians", "opacity", "Gaussians", panels=2)
+    right.set_xlabel("largest scale (log10)")
+    bins = np.linspace(0, 1, 51)
+    for run in runs:
+        label = f"{run.name}: {run.dead_fraction:.1%} dead (opacity <= {DEAD_OPACITY})"
+        left.hist(run.opacities, bins=bins, histtype="step", label=label)
+        right.hist(np.log10(np.maximum(run.max_scales, 1e-12)), bins=50, histtype="step", label=run.name)
+    left.set_yscale("log")
+    _legend(left)
+    return _png(figure)
+
+
+def step_time(runs: list[RunRecord]) -> bytes:
+    figure, (ax,) = _axes("Training time per step", "step", "milliseconds per step")
+    for run in runs:
+        rows = [(r["step"], r["elapsed_seconds"]) for r in run.log if "loss" in r and "elapsed_seconds" in r]
+        if len(rows) >= 2:
+            steps, seconds = np.array(rows, dtype=float).T
+            ax.plot(steps[1:], np.diff(seconds) / np.diff(steps) * 1000.0, marker=".", label=run.name)
+        elif rows:
+            ax.plot(rows[0][0], rows[0][1] / rows[0][0] * 1000.0, marker="o", label=run.name)
+    _legend(ax)
+    return _png(figure)
+
+
+def view_grid(rows: list[tuple[str, float, np.ndarray, np.ndarray]]) -> bytes:
+    """Rows of (view name, PSNR, render, ground truth) as uint8 images, in the given order."""
+    figure = Figure(figsize=(6.0, 2.8 * len(rows)))
+    axes = figure.subplots(len(rows), 2, squeeze=False)
+    for (name, value, rendered, truth), (a, b) in zip(rows, axes):
+        a.imshow(rendered)
+        a.set_title(f"{name}: render, {value:.2f} dB", fontsize=9)
+        b.imshow(truth)
+        b.set_title("ground truth", fontsize=9)
+        for ax in (a, b):
+            ax.set_axis_off()
+    figure.tight_layout()
+    return _png(figure)

@@ -1,0 +1,66 @@
+"""What a report shows of a run, read from its directory: config.json, metrics.json, log.jsonl and the final
+Gaussians' opacities and scales from checkpoint.pt. Nothing here trains or renders."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import MCSplatError
+from ..io.checkpoint import load_checkpoint
+
+DEAD_OPACITY = 0.005  # as trainer.DEAD_OPACITY: Gaussians at or below it are dead (relocated by MCMC)
+
+
+@dataclass
+class RunRecord:
+    path: Path
+    name: str
+    config: dict
+    metrics: dict
+    log: list[dict]
+    opacities: np.ndarray  # of the final Gaussians
+    max_scales: np.ndarray  # largest standard deviation of each final Gaussian
+    per_view_psnr: dict[str, float] = field(default_factory=dict)
+
+    def series(self, key: str) -> tuple[np.ndarray, np.ndarray]:
+        """(steps, values) of the log records that have `key`."""
+        rows = [(r["step"], r[key]) for r in self.log if key in r]
+        return (np.array([s for s, _ in rows]), np.array([v for _, v in rows], dtype=float)) if rows \
+            else (np.zeros(0), np.zeros(0))
+
+    @property
+    def dead_fraction(self) -> float:
+        return float((self.opacities <= DEAD_OPACITY).mean()) if self.opacities.size else 0.0
+
+
+def read_log(path: Path) -> list[dict]:
+    if not path.is_file():
+        return []
+    records = []
+    for line in path.read_text().splitlines():
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:  # a run killed mid-write leaves a partial last line
+            continue
+    return records
+
+
+def load_run(path: Path) -> RunRecord:
+    path = Path(path)
+    config_path, checkpoint = path / "config.json", path / "checkpoint.pt"
+    if not config_path.is_file() or not checkpoint.is_file():
+        raise MCSplatError(f"{path}: not a run directory (needs config.json and checkpoint.pt); "
+                           f"train one with `mcsplat train DATA --out {path}`")
+    metrics_path = path / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    model = load_checkpoint(checkpoint)["model"]  # GaussianModel.state_dict(): "params.<name>"
+    opacities = torch.sigmoid(model["params.opacity_logits"].float()).numpy()
+    max_scales = torch.exp(model["params.log_scales"].float().max(dim=1).values).numpy()
+    return RunRecord(path=path, name=path.resolve().name, config=json.loads(config_path.read_text()),
+                     metrics=metrics, log=read_log(path / "log.jsonl"), opacities=opacities, max_scales=max_scales,
+                     per_view_psnr=metrics.get("per_view_psnr", {}))

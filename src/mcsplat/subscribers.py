@@ -1,0 +1,122 @@
+"""The run's standard consumers (see events.py): progress bar, console messages, log.jsonl and periodic checkpoints.
+
+Each is small and knows only the events it listens to; trainer.train() subscribes them to every run.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Callable
+
+from tqdm import tqdm
+
+from .events import EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
+from .metrics import LPIPS_HINT
+
+LOG_EVERY = 100  # steps between two log.jsonl records
+
+
+class ProgressBar(Subscriber):
+    """tqdm bar over the steps, with loss, train PSNR and the number of Gaussians every 10 steps."""
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+        self.bar: tqdm | None = None
+
+    def on_run_started(self, event: RunStarted) -> None:
+        self.bar = tqdm(total=event.run.config.steps, initial=event.start_step, disable=self.quiet,
+                        dynamic_ncols=True, unit="step", mininterval=0.5)
+
+    def on_step_done(self, event: StepDone) -> None:
+        self.bar.update(1)
+        if event.step % 10 == 0 or event.step == event.total_steps:
+            self.bar.set_postfix(loss=f"{event.loss:.4f}", psnr=f"{event.train_psnr:.2f}",
+                                 gaussians=event.num_gaussians, refresh=False)
+        if event.step == event.total_steps:
+            self.close()  # before the final evaluation's own progress and messages
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+class ConsoleLog(Subscriber):
+    """One line when the run starts, after each periodic evaluation and at the end (nothing with --quiet)."""
+
+    def __init__(self, quiet: bool):
+        self.write: Callable[[str], None] = (lambda text: None) if quiet else tqdm.write
+
+    def on_run_started(self, event: RunStarted) -> None:
+        run = event.run
+        scene, config = run.scene, run.config
+        self.write(f"mcsplat: {scene.kind} scene {scene.root.name}: {len(scene.train)} train / {len(scene.test)} "
+                   f"test views, {config.strategy} strategy, init {event.init_note}, {config.steps:,} steps on "
+                   f"{run.device}")
+
+    def on_kernels_compiling(self, event: KernelsCompiling) -> None:
+        self.write(f"compiling {event.modules} kernel module(s) for this machine (once: later runs load them from "
+                   "Warp's kernel cache)...")
+
+    def on_eval_done(self, event: EvalDone) -> None:
+        self.write(f"step {event.step:,}: test PSNR {event.psnr:.2f} dB, SSIM {event.ssim:.4f}, "
+                   f"{event.num_gaussians:,} Gaussians")
+
+    def on_run_finished(self, event: RunFinished) -> None:
+        m, evaluation = event.metrics, event.evaluation
+        lpips_text = f"{evaluation.lpips:.4f}" if evaluation.lpips is not None else "n/a"
+        self.write(f"test PSNR {evaluation.psnr:.2f} dB, SSIM {evaluation.ssim:.4f}, LPIPS-{m['lpips_net']} "
+                   f"{lpips_text} on {evaluation.views} views; {m['num_gaussians']:,} Gaussians, "
+                   f"{m['train_seconds']:.0f} s of training")
+        if evaluation.lpips is None:
+            self.write(f"hint: {LPIPS_HINT}")
+        run_dir = event.run.run_dir
+        self.write(f"wrote {run_dir / 'point_cloud.ply'} ({m['exported_gaussians']:,} Gaussians) and "
+                   f"{run_dir / 'metrics.json'}")
+
+
+class LogWriter(Subscriber):
+    """Appends to log.jsonl every LOG_EVERY steps (and at the last step) and at each periodic evaluation: step,
+    loss, train PSNR, number of Gaussians, training seconds, refine counts since the previous record, test PSNR/SSIM."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.counts: dict[str, int] = {}
+        self.evaluation: EvalDone | None = None
+
+    def on_eval_done(self, event: EvalDone) -> None:
+        self.evaluation = event  # StepDone of the same step follows and writes it
+
+    def on_step_done(self, event: StepDone) -> None:
+        for key, value in event.counts.items():
+            self.counts[key] = self.counts.get(key, 0) + int(value)
+        record = None
+        if event.step % LOG_EVERY == 0 or event.step == event.total_steps:
+            record = {"step": event.step, "loss": round(event.loss, 6), "train_psnr": round(event.train_psnr, 3),
+                      "num_gaussians": event.num_gaussians, "elapsed_seconds": round(event.train_seconds, 2)}
+            record.update(self.counts)
+            self.counts = {}
+        if self.evaluation is not None and self.evaluation.step == event.step:
+            record = record or {"step": event.step, "num_gaussians": event.num_gaussians,
+                                "elapsed_seconds": round(event.train_seconds, 2)}
+            record.update(test_psnr=round(self.evaluation.psnr, 3), test_ssim=round(self.evaluation.ssim, 4))
+            self.evaluation = None
+        if record is not None:
+            with open(self.path, "a") as f:
+                f.write(json.dumps(record) + "\n")
+
+
+class Checkpointer(Subscriber):
+    """Saves the run's checkpoint every `every` steps (0 = only at the end and on stop, which the run does itself)."""
+
+    def __init__(self, every: int):
+        self.every = every
+        self.run = None
+
+    def on_run_started(self, event: RunStarted) -> None:
+        self.run = event.run
+
+    def on_step_done(self, event: StepDone) -> None:
+        if self.every and event.step % self.every == 0 and event.step < event.total_steps:
+            self.run.save_checkpoint()

@@ -1,0 +1,75 @@
+"""`mcsplat view`: the viewer on a finished (or stopped) run, or on any 3DGS .ply."""
+
+from __future__ import annotations
+
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+
+from ..errors import MCSplatError
+from ..gaussians import GaussianModel
+from ..io.ply import read_ply
+from .server import ViewerServer
+
+
+def load_for_viewing(path: Path, device: torch.device):
+    """(model, training cameras, background, scene radius) of a run directory or a .ply file."""
+    from ..trainer import background_of, load_trained
+
+    if path.is_dir():
+        config, model, _ = load_trained(path, device)
+        from ..data import load_scene
+        try:
+            scene = load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
+                               background=None if config.background == "auto" else config.background)
+        except MCSplatError as error:
+            warnings.warn(f"no training cameras shown: the scene cannot be loaded ({error})")
+            return model, [], (0.0, 0.0, 0.0), _radius_of(model)
+        return model, [v.camera for v in scene.train], background_of(config, scene), scene.radius
+    if path.suffix.lower() != ".ply":
+        raise MCSplatError(f"{path}: give a run directory or a 3DGS .ply file")
+    model = GaussianModel(**read_ply(path)).to(device)
+    return model, [], (0.0, 0.0, 0.0), _radius_of(model)
+
+
+def _radius_of(model) -> float:
+    means = model.means.detach()
+    return float((means - means.median(dim=0).values).norm(dim=1).quantile(0.9)) if means.shape[0] else 1.0
+
+
+def initial_pose_for(model, radius: float):
+    """A view from outside the scene towards its centre, for a .ply without cameras (OpenCV axes: y down)."""
+    import numpy as np
+
+    from .cameras import matrix_to_quat
+
+    centre = model.means.detach().median(dim=0).values.cpu().double().numpy()
+    position = centre + np.array([0.0, -1.0, -2.5]) * radius
+    forward = (centre - position) / np.linalg.norm(centre - position)
+    right = np.cross(forward, [0.0, -1.0, 0.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    return matrix_to_quat(np.stack([right, down, forward], axis=1)), position, np.deg2rad(50.0)
+
+
+def view_saved(path: Path, host: str, port: int, device: torch.device, stop: threading.Event | None = None,
+               quiet: bool = False) -> ViewerServer:
+    """Serve the viewer until `stop` is set (Ctrl-C from the CLI); returns the stopped server."""
+    model, cameras, background, radius = load_for_viewing(Path(path), device)
+    with torch.no_grad():
+        model.requires_grad_(False)
+    server = ViewerServer(host, port, lock=threading.RLock(), scene_radius=radius, background=background,
+                          max_sh_degree=model.sh_degree, training=False, quiet=quiet)
+    try:
+        if cameras:
+            server.add_cameras(cameras)
+        else:
+            server.initial_pose = initial_pose_for(model, radius)
+        server.set_model(model)
+        server.set_stats(f"{Path(path).name}: {model.num_gaussians:,} Gaussians, SH degree {model.sh_degree}")
+        (stop or threading.Event()).wait()
+    finally:
+        server.close()
+    return server

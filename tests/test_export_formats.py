@@ -1,0 +1,150 @@
+"""Export formats (.splat, PlayCanvas compressed .ply, .spz): byte layout checked on hand-computed values, and every
+field read back within the format's quantisation; `mcsplat export --format` with pruning on a trained run."""
+
+from __future__ import annotations
+
+import gzip
+import struct
+
+import numpy as np
+import pytest
+
+from mcsplat.cli import main
+from mcsplat.errors import MCSplatError
+from mcsplat.io.formats import EXTENSIONS, read_gaussians, select_gaussians, write_gaussians
+from mcsplat.io.formats.compressed_ply import CHUNK, morton_order
+from mcsplat.io.ply import read_ply
+
+C0 = 0.28209479177387814
+
+
+def random_gaussians(n: int, degree: int = 3, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    k = (degree + 1) ** 2 - 1
+    return {"means": rng.uniform(-3, 3, (n, 3)).astype(np.float32),
+            "log_scales": rng.uniform(-6, 0, (n, 3)).astype(np.float32),
+            "quats": rng.normal(size=(n, 4)).astype(np.float32),
+            "opacity_logits": rng.uniform(-4, 4, n).astype(np.float32),
+            "sh0": rng.uniform(-1.5, 1.5, (n, 1, 3)).astype(np.float32),
+            "shN": rng.uniform(-0.4, 0.4, (n, k, 3)).astype(np.float32)}
+
+
+def sigmoid(x):
+    return 1 / (1 + np.exp(-x.astype(np.float64)))
+
+
+def assert_same_rotations(actual, expected, tolerance):
+    a = actual / np.linalg.norm(actual, axis=1, keepdims=True)
+    e = expected / np.linalg.norm(expected, axis=1, keepdims=True)
+    error = np.minimum(np.abs(a - e).max(1), np.abs(a + e).max(1)).max()  # q and -q are one rotation
+    assert error <= tolerance, f"rotations: error {error} above {tolerance}"
+
+
+def assert_close_to(actual, expected, tolerance, what):
+    error = np.abs(np.asarray(actual, np.float64) - np.asarray(expected, np.float64)).max()
+    assert error <= tolerance, f"{what}: error {error} above {tolerance}"
+
+
+def test_splat_bytes_of_one_known_gaussian(tmp_path):
+    g = {"means": np.array([[1.0, -2.0, 0.5]], np.float32), "log_scales": np.log([[0.1, 0.2, 0.4]]).astype(np.float32),
+         "quats": np.array([[2.0, 0.0, 0.0, 0.0]], np.float32), "opacity_logits": np.array([0.0], np.float32),
+         "sh0": np.array([[[0.0, 1.0, -10.0]]], np.float32), "shN": np.zeros((1, 15, 3), np.float32)}
+    write_gaussians("splat", tmp_path / "one.splat", g)
+    data = (tmp_path / "one.splat").read_bytes()
+    assert len(data) == 32
+    assert struct.unpack("<6f", data[:24]) == pytest.approx((1.0, -2.0, 0.5, 0.1, 0.2, 0.4), rel=1e-6)
+    # r = 0.5 * 255, g = (0.5 + C0) * 255, b clipped to 0, a = 0.5 * 255; w = 1 -> 256 clipped to 255
+    assert list(data[24:]) == [128, round((0.5 + C0) * 255), 0, 128, 255, 128, 128, 128]
+
+
+def test_splat_reads_back_within_quantisation(tmp_path):
+    g = random_gaussians(1000, degree=0)
+    write_gaussians("splat", tmp_path / "g.splat", g)
+    back = read_gaussians("splat", tmp_path / "g.splat")
+    volume_opacity = np.exp(g["log_scales"].astype(np.float64).sum(1)) * sigmoid(g["opacity_logits"])
+    order = np.argsort(-volume_opacity, kind="stable")
+    assert np.array_equal(back["means"], g["means"][order])
+    assert_close_to(back["log_scales"], g["log_scales"][order], 1e-6, "log-scales")
+    colour = np.clip(0.5 + C0 * g["sh0"][order, 0], 0, 1)
+    assert_close_to(0.5 + C0 * back["sh0"][:, 0], colour, 0.5 / 255 + 1e-6, "colours")
+    assert_close_to(sigmoid(back["opacity_logits"]), sigmoid(g["opacity_logits"][order]), 0.5 / 255 + 1e-6, "alpha")
+    assert_same_rotations(back["quats"], g["quats"][order], 0.02)
+
+
+def test_compressed_ply_reads_back_within_chunk_quantisation(tmp_path):
+    n = 1000  # four chunks, the last one partial
+    g = random_gaussians(n)
+    write_gaussians("compressed-ply", tmp_path / "g.compressed.ply", g)
+    data = (tmp_path / "g.compressed.ply").read_bytes()
+    assert data.startswith(b"ply\nformat binary_little_endian 1.0\n")
+    assert b"element chunk 4\n" in data and b"element vertex 1000\n" in data and b"element sh 1000\n" in data
+    back = read_gaussians("compressed-ply", tmp_path / "g.compressed.ply")
+    order = morton_order(g["means"].astype(np.float64))
+    chunks = np.arange(n) // CHUNK
+
+    def chunk_step(values, bits):  # the quantisation step of each Gaussian's chunk, per axis
+        span = np.stack([np.ptp(values[chunks == c], axis=0) for c in range(chunks[-1] + 1)])[chunks]
+        return span / (2.0 ** np.array(bits) - 1)
+
+    means = g["means"][order].astype(np.float64)
+    error = np.abs(back["means"] - means)
+    assert (error <= chunk_step(means, [11, 10, 11]) / 2 + 1e-5).all()
+    assert error.max() < 0.05, "Morton order keeps chunks compact: much finer than the scene's 6-unit extent"
+    scales = g["log_scales"][order].astype(np.float64)
+    assert (np.abs(back["log_scales"] - scales) <= chunk_step(scales, [11, 10, 11]) / 2 + 1e-5).all()
+    colour = 0.5 + C0 * g["sh0"][order, 0].astype(np.float64)
+    assert (np.abs(0.5 + C0 * back["sh0"][:, 0] - colour) <= chunk_step(colour, [8, 8, 8]) / 2 + 1e-5).all()
+    assert_close_to(sigmoid(back["opacity_logits"]), sigmoid(g["opacity_logits"][order]), 0.5 / 255 + 1e-5, "alpha")
+    assert_same_rotations(back["quats"], g["quats"][order], 0.003)
+    assert_close_to(back["shN"], g["shN"][order], 8 / 256 / 2 + 1e-6, "SH rest")
+
+
+def test_spz_header_and_read_back_within_quantisation(tmp_path):
+    g = random_gaussians(500)
+    write_gaussians("spz", tmp_path / "g.spz", g)
+    raw = gzip.decompress((tmp_path / "g.spz").read_bytes())
+    assert struct.unpack_from("<IIIBBBB", raw) == (0x5053474E, 3, 500, 3, 12, 0, 0)
+    assert raw[:4] == b"NGSP"
+    assert len(raw) == 16 + 500 * (9 + 1 + 3 + 3 + 4 + 45)
+    # RUB on disk: the first point's y is stored negated.
+    first_y = int.from_bytes(raw[16 + 3:16 + 6], "little", signed=True) / 4096
+    assert first_y == pytest.approx(-g["means"][0, 1], abs=2 ** -12)
+    back = read_gaussians("spz", tmp_path / "g.spz")
+    assert_close_to(back["means"], g["means"], 2.0 ** -13 + 1e-6, "positions")
+    assert_close_to(back["log_scales"], g["log_scales"], 1 / 32 + 1e-6, "log-scales")
+    assert_close_to(back["sh0"], g["sh0"], 0.5 / (0.15 * 255) + 1e-6, "colours (f_dc)")
+    assert_close_to(sigmoid(back["opacity_logits"]), sigmoid(g["opacity_logits"]), 0.5 / 255 + 1e-5, "alpha")
+    assert_same_rotations(back["quats"], g["quats"], 0.003)
+    assert_close_to(back["shN"][:, :3], g["shN"][:, :3], 4.5 / 128, "SH degree 1 (5 bits)")
+    assert_close_to(back["shN"][:, 3:], g["shN"][:, 3:], 8.5 / 128, "SH degrees 2-3 (4 bits)")
+
+
+def test_pruning_keeps_the_most_contributing_gaussians():
+    g = random_gaussians(200, degree=0)
+    g["opacity_logits"][:50] = -8.0  # opacity 0.0003: dead
+    keep = select_gaussians(g, min_opacity=0.005)
+    assert keep.tolist() == list(range(50, 200))
+    g["log_scales"][60] = 1.0  # by far the largest footprint
+    top = select_gaussians(g, min_opacity=0.005, max_gaussians=10)
+    assert len(top) == 10 and 60 in top and (top >= 50).all()
+    with pytest.raises(MCSplatError, match="--max-gaussians"):
+        select_gaussians(g, max_gaussians=0)
+
+
+def test_cli_export_each_format_with_pruning(tiny_run, tmp_path, capsys):
+    total = read_ply(tiny_run / "point_cloud.ply")["means"].shape[0]
+    for name in ("ply", "splat", "compressed-ply", "spz"):
+        out = tmp_path / f"x{EXTENSIONS.get(name, '.ply')}"
+        assert main(["export", str(tiny_run), "--format", name, "--out", str(out), "--max-gaussians", "300"]) == 0
+        back = read_ply(out) if name == "ply" else read_gaussians(name, out)
+        assert back["means"].shape[0] == min(300, total), name
+    assert main(["export", str(tiny_run), "--format", "spz"]) == 0
+    assert (tiny_run / "point_cloud.spz").is_file(), "the default name is the run's point_cloud.<format>"
+    sizes = {name: (tmp_path / f"x{EXTENSIONS.get(name, '.ply')}").stat().st_size for name in EXTENSIONS}
+    sizes["ply"] = (tmp_path / "x.ply").stat().st_size
+    assert sizes["splat"] == 300 * 32
+    assert sizes["spz"] < sizes["compressed-ply"] < sizes["ply"] / 3, sizes  # both keep SH degree 3
+    capsys.readouterr()
+    assert main(["export", str(tiny_run), "--format", "spz", "--min-opacity", "0.9999"]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("mcsplat: error:") and "--min-opacity" in error and error.count("\n") == 1

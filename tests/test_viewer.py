@@ -1,0 +1,197 @@
+"""The live viewer in a real browser (headless Chromium over the DevTools protocol): the image the browser shows is
+our render of its camera within JPEG error, the pause button stops the step counter, the page and the report load
+with no network; and without viser, --viewer says how to install it.
+
+The browser test skips, with the reason, where viser or a headless Chromium is missing (.ci/run installs both)."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.errors import MCSplatError
+from mcsplat.events import Control
+from mcsplat.strategy.mcmc import MCMCConfig
+from mcsplat.trainer import standard_subscribers, train
+
+DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
+SCREENSHOTS = os.environ.get("MCSPLAT_SCREENSHOTS")  # a folder: also save screenshots there (docs/ is made so)
+
+
+def test_viewer_without_viser_says_how_to_install(tmp_path, monkeypatch):
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "viser" else find_spec(name, *a))
+    with pytest.raises(MCSplatError, match=r"pip install 'mcsplat\[viewer\]'"):
+        train(TrainConfig(data=DEMO, out=tmp_path / "run", steps=5, quiet=True, viewer=True))
+    assert not (tmp_path / "run").exists(), "a missing extra must not leave a half-started run"
+
+
+def test_viewer_option_adds_the_viewer_subscriber(tmp_path):
+    pytest.importorskip("viser")
+    from mcsplat.viewer import TrainingViewer
+
+    config = TrainConfig(data=DEMO, out=tmp_path, viewer=True, port=9999)
+    viewers = [s for s in standard_subscribers(config, tmp_path) if isinstance(s, TrainingViewer)]
+    assert len(viewers) == 1 and (viewers[0].host, viewers[0].port) == ("127.0.0.1", 9999)
+    assert not any(isinstance(s, TrainingViewer) for s in standard_subscribers(TrainConfig(data=DEMO), tmp_path))
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def browser():
+    pytest.importorskip("viser", reason="the viewer's optional dependency viser is not installed")
+    from browser import Browser, find_browser
+
+    if find_browser() is None:
+        pytest.skip("no headless Chromium: apt-get install chromium-headless-shell (.ci/run does so on CI)")
+    b = Browser(width=800, height=600)
+    try:
+        b.call("Network.enable")
+        yield b
+    finally:
+        b.close()
+
+
+def click(browser, text: str) -> None:
+    """Click the button (or checkbox of the label) whose text is `text`, as a user would."""
+    assert browser.evaluate(f"""(() => {{
+        for (const el of document.querySelectorAll('button, label')) {{
+            if (el.textContent.trim() === {text!r}) {{
+                const target = el.tagName === 'LABEL' ? (el.control || el.parentElement.querySelector('input'))
+                                                      : el;
+                if (target) {{ target.click(); return true; }}
+            }}
+        }}
+        const box = [...document.querySelectorAll('input[type=checkbox]')].find(
+            i => i.closest('div').parentElement.textContent.includes({text!r}));
+        if (box) {{ box.click(); return true; }}
+        return false; }})()"""), f"no {text!r} control on the page"
+
+
+def shown_step(browser) -> int:
+    text = browser.evaluate("document.body.innerText")
+    found = re.search(r"step\s+([\d,]+)\s*/", text)
+    assert found, text
+    return int(found.group(1).replace(",", ""))
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2)
+    return float(10 * np.log10(255.0 ** 2 / max(mse, 1e-12)))
+
+
+def test_live_viewer_in_a_browser_and_the_report(browser, tiny_run, tmp_path):
+    from mcsplat.viewer import TrainingViewer
+    from mcsplat.viewer.cameras import camera_from_pose
+
+    viewer, control = TrainingViewer(port=free_port(), quiet=True), Control()
+    config = TrainConfig(data=DEMO, out=tmp_path / "live", steps=100_000, quiet=True, save_every=0, eval_every=0,
+                         model=ModelConfig(num_init_points=2000), mcmc=MCMCConfig(cap_max=3000, refine_start=50))
+    failure: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            train(config, subscribers=[viewer], control=control)
+        except MCSplatError as error:
+            if "stopped at step" not in str(error):
+                failure.append(error)
+        except BaseException as error:  # shown by the assertion below
+            failure.append(error)
+
+    trainer = threading.Thread(target=run, daemon=True)
+    trainer.start()
+    try:
+        deadline = time.monotonic() + 60
+        while viewer.server is None and time.monotonic() < deadline and not failure:
+            time.sleep(0.1)
+        assert viewer.server is not None, failure
+        browser.call("Page.navigate", url=viewer.server.url)
+        browser.wait_for("document.body.innerText.includes('steps/s')", timeout=60)
+
+        # Pause: the step counter on the page stops, and so does the run.
+        click(browser, "Pause training")
+        browser.wait_for("document.body.innerText.includes('Resume training')")
+        time.sleep(0.5)  # the step under way ends, its numbers reach the page
+        paused_at = shown_step(browser)
+        time.sleep(1.5)
+        assert shown_step(browser) == paused_at and control.paused
+        assert viewer.step == paused_at
+
+        # The browser's image is our render of the browser's camera (the frustums hidden, the model still).
+        click(browser, "Training cameras")
+        deadline = time.monotonic() + 20
+        while not all(not f.visible for f in viewer.server.frustums) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        renderers = list(viewer.server.renderers.values())
+        assert renderers, "the page connected no client"
+        time.sleep(1.0)  # the full-resolution image after the settle time
+        for renderer in renderers:
+            camera = renderer.client.camera
+            width, height = camera.image_width, camera.image_height
+            shown = renderer.client.get_render(height, width, timeout=60)[..., :3]
+            ours = viewer.server.render(camera_from_pose(camera.wxyz, camera.position, camera.fov, width, height))
+            assert shown.shape == ours.shape
+            print(f"browser vs our render: {psnr(shown, ours):.1f} dB at {width}x{height}")
+            assert psnr(shown, ours) > 30.0, "the browser must show our render, up to JPEG compression"
+            assert psnr(shown, np.full_like(ours, 255)) < 25.0, "and not an empty page"
+        if SCREENSHOTS:
+            click(browser, "Training cameras")
+            time.sleep(1.5)
+            browser.screenshot(Path(SCREENSHOTS) / "viewer.png")
+
+        click(browser, "Resume training")
+        browser.wait_for(f"(document.body.innerText.match(/step\\s+([\\d,]+)/) || ['', '0'])[1]"
+                         f".replace(/,/g, '') > {paused_at + 5}", timeout=60)
+        local = [u for u in browser.requested_urls() if not u.startswith(("data:", "blob:", "about:"))]
+        assert local and all(u.startswith(viewer.server.url) for u in local), "the page needs no network"
+    finally:
+        control.stop()
+        trainer.join(timeout=120)
+    assert not trainer.is_alive() and not failure, failure
+    assert viewer.server is None, "the viewer closes with the run"
+
+    # The report opens in the browser and every image decodes.
+    browser.call("Page.navigate", url=(tiny_run / "report.html").as_uri())
+    browser.wait_for("document.readyState === 'complete'")
+    decoded = browser.evaluate("Promise.all([...document.images].map(i => i.decode().then(() => i.naturalWidth)))")
+    assert len(decoded) == 7 and min(decoded) > 100
+    if SCREENSHOTS:
+        browser.screenshot(Path(SCREENSHOTS) / "report.png")
+
+
+def test_render_modes_of_the_viewer(tiny_run):
+    from mcsplat.trainer import load_trained
+    from mcsplat.viewer.modes import MODES, render_mode
+
+    from mcsplat.data import load_scene
+
+    _, model, _ = load_trained(tiny_run, torch.device("cpu"))
+    camera = load_scene(DEMO).test[0].camera
+    images = {mode: render_mode(model, camera, mode, (1.0, 1.0, 1.0), 3, 1.0) for mode in MODES}
+    assert all(image.shape == (camera.height, camera.width, 3) and image.dtype == np.uint8
+               for image in images.values())
+    with torch.no_grad():
+        from mcsplat.render import render
+        expected = render(model, camera, (1.0, 1.0, 1.0), 3)
+    assert np.array_equal(images["RGB"], (expected.rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy())
+    covered = expected.alpha.numpy() > 0.5
+    assert (images["alpha"][covered] > 127).all() and (images["alpha"][~covered] <= 128).all()
+    assert images["depth"][covered].mean() > 20 and images["depth"][expected.alpha.numpy() < 0.05].max() == 0
+    # Centres: small opaque dots, so far less of the image is covered than by the Gaussians themselves.
+    dots = (images["centres"] < 250).any(axis=2).mean()
+    assert 0.0 < dots < (images["RGB"] < 250).any(axis=2).mean()
