@@ -58,22 +58,21 @@ def quality(runs: list[RunRecord]) -> bytes:
     return _png(figure)
 
 
-def loss(runs: list[RunRecord]) -> bytes:
-    figure, (ax,) = _axes("Training loss (0.8 L1 + 0.2 D-SSIM + regularizers)", "step", "loss")
+def _series(runs: list[RunRecord], key: str, title: str, ylabel: str) -> bytes:
+    figure, (ax,) = _axes(title, "step", ylabel)
     for run in runs:
-        steps, values = run.series("loss")
+        steps, values = run.series(key)
         ax.plot(steps, values, label=run.name)
     _legend(ax)
     return _png(figure)
+
+
+def loss(runs: list[RunRecord]) -> bytes:
+    return _series(runs, "loss", "Training loss (0.8 L1 + 0.2 D-SSIM + regularizers)", "loss")
 
 
 def gaussians(runs: list[RunRecord]) -> bytes:
-    figure, (ax,) = _axes("Number of Gaussians", "step", "Gaussians")
-    for run in runs:
-        steps, values = run.series("num_gaussians")
-        ax.plot(steps, values, label=run.name)
-    _legend(ax)
-    return _png(figure)
+    return _series(runs, "num_gaussians", "Number of Gaussians", "Gaussians")
 
 
 REFINE_KEYS = ("relocated", "added", "cloned", "split", "pruned")

@@ -30,7 +30,6 @@ import warp as wp
 from ..kernels import ALPHA_MAX, ALPHA_MIN, POWER_SKIP, TRANSMITTANCE_MIN
 
 RECORD_WIDTH = 10
-RECORD_COLUMNS = ("mean_x", "mean_y", "conic_a", "conic_b", "conic_c", "opacity", "red", "green", "blue", "depth")
 
 # Types and helpers shared by both tile bodies. Masks are int vectors of 0 / -1 (clang's vector comparisons).
 _PRELUDE = f"""
