@@ -283,7 +283,7 @@ def main() -> None:
     parser.add_argument("--test-stride", type=int, default=8, help="evaluate every N-th test view of --scene")
     parser.add_argument("--max-test-views", type=int, default=0, help="at most this many test views (0: no limit)")
     parser.add_argument("--sfm-scene", default="bird", help="bird, cup, a COLMAP folder, or none")
-    parser.add_argument("--sfm-cap", type=int, default=30_000)
+    parser.add_argument("--sfm-caps", type=int, nargs="+", default=[30_000], help="budgets for the SfM scene")
     parser.add_argument("--sfm-downscale", type=int, default=2, help="bird is 544x960; 2 gives 272x480")
     parser.add_argument("--sfm-test-stride", type=int, default=1)
     parser.add_argument("--data-root", default=str(C.DATA_ROOT))
@@ -312,7 +312,7 @@ def main() -> None:
                 args.test_stride, args.max_test_views) for cap in args.caps for s in args.strategies]
     if args.sfm_scene and args.sfm_scene.lower() != "none":
         jobs += [Job(short_name(args.sfm_scene), C.scene_path(args.sfm_scene, args.data_root), "sfm", s,
-                     args.sfm_cap, args.sfm_downscale, args.sfm_test_stride, 0) for s in args.strategies]
+                     cap, args.sfm_downscale, args.sfm_test_stride, 0) for cap in args.sfm_caps for s in args.strategies]
     for job in jobs:
         if not job.path.exists():
             sys.exit(f"scene folder {job.path} not found (pass --data-root or a path)")

@@ -82,6 +82,11 @@ class TrainConfig:
     """Port of the live viewer."""
     host: str = "127.0.0.1"
     """Address the live viewer listens on; 0.0.0.0 exposes it to the network."""
+    dist_timeout: float = 600.0
+    """Under torchrun: seconds a process waits for the others before it stops with an error (a process died or
+    hangs)."""
+    world_size: Annotated[int, tyro.conf.Suppress] = 1
+    """Processes the run trains with (set under torchrun: the schedules and learning rates are already scaled)."""
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)
@@ -95,6 +100,7 @@ class TrainConfig:
                   (self.cap_max is None or self.cap_max >= 1, "--cap-max must be at least 1"),
                   (self.threads is None or self.threads >= 1, "--threads must be at least 1"),
                   (self.sh_increase_every >= 1, "--sh-increase-every must be at least 1"),
+                  (self.dist_timeout > 0, "--dist-timeout must be positive"),
                   (0.0 <= self.ssim_weight <= 1.0, "--ssim-weight must be in [0, 1]"),
                   (0 <= self.model.sh_degree <= 3, "--model.sh-degree must be 0..3"),
                   (self.model.num_init_points >= 1, "--model.num-init-points must be at least 1"),

@@ -51,9 +51,10 @@ class ConsoleLog(Subscriber):
     def on_run_started(self, event: RunStarted) -> None:
         run = event.run
         scene, config = run.scene, run.config
+        processes = run.team.world_size
+        steps = f"{config.steps:,} steps" + (f" of {processes} views ({processes} processes)" if processes > 1 else "")
         self.write(f"mcsplat: {scene.kind} scene {scene.root.name}: {len(scene.train)} train / {len(scene.test)} "
-                   f"test views, {config.strategy} strategy, init {event.init_note}, {config.steps:,} steps on "
-                   f"{run.device}")
+                   f"test views, {config.strategy} strategy, init {event.init_note}, {steps} on {run.device}")
 
     def on_kernels_compiling(self, event: KernelsCompiling) -> None:
         self.write(f"compiling {event.modules} kernel module(s) for this machine (once: later runs load them from "

@@ -9,12 +9,13 @@ One step (SPEC 2, in gsplat's order, see strategy/mcmc.py for how the official c
 from __future__ import annotations
 
 import json
+import math
 import signal
 import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -22,7 +23,10 @@ from PIL import Image
 from tqdm import tqdm
 
 from .config import TrainConfig, load_config, save_config, to_jsonable
+from . import __version__
 from .data import Scene, View, load_scene
+from .distributed import SingleProcess, join, scaled_for_processes, threads_per_process
+from .distributed.team import ProcessGroup
 from .errors import MCSplatError
 from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Listener, RefineDone, RunFinished,
                      RunStarted, StepDone)
@@ -40,6 +44,7 @@ from .strategy.mcmc import MCMCStrategy
 from .subscribers import Checkpointer, ConsoleLog, LogWriter, ProgressBar
 
 CHECKPOINT = "checkpoint.pt"
+Team = SingleProcess | ProcessGroup
 DEAD_OPACITY = 0.005  # Gaussians at or below it are dead (SPEC 5) and left out of the exported .ply
 RUN_MARKERS = ("config.json", CHECKPOINT, "metrics.json", "point_cloud.ply")
 
@@ -73,6 +78,10 @@ class ViewSampler:
         if not self.order:
             self.order = torch.randperm(self.count, generator=self.generator).tolist()
         return self.order.pop()
+
+    def take(self, count: int) -> list[int]:
+        """The next `count` indices (one per process when several train together: each takes its own)."""
+        return [self.next() for _ in range(count)]
 
     def upcoming(self, count: int) -> list[int]:
         """The next `count` indices `next()` will return within this pass (fewer near its end), for prefetching."""
@@ -118,32 +127,53 @@ class Evaluation:
     per_view_psnr: dict[str, float] = field(default_factory=dict)  # view name -> PSNR
 
 
+@dataclass
+class ViewScore:
+    name: str
+    psnr: float
+    ssim: float
+    lpips: float | None
+
+
 @torch.no_grad()
-def evaluate(model: GaussianModel, views: list[View], background, sh_degree: int, device: torch.device,
-             lpips_net: str | None = None, render_dir: Path | None = None, progress: bool = False) -> Evaluation:
-    """Mean PSNR / SSIM / LPIPS over `views`; optionally writes each render as PNG into `render_dir`."""
-    if not views:
-        raise MCSplatError("no test views to evaluate: the scene has no test split (check --test-every)")
+def score_views(model: GaussianModel, views: list[View], background, sh_degree: int, device: torch.device,
+                lpips_net: str | None = None, on_image=None, progress: bool = False) -> list[ViewScore]:
+    """PSNR / SSIM / LPIPS of each view's render; `on_image(view, image)` sees each render (to save it)."""
     lp = lpips_model(lpips_net, device=device) if lpips_net else None
-    scores = {"psnr": [], "ssim": [], "lpips": []}
+    scores = []
     for view in tqdm(views, desc="evaluating", disable=not progress, leave=False):
         target = view.image_float(device)
         image = render(model, view.camera.to(device), background, sh_degree).rgb.clamp(0, 1)
-        scores["psnr"].append(psnr(image, target))
-        scores["ssim"].append(ssim_metric(image, target))
-        if lp is not None:
-            scores["lpips"].append(float(lp(image, target)))
-        if render_dir is not None:
-            save_png(render_dir / f"{Path(view.name).stem}.png", image)
-    return Evaluation(psnr=float(np.mean(scores["psnr"])), ssim=float(np.mean(scores["ssim"])),
-                      lpips=float(np.mean(scores["lpips"])) if scores["lpips"] else None,
-                      lpips_net=lpips_net or "", views=len(views),
-                      per_view_psnr={view.name: round(value, 3) for view, value in zip(views, scores["psnr"])})
+        scores.append(ViewScore(view.name, psnr(image, target), ssim_metric(image, target),
+                                float(lp(image, target)) if lp is not None else None))
+        if on_image is not None:
+            on_image(view, image)
+    return scores
+
+
+def summarize(scores: list[ViewScore], lpips_net: str | None) -> Evaluation:
+    """The means over the views (in the order given)."""
+    lpips_values = [s.lpips for s in scores if s.lpips is not None]
+    return Evaluation(psnr=float(np.mean([s.psnr for s in scores])), ssim=float(np.mean([s.ssim for s in scores])),
+                      lpips=float(np.mean(lpips_values)) if lpips_values else None, lpips_net=lpips_net or "",
+                      views=len(scores), per_view_psnr={s.name: round(s.psnr, 3) for s in scores})
+
+
+def evaluate(model: GaussianModel, views: list[View], background, sh_degree: int, device: torch.device,
+             lpips_net: str | None = None, render_dir: Path | None = None, progress: bool = False) -> Evaluation:
+    """Mean PSNR / SSIM / LPIPS over `views`; optionally writes each render as PNG into `render_dir`."""
+    _require_test_views(views)
+    save = (lambda view, image: save_png(render_dir / f"{Path(view.name).stem}.png", image)) if render_dir else None
+    return summarize(score_views(model, views, background, sh_degree, device, lpips_net, save, progress), lpips_net)
+
+
+def _require_test_views(views: list[View]) -> None:
+    if not views:
+        raise MCSplatError("no test views to evaluate: the scene has no test split (check --test-every)")
 
 
 def save_png(path: Path, image: torch.Tensor) -> None:
-    pixels = (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
-    atomic_write(path, lambda tmp: Image.fromarray(pixels).save(tmp, format="PNG"))
+    _save_pixels(path, _png_pixels(image))
 
 
 def export_ply(model: GaussianModel, path: Path) -> int:
@@ -193,7 +223,7 @@ def _prepare_run_dir(config: TrainConfig) -> Path:
 
 # Options that only affect how this process runs: on --resume they come from the command line, the rest from
 # the run's saved configuration (steps included: the learning-rate schedule depends on it).
-PROCESS_OPTIONS = ("eval_every", "save_every", "quiet", "threads", "device", "viewer", "port", "host")
+PROCESS_OPTIONS = ("eval_every", "save_every", "quiet", "threads", "device", "viewer", "port", "host", "dist_timeout")
 
 
 @dataclass
@@ -203,27 +233,38 @@ class StepResult:
     info: dict[str, Any]  # what the strategy did after the optimizer step
 
 
+Reduce = Callable[[GaussianModel, list[float]], list[float]]
+
+
+def _alone(model: GaussianModel, values: list[float]) -> list[float]:
+    return values
+
+
 def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view: View, *, config: TrainConfig,
-               scene_radius: float, background, device: torch.device) -> StepResult:
-    """One optimisation step on one training view (the module docstring lists its parts, in order)."""
+               scene_radius: float, background, device: torch.device, reduce: Reduce = _alone) -> StepResult:
+    """One optimisation step on one training view (the module docstring lists its parts, in order).
+
+    `reduce(model, [loss, psnr])` runs between the backward and the Adam step: with several processes it averages
+    the gradients (and the two values) over them (distributed/team.py)."""
     set_means_lr(optimizers, means_lr_at(step, config.steps, config.optim, scene_radius))
     sh_degree = sh_degree_at(config, step)
     target = view.image_float(device)
     camera = view.camera.to(device)
     result = render(model, camera, background, sh_degree)
     loss = photometric_loss(result.rgb, target, config.ssim_weight) + strategy.regularization(model)
-    if not torch.isfinite(loss):
-        raise MCSplatError(f"step {step}: the loss became {loss.item()}; lower the learning rates or check "
-                           f"the input images (the last checkpoint is kept)")
     loss.backward()
     strategy.step_post_backward(step, model, result, camera.width, camera.height)
+    loss_value, train_psnr = reduce(model, [loss.item(), psnr(result.rgb.detach(), target)])
+    if not math.isfinite(loss_value):  # checked after the reduce, so that every process stops at the same step
+        raise MCSplatError(f"step {step}: the loss became {loss_value}; lower the learning rates or check "
+                           f"the input images (the last checkpoint is kept)")
     for opt in optimizers.values():
         opt.step()
         opt.zero_grad(set_to_none=True)
     # The noise uses the position learning rate after this step's decay, as gsplat does (SPEC 13).
     info = strategy.step_post_optimizer(step, model, optimizers,
                                         means_lr_at(step + 1, config.steps, config.optim, scene_radius))
-    return StepResult(loss=loss.item(), train_psnr=psnr(result.rgb.detach(), target), info=info)
+    return StepResult(loss=loss_value, train_psnr=train_psnr, info=info)
 
 
 def sh_degree_at(config: TrainConfig, step: int) -> int:
@@ -232,23 +273,35 @@ def sh_degree_at(config: TrainConfig, step: int) -> int:
 
 class TrainingRun:
     """A training job: set up (or resumed) from its configuration, then `run(subscribers)` steps it to the end,
-    emitting the events of events.py. `control` pauses or stops it from another thread."""
+    emitting the events of events.py. `control` pauses or stops it from another thread.
 
-    def __init__(self, config: TrainConfig, control: Control | None = None):
-        self.run_dir = _prepare_run_dir(config)
-        if config.resume:
-            saved = load_config(self.run_dir)
-            for key in PROCESS_OPTIONS:
-                setattr(saved, key, getattr(config, key))
-            saved.resume, config = True, saved
+    With several processes (`team`, see mcsplat.distributed) every process runs this same loop on its own views;
+    rank 0 alone reads and writes the run directory and has subscribers."""
+
+    def __init__(self, config: TrainConfig, control: Control | None = None, team: Team | None = None):
+        self.team = team = team or SingleProcess()
+        team.check_same_setup(_setup_of(config))
+        local = config
+        config = team.on_main(lambda: _prepare_run(local))
+        for key in PROCESS_OPTIONS + ("data",):  # this process's own (paths may differ between machines)
+            setattr(config, key, getattr(local, key))
+        if config.resume and config.world_size != team.world_size:
+            raise MCSplatError(f"this run was trained with {config.world_size} process(es), its step schedules and "
+                               f"learning rates scaled for {config.world_size} views per step; resume it with the "
+                               f"same number of processes (torchrun --nproc-per-node ... x --nnodes ...)")
+        if not config.resume:
+            config = scaled_for_processes(config, team.world_size)
         self.config = config
+        self.run_dir = config.run_dir
         self.control = control or Control()
-        self.device = resolve_device(config.device)
-        if config.threads is not None:
-            torch.set_num_threads(config.threads)
-        set_cpu_threads(config.threads)
+        self.device = team.device(resolve_device(config.device))
+        threads = config.threads if config.threads is not None or team.world_size == 1 else threads_per_process()
+        if threads is not None:
+            torch.set_num_threads(threads)
+        set_cpu_threads(threads)
         self.scene = load_scene(config.data, downscale=config.downscale, background=config.background
                                 if config.background != "auto" else None, test_every=config.test_every)
+        team.check_same_setup(_scene_summary(self.scene))
         self.background = background_of(config, self.scene)
         torch.manual_seed(config.seed)
         self.generator = torch.Generator(device=self.device).manual_seed(config.seed)
@@ -256,7 +309,7 @@ class TrainingRun:
         self.step, self.train_seconds = 0, 0.0
         radius = self.scene.radius
         if config.resume:
-            state = load_checkpoint(self.run_dir / CHECKPOINT)
+            state = team.on_main(lambda: load_checkpoint(self.run_dir / CHECKPOINT))
             self.model = GaussianModel.from_state_dict(state["model"]).to(self.device)
             self.optimizers = make_optimizers(self.model, config.optim, radius)
             for name, opt in self.optimizers.items():
@@ -269,12 +322,18 @@ class TrainingRun:
             self.init_note = f"resumed at step {self.step:,}"
         else:
             self.model, self.init_note = initial_model(config, self.scene, self.device, self.generator)
+            team.share_parameters(self.model)
             self.optimizers = make_optimizers(self.model, config.optim, radius)
             self.strategy = make_strategy(config, radius, self.generator)
-            save_config(config, self.run_dir / "config.json")
+            if team.is_main:
+                save_config(config, self.run_dir / "config.json")
+        self.strategy.collective = team.collective
+        self._stop_vote = False  # several processes: whether any of them asked to stop, agreed with the gradients
         self._emit: Listener = lambda event: None
 
     def save_checkpoint(self) -> None:
+        if not self.team.is_main:
+            return
         path = self.run_dir / CHECKPOINT
         save_checkpoint(path, {
             "step": self.step, "train_seconds": self.train_seconds, "model": self.model.state_dict(),
@@ -284,7 +343,7 @@ class TrainingRun:
         self._emit(CheckpointWritten(step=self.step, path=path))
 
     def run(self, subscribers: Sequence[Listener]) -> dict[str, Any]:
-        """Train to config.steps; returns the final metrics (also written to metrics.json)."""
+        """Train to config.steps; returns the final metrics (also written to metrics.json by rank 0)."""
         def emit(event) -> None:
             for subscriber in subscribers:
                 subscriber(event)
@@ -292,7 +351,7 @@ class TrainingRun:
         self._emit = emit
         try:
             emit(RunStarted(run=self, start_step=self.step, init_note=self.init_note))
-            self._compile_kernels(emit)
+            self.team.first_on_each_machine(lambda: self._compile_kernels(emit))
             with _CtrlC(self.control):
                 self._steps(emit)
             return self._finish(emit)
@@ -307,53 +366,128 @@ class TrainingRun:
             emit(KernelsCompiling(modules=pending))
         compile_kernels(self.device)
 
+    def _reduce(self, model: GaussianModel, values: list[float]) -> list[float]:
+        """The step's reduce (train_step): the stop requests of all processes travel with the gradients."""
+        *averaged, stop = self.team.reduce_step(model, values + [float(self.control.stop_requested)])
+        self._stop_vote = stop > 0
+        return averaged
+
+    def _stop_now(self) -> bool:
+        # Alone, a stop asked for during this step's events counts at once; together, only what every process
+        # agreed on in the step's all-reduce (or one would stop while the others wait for it).
+        return self.control.stop_requested if self.team.world_size == 1 else self._stop_vote
+
     def _steps(self, emit: Listener) -> None:
-        config, control = self.config, self.control
+        config, control, team = self.config, self.control, self.team
+        n = team.world_size
         while self.step < config.steps:
             control.wait_while_paused()
             with control.lock:
                 tick = time.perf_counter()
-                view = self.scene.train[self.sampler.next()]
-                for index in self.sampler.upcoming(PREFETCH_VIEWS):  # decode ahead when images are not all in RAM
-                    self.scene.train[index].prefetch()
+                view = self.scene.train[team.pick(self.sampler.take(n))]
+                for index in self.sampler.upcoming(PREFETCH_VIEWS * n)[team.rank::n]:  # decode ahead when images
+                    self.scene.train[index].prefetch()                                  # are not all in memory
                 done = train_step(self.step, self.model, self.optimizers, self.strategy, view, config=config,
-                                  scene_radius=self.scene.radius, background=self.background, device=self.device)
+                                  scene_radius=self.scene.radius, background=self.background, device=self.device,
+                                  reduce=self._reduce)
                 counts = {k: int(v) for k, v in done.info.items() if k != "num_gaussians"}
                 if any(counts.values()):
                     emit(RefineDone(step=self.step, counts=counts, num_gaussians=self.model.num_gaussians))
                 self.step += 1
                 self.train_seconds += time.perf_counter() - tick
                 step = self.step
+                team.check_identical(self.model, step)
                 if config.eval_every and step % config.eval_every == 0 and step < config.steps:
-                    result = evaluate(self.model, self.scene.test, self.background, sh_degree_at(config, step - 1),
-                                      self.device)
+                    result = self._evaluate(sh_degree_at(config, step - 1))
                     emit(EvalDone(step=step, psnr=result.psnr, ssim=result.ssim,
                                   num_gaussians=self.model.num_gaussians))
             emit(StepDone(step=step, total_steps=config.steps, loss=done.loss, train_psnr=done.train_psnr,
                           num_gaussians=self.model.num_gaussians, sh_degree=sh_degree_at(config, step - 1),
                           train_seconds=self.train_seconds, counts=counts))
-            if control.stop_requested:
+            if self._stop_now():
                 self.save_checkpoint()
                 raise MCSplatError(f"stopped at step {step:,}; the checkpoint is saved: continue with "
                                    f"`mcsplat train {config.data} --out {self.run_dir} --resume`")
+
+    def _evaluate(self, sh_degree: int, lpips_net: str | None = None, render_dir: Path | None = None,
+                  progress: bool = False) -> Evaluation:
+        """The test views' scores; with several processes each scores every N-th view and rank 0 gathers them
+        (and writes the renders)."""
+        views, team = self.scene.test, self.team
+        _require_test_views(views)
+        mine = list(range(team.rank, len(views), team.world_size))
+        sent: list[tuple[str, np.ndarray]] = []  # renders rank 0 writes for the others
+
+        def keep(view: View, image: torch.Tensor) -> None:
+            if team.is_main:
+                save_png(render_dir / f"{Path(view.name).stem}.png", image)
+            else:
+                sent.append((view.name, _png_pixels(image)))
+
+        scores = score_views(self.model, [views[i] for i in mine], self.background, sh_degree, self.device,
+                             lpips_net, keep if render_dir is not None else None, progress and team.is_main)
+        everyone = team.gather((mine, scores, sent))
+        by_index = {i: score for indices, part, _ in everyone for i, score in zip(indices, part)}
+        if team.is_main and render_dir is not None:
+            for _, _, images in everyone[1:]:
+                for name, pixels in images:
+                    _save_pixels(render_dir / f"{Path(name).stem}.png", pixels)
+        return summarize([by_index[i] for i in range(len(views))], lpips_net)
 
     def _finish(self, emit: Listener) -> dict[str, Any]:
         config, run_dir = self.config, self.run_dir
         self.save_checkpoint()
         final_degree = final_sh_degree(config, self.step)
-        evaluation = evaluate(self.model, self.scene.test, self.background, final_degree, self.device,
-                              lpips_net=config.lpips_net,
-                              render_dir=run_dir / "renders" / "test" if config.save_renders else None,
-                              progress=not config.quiet)
-        exported = export_ply(self.model, run_dir / "point_cloud.ply")
+        evaluation = self._evaluate(final_degree, lpips_net=config.lpips_net,
+                                    render_dir=run_dir / "renders" / "test" if config.save_renders else None,
+                                    progress=not config.quiet)
+        exported = export_ply(self.model, run_dir / "point_cloud.ply") if self.team.is_main else \
+            int((self.model.opacities.detach() > DEAD_OPACITY).sum())
         metrics = {"psnr": evaluation.psnr, "ssim": evaluation.ssim, "lpips": evaluation.lpips,
                    "lpips_net": config.lpips_net, "num_gaussians": self.model.num_gaussians,
                    "exported_gaussians": exported, "steps": self.step, "train_seconds": round(self.train_seconds, 2),
                    "device": str(self.device), "strategy": config.strategy, "test_views": evaluation.views,
-                   "sh_degree": final_degree, "per_view_psnr": evaluation.per_view_psnr}
-        atomic_write_text(run_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
+                   "sh_degree": final_degree, "processes": self.team.world_size,
+                   "per_view_psnr": evaluation.per_view_psnr}
+        if self.team.is_main:
+            atomic_write_text(run_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
         emit(RunFinished(run=self, metrics=metrics, evaluation=evaluation))
         return metrics
+
+
+def _prepare_run(config: TrainConfig) -> TrainConfig:
+    """Rank 0's part of the set-up: the run directory, and on --resume the run's saved configuration (with this
+    command line's process options)."""
+    run_dir = _prepare_run_dir(config)
+    if not config.resume:
+        return config
+    saved = load_config(run_dir)
+    for key in PROCESS_OPTIONS:
+        setattr(saved, key, getattr(config, key))
+    saved.resume = True
+    return saved
+
+
+def _setup_of(config: TrainConfig) -> dict[str, Any]:
+    """What every process of one run must agree on: the options (not the per-process ones, nor the data path, which
+    may differ between machines) and the versions that compute the steps."""
+    options = {key: value for key, value in to_jsonable(config).items()
+               if key not in PROCESS_OPTIONS + ("data", "out")}
+    return {**options, "mcsplat": __version__, "torch": torch.__version__}
+
+
+def _scene_summary(scene: Scene) -> dict[str, Any]:
+    """Enough of the loaded scene to tell two copies of one scene from two scenes."""
+    return {"scene views": [(v.name, v.camera.width, v.camera.height) for v in scene.train + scene.test],
+            "scene radius": round(float(scene.radius), 6)}
+
+
+def _png_pixels(image: torch.Tensor) -> np.ndarray:
+    return (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+
+
+def _save_pixels(path: Path, pixels: np.ndarray) -> None:
+    atomic_write(path, lambda tmp: Image.fromarray(pixels).save(tmp, format="PNG"))
 
 
 def _close_all(subscribers: Sequence[Listener]) -> None:
@@ -389,8 +523,16 @@ def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Co
         from .viewer import require_viser
 
         require_viser()  # before the run directory is made: a missing extra must not leave a half-started run
-    run = TrainingRun(config, control)
-    return run.run(standard_subscribers(run.config, run.run_dir) + list(subscribers))
+    team = join(config.device, config.dist_timeout)
+    try:
+        if config.viewer and team.world_size > 1:
+            raise MCSplatError("--viewer does not work with several training processes yet (pausing one would "
+                               "stall the others); watch the run's checkpoints with `mcsplat view RUN` instead")
+        run = TrainingRun(config, control, team)
+        consumers = standard_subscribers(run.config, run.run_dir) + list(subscribers) if team.is_main else []
+        return run.run(consumers)
+    finally:
+        team.close()
 
 
 def load_trained(run_dir: Path, device: torch.device) -> tuple[TrainConfig, GaussianModel, int]:

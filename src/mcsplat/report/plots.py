@@ -110,7 +110,9 @@ def distributions(runs: list[RunRecord]) -> bytes:
 def step_time(runs: list[RunRecord]) -> bytes:
     figure, (ax,) = _axes("Training time per step", "step", "milliseconds per step")
     for run in runs:
-        rows = [(r["step"], r["elapsed_seconds"]) for r in run.log if "loss" in r and "elapsed_seconds" in r]
+        # A resumed run logs the steps after its checkpoint again: the later record of a step wins.
+        latest = {r["step"]: r["elapsed_seconds"] for r in run.log if "loss" in r and "elapsed_seconds" in r}
+        rows = sorted(latest.items())
         if len(rows) >= 2:
             steps, seconds = np.array(rows, dtype=float).T
             ax.plot(steps[1:], np.diff(seconds) / np.diff(steps) * 1000.0, marker=".", label=run.name)

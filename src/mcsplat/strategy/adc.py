@@ -37,6 +37,7 @@ import torch
 from ..gaussians import PARAM_KEYS, GaussianModel
 from ..optim import append_rows, remove_rows, set_rows, zero_moments
 from ..render.project import quaternion_to_rotation
+from .base import ALONE
 
 __all__ = ["ADCConfig", "ADCStrategy"]
 
@@ -97,6 +98,7 @@ class ADCStrategy:
         self.grad_accum: torch.Tensor | None = None   # [N] sum of NDC gradient norms since the last densification
         self.grad_count: torch.Tensor | None = None   # [N] number of views in which the Gaussian was visible
         self.max_radii: torch.Tensor | None = None    # [N] largest screen radius (pixels) since then
+        self.collective = ALONE  # several processes: each gathers statistics from its own views
 
     # --------------------------------------------------------------------------------------------- statistics
     def _reset_stats(self, n: int, device: torch.device) -> None:
@@ -180,6 +182,9 @@ class ADCStrategy:
     def _densify_and_prune(self, step: int, model: GaussianModel, optimizers: Optimizers) -> dict:
         c = self.config
         self._ensure_stats(model)
+        self.collective.sum_(self.grad_accum)  # the statistics of every process's views, as one batch would give
+        self.collective.sum_(self.grad_count)
+        self.collective.max_(self.max_radii)
         n = model.num_gaussians
         device = model.means.device
         grads = torch.where(self.grad_count > 0, self.grad_accum / self.grad_count.clamp(min=1),

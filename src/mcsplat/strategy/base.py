@@ -8,7 +8,8 @@ Per training step the trainer calls, in this order:
     for each optimizer: optimizer.step(); optimizer.zero_grad(set_to_none=True)
     info = strategy.step_post_optimizer(step, model, optimizers, means_lr)
 
-Steps are 0-based. Strategies may replace the model's Parameters (through mcsplat.optim), so the trainer must read
+Steps are 0-based. A strategy's `collective` attribute (ALONE by default) is how it agrees with the other processes
+when several train one model (mcsplat.distributed). Strategies may replace the model's Parameters (through mcsplat.optim), so the trainer must read
 parameters through the model after each step rather than keep references to them.
 """
 
@@ -20,7 +21,40 @@ import torch
 
 from ..gaussians import GaussianModel
 
-__all__ = ["Strategy"]
+__all__ = ["Strategy", "Collective", "ALONE"]
+
+
+class Collective(Protocol):
+    """What a strategy needs from the other training processes when several train one model (mcsplat.distributed):
+    every process takes the same decisions, from the same parameters and the same generator."""
+
+    def agree(self, indices: torch.Tensor) -> torch.Tensor:
+        """Rank 0's `indices` on every process: a guard that sampled decisions (relocation, growth) are the same."""
+        ...
+
+    def sum_(self, tensor: torch.Tensor) -> None:
+        """In place: the sum of the processes' tensors (statistics gathered from each process's own views)."""
+        ...
+
+    def max_(self, tensor: torch.Tensor) -> None:
+        """In place: the element-wise maximum of the processes' tensors."""
+        ...
+
+
+class _Alone:
+    """A single process: nothing to agree on."""
+
+    def agree(self, indices: torch.Tensor) -> torch.Tensor:
+        return indices
+
+    def sum_(self, tensor: torch.Tensor) -> None:
+        pass
+
+    def max_(self, tensor: torch.Tensor) -> None:
+        pass
+
+
+ALONE: Collective = _Alone()
 
 
 @runtime_checkable

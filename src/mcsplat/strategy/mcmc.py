@@ -27,12 +27,13 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import asdict, dataclass
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import torch
 
 from ..gaussians import PARAM_KEYS, GaussianModel
 from ..optim import append_rows, copy_rows, remove_rows, set_rows, zero_moments
+from .base import ALONE
 from .relocation import DEFAULT_MAX_COPIES, relocation_params, sample_by_weight
 
 __all__ = ["MCMCConfig", "MCMCStrategy", "inject_noise", "noise_gate", "relocate_dead", "grow", "prune_to_cap",
@@ -43,6 +44,11 @@ NOISE_GATE_K = 100.0
 NOISE_GATE_CENTER = 0.005
 
 Optimizers = Mapping[str, torch.optim.Optimizer]
+Agree = Callable[[torch.Tensor], torch.Tensor]
+
+
+def _as_drawn(indices: torch.Tensor) -> torch.Tensor:
+    return indices
 
 
 @dataclass
@@ -121,13 +127,14 @@ def _no_alive_warning(min_opacity: float, what: str) -> None:
 @torch.no_grad()
 def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch.Generator, *,
                   min_opacity: float = 0.005,
-                  max_copies: int = DEFAULT_MAX_COPIES) -> tuple[torch.Tensor, torch.Tensor]:
+                  max_copies: int = DEFAULT_MAX_COPIES, agree: Agree = _as_drawn) -> tuple[torch.Tensor, torch.Tensor]:
     """Move the dead Gaussians (opacity <= min_opacity) onto live ones (SPEC section 5).
 
     Sources are drawn from the live Gaussians with replacement, with probability proportional to opacity. Every dead
     slot takes its source's position, rotation and colour; the source and its copies all get the Eq. 9 opacity and
     scale. Adam moments are zeroed at the sources only; dead slots keep theirs (paper section 3.4, official #21).
-    Returns (dead slot indices, their source indices). With nothing alive it warns and changes nothing.
+    Returns (dead slot indices, their source indices). With nothing alive it warns and changes nothing. `agree`
+    sees the drawn sources before they are used (several processes: rank 0's draw on all of them).
     """
     device = model.means.device
     empty = torch.zeros(0, dtype=torch.long, device=device)
@@ -141,7 +148,7 @@ def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch
         _no_alive_warning(min_opacity, "relocation")
         return empty, empty
     # All sampling happens before Eq. 9 changes anything (SPEC section 5).
-    sources = alive[sample_by_weight(opacities[alive], num_dead, generator)]
+    sources = agree(alive[sample_by_weight(opacities[alive], num_dead, generator)])
     slots = torch.nonzero(dead)[:, 0]
     logits, log_scales = _apply_eq9(model, sources, min_opacity, max_copies)
     copy_rows(model, sources, slots)
@@ -154,13 +161,14 @@ def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch
 
 @torch.no_grad()
 def grow(model: GaussianModel, optimizers: Optimizers, generator: torch.Generator, *, cap_max: int,
-         grow_rate: float = 1.05, min_opacity: float = 0.005, max_copies: int = DEFAULT_MAX_COPIES) -> torch.Tensor:
+         grow_rate: float = 1.05, min_opacity: float = 0.005, max_copies: int = DEFAULT_MAX_COPIES,
+         agree: Agree = _as_drawn) -> torch.Tensor:
     """Append min(cap_max, int(grow_rate N)) - N copies of Gaussians drawn by opacity (SPEC section 6).
 
     The sources and the appended copies (the last rows, in the order of the returned source indices) get the Eq. 9
     opacity and scale; the copies have zero Adam moments and the sources' moments are zeroed. Note that
     int(1.05 N) == N below N = 20: a model that small does not grow (as in the official code). Nothing is added when
-    no Gaussian is alive (with a warning) or when N >= cap_max.
+    no Gaussian is alive (with a warning) or when N >= cap_max. `agree` as in relocate_dead().
     """
     n = model.num_gaussians
     empty = torch.zeros(0, dtype=torch.long, device=model.means.device)
@@ -171,7 +179,7 @@ def grow(model: GaussianModel, optimizers: Optimizers, generator: torch.Generato
     if not bool((opacities > min_opacity).any()):
         _no_alive_warning(min_opacity, "growth")
         return empty
-    sources = sample_by_weight(opacities, num_add, generator)
+    sources = agree(sample_by_weight(opacities, num_add, generator))
     logits, log_scales = _apply_eq9(model, sources, min_opacity, max_copies)
     set_rows(model, sources, {"opacity_logits": logits, "log_scales": log_scales})
     zero_moments(optimizers, sources)
@@ -203,6 +211,7 @@ class MCMCStrategy:
         self.config = config or MCMCConfig()
         self.scene_radius = scene_radius  # the noise scale comes in through the position learning rate
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.collective = ALONE
 
     def is_refine_step(self, step: int) -> bool:
         c = self.config
@@ -232,9 +241,9 @@ class MCMCStrategy:
                               stacklevel=2)
             else:
                 slots, _ = relocate_dead(model, optimizers, self.generator, min_opacity=c.min_opacity,
-                                         max_copies=c.max_copies)
+                                         max_copies=c.max_copies, agree=self.collective.agree)
                 added = grow(model, optimizers, self.generator, cap_max=c.cap_max, grow_rate=c.grow_rate,
-                             min_opacity=c.min_opacity, max_copies=c.max_copies)
+                             min_opacity=c.min_opacity, max_copies=c.max_copies, agree=self.collective.agree)
                 info["relocated"], info["added"] = int(slots.numel()), int(added.numel())
         inject_noise(model, c.noise_lr * means_lr, self.generator)
         info["num_gaussians"] = model.num_gaussians

@@ -1,0 +1,7 @@
+"""`python -m mcsplat ...` (what `torchrun -m mcsplat train ...` runs): the same as the `mcsplat` command."""
+
+import sys
+
+from mcsplat.cli import main
+
+sys.exit(main())

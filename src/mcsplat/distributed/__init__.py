@@ -1,0 +1,10 @@
+"""Training one model with several processes (torchrun): replicated data parallelism, N views per step.
+
+`join()` returns this process's team (SingleProcess when it runs alone); the trainer drives the same loop either way.
+"""
+
+from .schedule import scaled_for_processes
+from .team import CHECK_EVERY, ProcessGroup, SingleProcess, join, parameter_checksum, threads_per_process
+
+__all__ = ["CHECK_EVERY", "ProcessGroup", "SingleProcess", "join", "parameter_checksum", "scaled_for_processes",
+           "threads_per_process"]

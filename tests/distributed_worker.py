@@ -1,0 +1,65 @@
+"""One training process of a multi-process test run (tests/test_distributed.py starts them with spawn).
+
+Joins a gloo process group through a file store (no network port), trains, and writes what the test checks to
+<results>/rank<N>.json: the final parameters' checksum and metrics, or the error it stopped with.
+"""
+
+from __future__ import annotations
+
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep)
+
+import json
+import os
+from datetime import timedelta
+from pathlib import Path
+
+import torch.distributed as dist
+
+from mcsplat.config import TrainConfig
+from mcsplat.distributed import parameter_checksum
+from mcsplat.errors import MCSplatError
+from mcsplat.strategy.mcmc import MCMCStrategy
+from mcsplat import trainer
+
+
+def run(rank: int, world_size: int, init_file: str, results: str, configs: list[TrainConfig],
+        crash: dict | None = None, timeout: float = 60.0) -> None:
+    """`configs[rank]` is this process's configuration. `crash`: {"rank": r, "step": s, "how": "raise" | "exit"}
+    makes rank r (-1: every rank) fail at step s, by an exception or by dying on the spot."""
+    os.environ["GLOO_SOCKET_IFNAME"] = "lo"  # gloo's connections between the processes stay on this machine
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world_size,
+                            timeout=timedelta(seconds=timeout))
+    if crash and crash["rank"] in (rank, -1):
+        _fail_at(crash["step"], crash["how"])
+    final = {}
+    original_finish = trainer.TrainingRun._finish
+
+    def finish(self, emit):
+        final["checksum"] = parameter_checksum(self.model)
+        return original_finish(self, emit)
+
+    trainer.TrainingRun._finish = finish
+    try:
+        metrics = trainer.train(configs[rank])
+        outcome = {"metrics": {k: v for k, v in metrics.items() if k != "per_view_psnr"}, **final}
+    except MCSplatError as error:
+        outcome = {"error": str(error)}
+    except RuntimeError as error:
+        outcome = {"crash": str(error)}
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
+    (Path(results) / f"rank{rank}.json").write_text(json.dumps(outcome))
+
+
+def _fail_at(step_to_fail: int, how: str) -> None:
+    original = MCMCStrategy.step_post_optimizer
+
+    def patched(self, step, *args, **kwargs):
+        if step == step_to_fail:
+            if how == "exit":
+                os._exit(3)  # a process that dies without a word (killed, out of memory)
+            raise RuntimeError("simulated crash")
+        return original(self, step, *args, **kwargs)
+
+    MCMCStrategy.step_post_optimizer = patched
