@@ -14,6 +14,7 @@ from distributed_worker import run as worker
 from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.distributed import scaled_for_processes
 from mcsplat.errors import MCSplatError
+from mcsplat.strategy.adc import ADCConfig
 from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.trainer import train
 
@@ -101,6 +102,16 @@ def test_a_two_process_run_resumes_exactly_with_two_processes_only(tmp_path):
     resumed = launch(tmp_path / "comm2", [demo_config(tmp_path / "run", resume=True)] * 2)
     assert resumed[0]["checksum"] == resumed[1]["checksum"] == straight[0]["checksum"], \
         "resumed from step 100, the run must end exactly where the uninterrupted one did"
+
+
+def test_adc_densifies_from_the_statistics_of_every_process(tmp_path):
+    """ADC's gradient statistics come from each process's own views: summed before each densification, the
+    processes take the same decisions."""
+    adc = ADCConfig(densify_start=20, densify_every=20, grad_threshold=1e-4)
+    configs = [demo_config(tmp_path / "run", strategy="adc", steps=240, adc=adc)] * 2
+    rank0, rank1 = launch(tmp_path / "comm", configs)
+    assert rank0["checksum"] == rank1["checksum"], (rank0, rank1)
+    assert rank0["metrics"]["num_gaussians"] > 3000, "the run densified"
 
 
 def test_a_process_that_dies_stops_the_others_with_a_clear_error(tmp_path):
