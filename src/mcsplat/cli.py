@@ -171,29 +171,55 @@ class Export:
     """Leave out Gaussians of this opacity or less (0.005: the dead ones MCMC relocates)."""
     max_gaussians: int | None = None
     """Keep at most N: those that contribute most (opacity x largest cross-section)."""
+    prune: bool = False
+    """Also leave out the Gaussians composited into no pixel of any training view (needs the run's scene), and
+    print the test PSNR with and without them."""
+    device: Device = "auto"
 
     def run_command(self) -> int:
         import torch
 
         from mcsplat.io.formats import EXTENSIONS, select_gaussians, write_gaussians
         from mcsplat.io.ply import write_ply
-        from mcsplat.trainer import load_trained
+        from mcsplat.trainer import load_trained, resolve_device
 
-        _, model, _ = load_trained(self.run, torch.device("cpu"))
+        device = resolve_device(self.device)
+        config, model, step = load_trained(self.run, device)
         params = {k: v.detach().cpu().numpy() for k, v in model.params.items()}
-        keep = select_gaussians(params, self.min_opacity, self.max_gaussians)
-        if keep.size == 0:
+        keep = torch.zeros(model.num_gaussians, dtype=torch.bool, device=device)
+        keep[torch.from_numpy(select_gaussians(params, self.min_opacity, self.max_gaussians)).to(device)] = True
+        if self.prune:
+            keep = self._prune(config, model, step, keep, device)
+        if not bool(keep.any()):
             raise MCSplatError(f"no Gaussian has opacity above --min-opacity {self.min_opacity}; lower it")
         ending = ".ply" if self.format == "ply" else EXTENSIONS[self.format]
         path = self.out or self.run / f"point_cloud{ending}"
         if self.format == "ply":
-            mask = torch.zeros(model.num_gaussians, dtype=torch.bool)
-            mask[torch.from_numpy(keep)] = True
-            write_ply(path, dict(model.params.items()), keep=mask)
+            write_ply(path, dict(model.params.items()), keep=keep)
         else:
-            write_gaussians(self.format, path, {k: v[keep] for k, v in params.items()})
-        print(f"wrote {path} ({keep.size:,} of {model.num_gaussians:,} Gaussians, {path.stat().st_size:,} bytes)")
+            rows = keep.cpu().numpy()
+            write_gaussians(self.format, path, {k: v[rows] for k, v in params.items()})
+        print(f"wrote {path} ({int(keep.sum()):,} of {model.num_gaussians:,} Gaussians, {path.stat().st_size:,} "
+              f"bytes)")
         return 0
+
+    @staticmethod
+    def _prune(config, model, step: int, keep, device):
+        """`keep` without the Gaussians no training view sees; prints how many and what it costs on the test
+        views."""
+        from mcsplat.trainer import background_of, evaluate, final_sh_degree
+        from mcsplat.visibility import count_invisible, describe, seen_in
+
+        scene = _scene_of(config)
+        background, degree = background_of(config, scene), final_sh_degree(config, step)
+        seen = seen_in(model, scene.train, background, device, progress=True)
+        print(f"{describe(count_invisible(model, seen).as_dict())}: left out")
+        pruned = keep & seen
+        full = evaluate(model, scene.test, background, degree, device, progress=True).psnr
+        kept = evaluate(model.subset(pruned), scene.test, background, degree, device, progress=True).psnr
+        print(f"test PSNR on {len(scene.test)} views: {full:.3f} dB with every Gaussian, {kept:.3f} dB with the "
+              f"{int(pruned.sum()):,} exported ({kept - full:+.3f} dB)")
+        return pruned
 
 
 @dataclass

@@ -153,6 +153,10 @@ class GaussianModel(torch.nn.Module):
         shN = torch.zeros(n, num_sh_bases(sh_degree) - 1, 3, device=device)
         return cls(means, log_scales.contiguous(), quats, opacity_logits, sh_dc, shN)
 
+    def subset(self, keep: torch.Tensor) -> "GaussianModel":
+        """A new model of the rows `keep` selects (a bool mask or indices), detached from this one."""
+        return GaussianModel(*(self.params[key].detach()[keep] for key in PARAM_KEYS))
+
     @classmethod
     def from_state_dict(cls, state: Mapping[str, torch.Tensor],
                         device: torch.device | str | None = None) -> "GaussianModel":

@@ -13,6 +13,7 @@ from tqdm import tqdm
 
 from .events import EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
 from .metrics import LPIPS_HINT
+from .visibility import describe
 
 LOG_EVERY = 100  # steps between two log.jsonl records
 
@@ -75,6 +76,8 @@ class ConsoleLog(Subscriber):
         run_dir = event.run.run_dir
         self.write(f"wrote {run_dir / 'point_cloud.ply'} ({m['exported_gaussians']:,} Gaussians) and "
                    f"{run_dir / 'metrics.json'}")
+        if m["invisible_gaussians"]["never_composited"]:
+            self.write(f"{describe(m['invisible_gaussians'])}: `mcsplat export {run_dir} --prune` leaves them out")
 
 
 class LogWriter(Subscriber):

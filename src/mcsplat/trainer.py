@@ -42,6 +42,7 @@ from .render.compile import compile_kernels, modules_to_compile
 from .strategy.adc import ADCStrategy
 from .strategy.mcmc import MCMCStrategy
 from .subscribers import Checkpointer, ConsoleLog, LogWriter, ProgressBar
+from .visibility import count_invisible, seen_in
 
 CHECKPOINT = "checkpoint.pt"
 Team = SingleProcess | ProcessGroup
@@ -434,6 +435,14 @@ class TrainingRun:
                     _save_pixels(render_dir / f"{Path(name).stem}.png", pixels)
         return summarize([by_index[i] for i in range(len(views))], lpips_net)
 
+    def _seen_in_training_views(self) -> torch.Tensor:
+        """[N] bool: composited into a pixel of some training view (each process renders every N-th view)."""
+        team = self.team
+        seen = seen_in(self.model, self.scene.train[team.rank::team.world_size], self.background, self.device)
+        seen = seen.to(torch.uint8)
+        team.collective.max_(seen)
+        return seen.bool()
+
     def _finish(self, emit: Listener) -> dict[str, Any]:
         config, run_dir = self.config, self.run_dir
         self.save_checkpoint()
@@ -441,6 +450,7 @@ class TrainingRun:
         evaluation = self._evaluate(final_degree, lpips_net=config.lpips_net,
                                     render_dir=run_dir / "renders" / "test" if config.save_renders else None,
                                     progress=not config.quiet)
+        invisible = count_invisible(self.model, self._seen_in_training_views())
         exported = export_ply(self.model, run_dir / "point_cloud.ply") if self.team.is_main else \
             int((self.model.opacities.detach() > DEAD_OPACITY).sum())
         metrics = {"psnr": evaluation.psnr, "ssim": evaluation.ssim, "lpips": evaluation.lpips,
@@ -448,6 +458,7 @@ class TrainingRun:
                    "exported_gaussians": exported, "steps": self.step, "train_seconds": round(self.train_seconds, 2),
                    "device": str(self.device), "strategy": config.strategy, "test_views": evaluation.views,
                    "sh_degree": final_degree, "processes": self.team.world_size,
+                   "invisible_gaussians": invisible.as_dict(),
                    "per_view_psnr": evaluation.per_view_psnr}
         if self.team.is_main:
             atomic_write_text(run_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
