@@ -108,7 +108,7 @@ def test_adc_densifies_from_the_statistics_of_every_process(tmp_path):
     """ADC's gradient statistics come from each process's own views: summed before each densification, the
     processes take the same decisions."""
     adc = ADCConfig(densify_start=20, densify_every=20, grad_threshold=1e-4)
-    configs = [demo_config(tmp_path / "run", strategy="adc", steps=240, adc=adc)] * 2
+    configs = [demo_config(tmp_path / "run", strategy="adc", steps=160, adc=adc)] * 2
     rank0, rank1 = launch(tmp_path / "comm", configs)
     assert rank0["checksum"] == rank1["checksum"], (rank0, rank1)
     assert rank0["metrics"]["num_gaussians"] > 3000, "the run densified"

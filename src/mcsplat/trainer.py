@@ -22,11 +22,10 @@ import torch
 from PIL import Image
 from tqdm import tqdm
 
-from .config import TrainConfig, load_config, save_config, to_jsonable
 from . import __version__
+from .config import TrainConfig, load_config, save_config, to_jsonable
 from .data import Scene, View, load_scene
-from .distributed import SingleProcess, join, scaled_for_processes, threads_per_process
-from .distributed.team import ProcessGroup
+from .distributed import ProcessGroup, SingleProcess, join, scaled_for_processes, threads_per_process
 from .errors import MCSplatError
 from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Listener, RefineDone, RunFinished,
                      RunStarted, StepDone)
@@ -45,9 +44,9 @@ from .subscribers import Checkpointer, ConsoleLog, LogWriter, ProgressBar
 from .visibility import count_invisible, seen_in
 
 CHECKPOINT = "checkpoint.pt"
-Team = SingleProcess | ProcessGroup
 DEAD_OPACITY = 0.005  # Gaussians at or below it are dead (SPEC 5) and left out of the exported .ply
 RUN_MARKERS = ("config.json", CHECKPOINT, "metrics.json", "point_cloud.ply")
+Team = SingleProcess | ProcessGroup  # the processes training one model (one, or torchrun's)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -284,7 +283,9 @@ class TrainingRun:
         team.check_same_setup(_setup_of(config))
         local = config
         config = team.on_main(lambda: _prepare_run(local))
-        for key in PROCESS_OPTIONS + ("data",):  # this process's own (paths may differ between machines)
+        # This process's own options; a new run also keeps its own data path (it may differ between machines, the
+        # scenes are compared below), a resumed one trains on the data it started with.
+        for key in PROCESS_OPTIONS + (() if config.resume else ("data",)):
             setattr(config, key, getattr(local, key))
         if config.resume and config.world_size != team.world_size:
             raise MCSplatError(f"this run was trained with {config.world_size} process(es), its step schedules and "
