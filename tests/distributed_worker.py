@@ -63,3 +63,27 @@ def _fail_at(step_to_fail: int, how: str) -> None:
         return original(self, step, *args, **kwargs)
 
     MCMCStrategy.step_post_optimizer = patched
+
+
+def reduce_once(rank: int, world_size: int, init_file: str, results: str) -> None:
+    """One reduce_step on a tiny model whose gradients are rank + 1 times its position: what comes back."""
+    import torch
+
+    from mcsplat.distributed import join
+    from mcsplat.gaussians import GaussianModel
+
+    os.environ["GLOO_SOCKET_IFNAME"] = "lo"
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world_size,
+                            timeout=timedelta(seconds=60))
+    try:
+        team = join("cpu", 60)
+        model = GaussianModel.empty(3, sh_degree=1)
+        for key, p in model.params.items():
+            if key != "quats":  # one parameter without a gradient: it counts as zeros
+                p.grad = torch.arange(p.numel(), dtype=p.dtype).reshape(p.shape) * (rank + 1)
+        values = team.reduce_step(model, [10.0 * (rank + 1), 1.0 if rank == 1 else 0.0])
+        grads = {key: p.grad.reshape(-1).tolist() for key, p in model.params.items()}
+        (Path(results) / f"rank{rank}.json").write_text(json.dumps({"values": values, "grads": grads}))
+    finally:
+        dist.barrier()
+        dist.destroy_process_group()

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from distributed_worker import reduce_once
 from distributed_worker import run as worker
 from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.distributed import scaled_for_processes
@@ -35,10 +36,15 @@ def demo_config(out: Path, **overrides) -> TrainConfig:
 
 def launch(comm: Path, configs: list[TrainConfig], crash: dict | None = None, timeout: float = 60.0) -> list[dict]:
     """Run one process per config (rank = its index) to the end; what each reported (rank<N>.json)."""
+    return spawn(comm, len(configs), worker, (configs, crash, timeout))
+
+
+def spawn(comm: Path, world_size: int, target, extra: tuple = ()) -> list[dict]:
+    """target(rank, world_size, store file, comm folder, *extra) in `world_size` fresh processes."""
     comm.mkdir(parents=True)
     context = multiprocessing.get_context("spawn")
-    processes = [context.Process(target=worker, args=(rank, len(configs), str(comm / "store"), str(comm), configs,
-                                                     crash, timeout)) for rank in range(len(configs))]
+    processes = [context.Process(target=target, args=(rank, world_size, str(comm / "store"), str(comm), *extra))
+                 for rank in range(world_size)]
     for process in processes:
         process.start()
     try:
@@ -58,8 +64,8 @@ def launch(comm: Path, configs: list[TrainConfig], crash: dict | None = None, ti
 def together(tmp_path_factory):
     """A two-process run of the demo scene: rank 1 is given another --out, which it must not touch."""
     root = tmp_path_factory.mktemp("together")
-    outcomes = launch(root / "comm", [demo_config(root / "run", save_renders=True),
-                                     demo_config(root / "elsewhere", save_renders=True)])
+    outcomes = launch(root / "comm", [demo_config(root / "run", save_renders=True, eval_every=600),
+                                     demo_config(root / "elsewhere", save_renders=True, eval_every=600)])
     return root, outcomes
 
 
@@ -76,6 +82,8 @@ def test_two_processes_train_one_model_and_rank_0_alone_writes(together, tmp_pat
     assert sorted(p.name for p in root.iterdir()) == ["comm", "run"], "rank 1 wrote nothing of its own"
     for name in ("config.json", "checkpoint.pt", "metrics.json", "point_cloud.ply", "log.jsonl", "report.html"):
         assert (run / name).is_file(), name
+    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log if "test_psnr" in r] == [600], "the periodic evaluation, split and gathered"
     renders = sorted(p.name for p in (run / "renders" / "test").iterdir())
     assert len(renders) == 25 and all(name.endswith(".png") for name in renders), "every test view, from both ranks"
     saved = json.loads((run / "config.json").read_text())
@@ -127,6 +135,15 @@ def test_processes_started_differently_stop_at_once(tmp_path):
     for outcome in outcomes:
         assert "started differently: rank 1 has steps = 120, rank 0 has 100" in outcome.get("error", ""), outcome
     assert not (tmp_path / "run").exists(), "nothing is written before the processes agree"
+
+
+def test_the_reduce_averages_every_gradient_and_the_values(tmp_path):
+    rank0, rank1 = spawn(tmp_path / "comm", 2, reduce_once)
+    assert rank0 == rank1, "every process gets the same bytes back"
+    assert rank0["values"] == [15.0, 0.5], "the loss is averaged; a stop vote from one process shows as > 0"
+    for key, grad in rank0["grads"].items():
+        expected = [0.0] * len(grad) if key == "quats" else [1.5 * i for i in range(len(grad))]
+        assert grad == expected, key
 
 
 def test_the_schedule_rule_for_n_processes():

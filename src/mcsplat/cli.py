@@ -177,6 +177,7 @@ class Export:
     device: Device = "auto"
 
     def run_command(self) -> int:
+        import numpy as np
         import torch
 
         from mcsplat.io.formats import EXTENSIONS, select_gaussians, write_gaussians
@@ -186,40 +187,48 @@ class Export:
         device = resolve_device(self.device)
         config, model, step = load_trained(self.run, device)
         params = {k: v.detach().cpu().numpy() for k, v in model.params.items()}
-        keep = torch.zeros(model.num_gaussians, dtype=torch.bool, device=device)
-        keep[torch.from_numpy(select_gaussians(params, self.min_opacity, self.max_gaussians)).to(device)] = True
+        candidates = np.arange(model.num_gaussians)
         if self.prune:
-            keep = self._prune(config, model, step, keep, device)
-        if not bool(keep.any()):
-            raise MCSplatError(f"no Gaussian has opacity above --min-opacity {self.min_opacity}; lower it")
+            scene, seen = self._seen(config, model, device)
+            candidates = np.flatnonzero(seen.cpu().numpy())
+        chosen = candidates[select_gaussians({k: v[candidates] for k, v in params.items()}, self.min_opacity,
+                                             self.max_gaussians)]
+        if chosen.size == 0:
+            raise MCSplatError(f"no Gaussian has opacity above --min-opacity {self.min_opacity}"
+                               f"{' and shows in a training view (--prune)' if self.prune else ''}; lower it")
+        keep = torch.zeros(model.num_gaussians, dtype=torch.bool)
+        keep[torch.from_numpy(chosen)] = True
+        if self.prune:
+            self._compare_on_test_views(config, model, step, keep.to(device), scene, device)
         ending = ".ply" if self.format == "ply" else EXTENSIONS[self.format]
         path = self.out or self.run / f"point_cloud{ending}"
         if self.format == "ply":
             write_ply(path, dict(model.params.items()), keep=keep)
         else:
-            rows = keep.cpu().numpy()
-            write_gaussians(self.format, path, {k: v[rows] for k, v in params.items()})
-        print(f"wrote {path} ({int(keep.sum()):,} of {model.num_gaussians:,} Gaussians, {path.stat().st_size:,} "
-              f"bytes)")
+            write_gaussians(self.format, path, {k: v[chosen] for k, v in params.items()})
+        print(f"wrote {path} ({chosen.size:,} of {model.num_gaussians:,} Gaussians, {path.stat().st_size:,} bytes)")
         return 0
 
     @staticmethod
-    def _prune(config, model, step: int, keep, device):
-        """`keep` without the Gaussians no training view sees; prints how many and what it costs on the test
-        views."""
-        from mcsplat.trainer import background_of, evaluate, final_sh_degree
+    def _seen(config, model, device):
+        """The run's scene and which Gaussians its training views show (printing how many show nowhere)."""
+        from mcsplat.trainer import background_of
         from mcsplat.visibility import count_invisible, describe, seen_in
 
         scene = _scene_of(config)
-        background, degree = background_of(config, scene), final_sh_degree(config, step)
-        seen = seen_in(model, scene.train, background, device, progress=True)
+        seen = seen_in(model, scene.train, background_of(config, scene), device, progress=True)
         print(f"{describe(count_invisible(model, seen).as_dict())}: left out")
-        pruned = keep & seen
+        return scene, seen
+
+    @staticmethod
+    def _compare_on_test_views(config, model, step: int, keep, scene, device) -> None:
+        from mcsplat.trainer import background_of, evaluate, final_sh_degree
+
+        background, degree = background_of(config, scene), final_sh_degree(config, step)
         full = evaluate(model, scene.test, background, degree, device, progress=True).psnr
-        kept = evaluate(model.subset(pruned), scene.test, background, degree, device, progress=True).psnr
+        kept = evaluate(model.subset(keep), scene.test, background, degree, device, progress=True).psnr
         print(f"test PSNR on {len(scene.test)} views: {full:.3f} dB with every Gaussian, {kept:.3f} dB with the "
-              f"{int(pruned.sum()):,} exported ({kept - full:+.3f} dB)")
-        return pruned
+              f"{int(keep.sum()):,} exported ({kept - full:+.3f} dB)")
 
 
 @dataclass

@@ -283,15 +283,13 @@ class TrainingRun:
         team.check_same_setup(_setup_of(config))
         local = config
         config = team.on_main(lambda: _prepare_run(local))
-        # This process's own options; a new run also keeps its own data path (it may differ between machines, the
-        # scenes are compared below), a resumed one trains on the data it started with.
-        for key in PROCESS_OPTIONS + (() if config.resume else ("data",)):
+        # This process's own options. The data path is its own too (it may differ between machines; the scenes are
+        # compared below), except that a resumed run in one process trains on the data it started with.
+        for key in PROCESS_OPTIONS + (() if config.resume and team.is_main else ("data",)):
             setattr(config, key, getattr(local, key))
-        if config.resume and config.world_size != team.world_size:
-            raise MCSplatError(f"this run was trained with {config.world_size} process(es), its step schedules and "
-                               f"learning rates scaled for {config.world_size} views per step; resume it with the "
-                               f"same number of processes (torchrun --nproc-per-node ... x --nnodes ...)")
-        if not config.resume:
+        if config.resume:
+            _check_resumable(config, team.world_size)
+        else:
             config = scaled_for_processes(config, team.world_size)
         self.config = config
         self.run_dir = config.run_dir
@@ -428,10 +426,10 @@ class TrainingRun:
 
         scores = score_views(self.model, [views[i] for i in mine], self.background, sh_degree, self.device,
                              lpips_net, keep if render_dir is not None else None, progress and team.is_main)
-        everyone = team.gather((mine, scores, sent))
-        by_index = {i: score for indices, part, _ in everyone for i, score in zip(indices, part)}
-        if team.is_main and render_dir is not None:
-            for _, _, images in everyone[1:]:
+        everyone = team.gather((mine, scores))
+        by_index = {i: score for indices, part in everyone for i, score in zip(indices, part)}
+        if render_dir is not None:
+            for images in team.gather_on_main(sent)[1:]:
                 for name, pixels in images:
                     _save_pixels(render_dir / f"{Path(name).stem}.png", pixels)
         return summarize([by_index[i] for i in range(len(views))], lpips_net)
@@ -480,12 +478,25 @@ def _prepare_run(config: TrainConfig) -> TrainConfig:
     return saved
 
 
+def _check_resumable(config: TrainConfig, world_size: int) -> None:
+    if config.world_size != world_size:
+        raise MCSplatError(f"this run was trained with {config.world_size} process(es), its step schedules and "
+                           f"learning rates scaled for {config.world_size} views per step; resume it with the same "
+                           f"number of processes (torchrun --nproc-per-node ... x --nnodes ...)")
+    if world_size > 1 and config.strategy == "adc":
+        raise MCSplatError("a run of the ADC baseline in several processes cannot resume: each process's gradient "
+                           "statistics since the last densification are not in the checkpoint (MCMC runs resume); "
+                           "start it again, or train ADC in one process")
+
+
 def _setup_of(config: TrainConfig) -> dict[str, Any]:
     """What every process of one run must agree on: the options (not the per-process ones, nor the data path, which
-    may differ between machines) and the versions that compute the steps."""
+    may differ between machines, but those that decide when the processes talk) and the versions that compute the
+    steps."""
     options = {key: value for key, value in to_jsonable(config).items()
                if key not in PROCESS_OPTIONS + ("data", "out")}
-    return {**options, "mcsplat": __version__, "torch": torch.__version__}
+    return {**options, "eval_every": config.eval_every, "device": config.device, "mcsplat": __version__,
+            "torch": torch.__version__}
 
 
 def _scene_summary(scene: Scene) -> dict[str, Any]:

@@ -60,6 +60,9 @@ class SingleProcess:
     def gather(self, value: T) -> list[T]:
         return [value]
 
+    def gather_on_main(self, value: T) -> list[T]:
+        return [value]
+
     def close(self) -> None:
         pass
 
@@ -78,8 +81,11 @@ class ProcessGroup:
         self.is_main = self.rank == 0
         self.timeout = timeout
         self._owns_group = owns_group
-        self._tensors = torch.device("cuda", torch.cuda.current_device()) if dist.get_backend() == "nccl" \
-            else torch.device("cpu")
+        if dist.get_backend() == "nccl":  # NCCL's collectives (objects included) run on this process's GPU
+            torch.cuda.set_device(self.local_rank)
+            self._tensors = torch.device("cuda", self.local_rank)
+        else:
+            self._tensors = torch.device("cpu")
         self.collective: Collective = _GroupCollective(self)
         self._flat: torch.Tensor | None = None  # the all-reduce buffer, reused while the model keeps its size
 
@@ -155,13 +161,14 @@ class ProcessGroup:
         flat = torch.cat(grads + [tail], out=self._flat)
         with self._talking("the gradient all-reduce"):
             self._dist.all_reduce(flat)
-        flat.mul_(1.0 / self.world_size)
+            flat.mul_(1.0 / self.world_size)
+            averaged = flat[-tail.numel():].tolist()  # on CUDA the wait for the others happens here
         offset = 0
         for p in params:
             count = p.numel()
             p.grad = flat[offset:offset + count].view_as(p).to(p.device)
             offset += count
-        return flat[offset:].tolist()
+        return averaged
 
     def check_identical(self, model: GaussianModel, step: int) -> None:
         """Every CHECK_EVERY steps: compare checksums of the parameters' bits; stop if a copy has diverged."""
@@ -181,6 +188,13 @@ class ProcessGroup:
         with self._talking("an exchange of results"):
             self._dist.all_gather_object(everyone, value)
         return everyone
+
+    def gather_on_main(self, value: T) -> list[T]:
+        """Every process's `value`, in rank order, on rank 0 (the others get an empty list)."""
+        everyone: list[Any] | None = [None] * self.world_size if self.is_main else None
+        with self._talking("an exchange of results"):
+            self._dist.gather_object(value, everyone, dst=0)
+        return everyone or []
 
     def close(self) -> None:
         if self._owns_group and self._dist.is_initialized():
@@ -239,14 +253,20 @@ class _GroupCollective:
         tensor.copy_(moved)
 
 
-def parameter_checksum(model: GaussianModel) -> list[int]:
-    """Integers that change when any bit of any parameter does (sums of the raw bits, plain and position-weighted)."""
+def parameter_checksum(model: GaussianModel, chunk: int = 1 << 22) -> list[int]:
+    """Integers that change when any bit of any parameter does (sums of the raw bits, plain and position-weighted),
+    computed where the parameters live, a chunk at a time."""
     sums = [model.num_gaussians]
     for key in PARAM_KEYS:
-        data = model.params[key].detach().contiguous().cpu().reshape(-1)
-        bits = data.view(torch.int32 if data.element_size() == 4 else torch.int64).to(torch.int64)
-        weights = torch.arange(bits.numel(), dtype=torch.int64) % 65_521 + 1
-        sums += [int(bits.sum()), int((bits * weights).sum())]
+        data = model.params[key].detach().contiguous().reshape(-1)
+        bits = data.view(torch.int32 if data.element_size() == 4 else torch.int64)
+        plain = weighted = 0
+        for start in range(0, bits.numel(), chunk):
+            part = bits[start:start + chunk].to(torch.int64)
+            weights = torch.arange(start, start + part.numel(), dtype=torch.int64, device=part.device) % 65_521 + 1
+            plain += int(part.sum())
+            weighted += int((part * weights).sum())
+        sums += [plain, weighted]
     return sums
 
 
