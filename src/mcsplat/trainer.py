@@ -547,15 +547,18 @@ def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Co
 
         require_viser()  # before the run directory is made: a missing extra must not leave a half-started run
     team = join(config.device, config.dist_timeout)
+    finished = False
     try:
         if config.viewer and team.world_size > 1:
             raise MCSplatError("--viewer does not work with several training processes yet (pausing one would "
                                "stall the others); watch the run's checkpoints with `mcsplat view RUN` instead")
         run = TrainingRun(config, control, team)
         consumers = standard_subscribers(run.config, run.run_dir) + list(subscribers) if team.is_main else []
-        return run.run(consumers)
+        metrics = run.run(consumers)
+        finished = True
+        return metrics
     finally:
-        team.close()
+        team.close(finished)
 
 
 def load_trained(run_dir: Path, device: torch.device) -> tuple[TrainConfig, GaussianModel, int]:

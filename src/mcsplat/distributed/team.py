@@ -63,7 +63,7 @@ class SingleProcess:
     def gather_on_main(self, value: T) -> list[T]:
         return [value]
 
-    def close(self) -> None:
+    def close(self, finished: bool) -> None:
         pass
 
 
@@ -196,9 +196,15 @@ class ProcessGroup:
             self._dist.gather_object(value, everyone, dst=0)
         return everyone or []
 
-    def close(self) -> None:
-        if self._owns_group and self._dist.is_initialized():
-            self._dist.destroy_process_group()
+    def close(self, finished: bool) -> None:
+        """Leave the group this process joined. After a finished run, wait for the others first (a process that
+        tears its connections down while another still uses them can abort it)."""
+        if not (self._owns_group and self._dist.is_initialized()):
+            return
+        if finished:
+            with self._talking("the end of the run"):
+                self._dist.barrier()
+        self._dist.destroy_process_group()
 
     def _talking(self, what: str) -> "_Talking":
         return _Talking(self, what)
