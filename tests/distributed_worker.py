@@ -18,6 +18,7 @@ import torch.distributed as dist
 from mcsplat.config import TrainConfig
 from mcsplat.distributed import parameter_checksum
 from mcsplat.errors import MCSplatError
+from mcsplat.strategy.adc import ADCStrategy
 from mcsplat.strategy.mcmc import MCMCStrategy
 from mcsplat import trainer
 
@@ -30,7 +31,7 @@ def run(rank: int, world_size: int, init_file: str, results: str, configs: list[
     dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world_size,
                             timeout=timedelta(seconds=timeout))
     if crash and crash["rank"] in (rank, -1):
-        _fail_at(crash["step"], crash["how"])
+        _fail_at(ADCStrategy if configs[rank].strategy == "adc" else MCMCStrategy, crash["step"], crash["how"])
     final = {}
     original_finish = trainer.TrainingRun._finish
 
@@ -52,8 +53,8 @@ def run(rank: int, world_size: int, init_file: str, results: str, configs: list[
     (Path(results) / f"rank{rank}.json").write_text(json.dumps(outcome))
 
 
-def _fail_at(step_to_fail: int, how: str) -> None:
-    original = MCMCStrategy.step_post_optimizer
+def _fail_at(strategy, step_to_fail: int, how: str) -> None:
+    original = strategy.step_post_optimizer
 
     def patched(self, step, *args, **kwargs):
         if step == step_to_fail:
@@ -62,7 +63,7 @@ def _fail_at(step_to_fail: int, how: str) -> None:
             raise RuntimeError("simulated crash")
         return original(self, step, *args, **kwargs)
 
-    MCMCStrategy.step_post_optimizer = patched
+    strategy.step_post_optimizer = patched
 
 
 def reduce_once(rank: int, world_size: int, init_file: str, results: str) -> None:

@@ -112,14 +112,21 @@ def test_a_two_process_run_resumes_exactly_with_two_processes_only(tmp_path):
         "resumed from step 100, the run must end exactly where the uninterrupted one did"
 
 
-def test_adc_densifies_from_the_statistics_of_every_process(tmp_path):
+def test_adc_densifies_from_the_statistics_of_every_process_and_resumes_exactly(tmp_path):
     """ADC's gradient statistics come from each process's own views: summed before each densification, the
-    processes take the same decisions."""
-    adc = ADCConfig(densify_start=20, densify_every=20, grad_threshold=1e-4)
-    configs = [demo_config(tmp_path / "run", strategy="adc", steps=160, adc=adc)] * 2
-    rank0, rank1 = launch(tmp_path / "comm", configs)
-    assert rank0["checksum"] == rank1["checksum"], (rank0, rank1)
-    assert rank0["metrics"]["num_gaussians"] > 3000, "the run densified"
+    processes take the same decisions; the checkpoint keeps every process's, so a resumed run ends where an
+    uninterrupted one does."""
+    adc = dict(strategy="adc", steps=160, save_every=40, adc=ADCConfig(densify_start=20, densify_every=20,
+                                                                       grad_threshold=1e-4))
+    straight = launch(tmp_path / "comm0", [demo_config(tmp_path / "straight", **adc)] * 2)
+    assert straight[0]["checksum"] == straight[1]["checksum"], straight
+    assert straight[0]["metrics"]["num_gaussians"] > 3000, "the run densified"
+    crashed = launch(tmp_path / "comm1", [demo_config(tmp_path / "run", **adc)] * 2,
+                     crash={"rank": -1, "step": 55, "how": "raise"})
+    assert all(outcome.get("crash") == "simulated crash" for outcome in crashed), crashed
+    resumed = launch(tmp_path / "comm2", [demo_config(tmp_path / "run", **{**adc, "resume": True})] * 2)
+    assert resumed[0]["checksum"] == resumed[1]["checksum"] == straight[0]["checksum"], \
+        "resumed from step 40, between two densifications, the run must end where the uninterrupted one did"
 
 
 def test_a_process_that_dies_stops_the_others_with_a_clear_error(tmp_path):

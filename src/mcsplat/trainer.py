@@ -315,7 +315,7 @@ class TrainingRun:
             for name, opt in self.optimizers.items():
                 opt.load_state_dict(state["optimizers"][name])
             self.strategy = make_strategy(config, radius, self.generator)
-            self.strategy.load_state_dict(state["strategy"])
+            self.strategy.load_state_dict((state.get("strategy_per_process") or [state["strategy"]])[team.rank])
             self.generator.set_state(state["generator"])
             self.sampler.load_state_dict(state["sampler"])
             self.step, self.train_seconds = state["step"], state["train_seconds"]
@@ -332,14 +332,18 @@ class TrainingRun:
         self._emit: Listener = lambda event: None
 
     def save_checkpoint(self) -> None:
+        """Rank 0 writes the checkpoint; every process calls this at the same steps, for the strategy's state
+        differs between them (ADC's statistics of each process's own views) and rank 0 keeps them all."""
+        strategies = self.team.gather_on_main(self.strategy.state_dict())
         if not self.team.is_main:
             return
         path = self.run_dir / CHECKPOINT
         save_checkpoint(path, {
             "step": self.step, "train_seconds": self.train_seconds, "model": self.model.state_dict(),
             "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
-            "strategy": self.strategy.state_dict(), "generator": self.generator.get_state(),
-            "sampler": self.sampler.state_dict(), "config": to_jsonable(self.config)})
+            "strategy": strategies[0], "strategy_per_process": strategies if len(strategies) > 1 else None,
+            "generator": self.generator.get_state(), "sampler": self.sampler.state_dict(),
+            "config": to_jsonable(self.config)})
         self._emit(CheckpointWritten(step=self.step, path=path))
 
     def run(self, subscribers: Sequence[Listener]) -> dict[str, Any]:
@@ -483,10 +487,6 @@ def _check_resumable(config: TrainConfig, world_size: int) -> None:
         raise MCSplatError(f"this run was trained with {config.world_size} process(es), its step schedules and "
                            f"learning rates scaled for {config.world_size} views per step; resume it with the same "
                            f"number of processes (torchrun --nproc-per-node ... x --nnodes ...)")
-    if world_size > 1 and config.strategy == "adc":
-        raise MCSplatError("a run of the ADC baseline in several processes cannot resume: each process's gradient "
-                           "statistics since the last densification are not in the checkpoint (MCMC runs resume); "
-                           "start it again, or train ADC in one process")
 
 
 def _setup_of(config: TrainConfig) -> dict[str, Any]:
@@ -495,8 +495,8 @@ def _setup_of(config: TrainConfig) -> dict[str, Any]:
     steps."""
     options = {key: value for key, value in to_jsonable(config).items()
                if key not in PROCESS_OPTIONS + ("data", "out")}
-    return {**options, "eval_every": config.eval_every, "device": config.device, "mcsplat": __version__,
-            "torch": torch.__version__}
+    return {**options, "eval_every": config.eval_every, "save_every": config.save_every, "device": config.device,
+            "mcsplat": __version__, "torch": torch.__version__}
 
 
 def _scene_summary(scene: Scene) -> dict[str, Any]:
@@ -553,7 +553,9 @@ def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Co
             raise MCSplatError("--viewer does not work with several training processes yet (pausing one would "
                                "stall the others); watch the run's checkpoints with `mcsplat view RUN` instead")
         run = TrainingRun(config, control, team)
-        consumers = standard_subscribers(run.config, run.run_dir) + list(subscribers) if team.is_main else []
+        # The other processes take part in each checkpoint (save_checkpoint), without writing anything.
+        consumers = standard_subscribers(run.config, run.run_dir) + list(subscribers) if team.is_main else \
+            [Checkpointer(run.config.save_every)]
         metrics = run.run(consumers)
         finished = True
         return metrics
