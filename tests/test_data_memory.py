@@ -8,13 +8,17 @@ from pathlib import Path
 
 import numpy as np
 
-SCRIPT = """
-import sys
+# Read by both scripts below: a /proc/self/status entry (VmRSS, VmHWM) in bytes.
+STATUS = """
 def status(key):
     with open("/proc/self/status") as f:
         for line in f:
             if line.startswith(key + ":"):
                 return int(line.split()[1]) * 1024
+"""
+
+SCRIPT = STATUS + """
+import sys
 import torch, pycolmap, PIL.Image
 from mcsplat.data import load_scene
 before = status("VmRSS")
@@ -38,16 +42,11 @@ def test_bird_memory(shared_data: Path) -> None:
     assert peak < 1024**3
 
 
-LAZY_SCRIPT = """
+LAZY_SCRIPT = STATUS + """
 import json, os, sys
 from pathlib import Path
 
 import numpy as np
-def status(key):
-    with open("/proc/self/status") as f:
-        for line in f:
-            if line.startswith(key + ":"):
-                return int(line.split()[1]) * 1024
 import torch, pycolmap, PIL.Image
 from mcsplat.config import TrainConfig
 from mcsplat.gaussians import GaussianModel

@@ -10,9 +10,10 @@ every CHECK_EVERY steps. A run in one process gets `SingleProcess`, whose operat
 
 from __future__ import annotations
 
+import contextlib
 import os
 from datetime import timedelta
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Iterator, TypeVar
 
 import torch
 
@@ -206,26 +207,18 @@ class ProcessGroup:
                 self._dist.barrier()
         self._dist.destroy_process_group()
 
-    def _talking(self, what: str) -> "_Talking":
-        return _Talking(self, what)
-
-
-class _Talking:
-    """Turns a failed or timed-out collective into one clear error instead of a backend traceback."""
-
-    def __init__(self, group: ProcessGroup, what: str):
-        self.group, self.what = group, what
-
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, kind, error, traceback) -> bool:
-        if error is None or isinstance(error, MCSplatError) or not isinstance(error, RuntimeError):
-            return False
-        first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise MCSplatError(f"rank {self.group.rank}: lost the other training processes during {self.what} "
-                           f"({first_line[:200]}): one of them stopped (its own error says why) or did not answer "
-                           f"within --dist-timeout {self.group.timeout:g} s") from None
+    @contextlib.contextmanager
+    def _talking(self, what: str) -> Iterator[None]:
+        """Turns a failed or timed-out collective into one clear error instead of a backend traceback."""
+        try:
+            yield
+        except MCSplatError:
+            raise
+        except RuntimeError as error:
+            first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+            raise MCSplatError(f"rank {self.rank}: lost the other training processes during {what} "
+                               f"({first_line[:200]}): one of them stopped (its own error says why) or did not "
+                               f"answer within --dist-timeout {self.timeout:g} s") from None
 
 
 class _GroupCollective:
