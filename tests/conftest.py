@@ -8,6 +8,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import torch
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -52,3 +53,17 @@ def tiny_run(tmp_path_factory) -> Path:
                       eval_every=30, save_every=0, model=ModelConfig(num_init_points=2000),
                       mcmc=MCMCConfig(cap_max=2400, refine_start=20, refine_every=20)))
     return run
+
+
+def pytest_addoption(parser):
+    parser.addoption("--device", choices=("cpu", "cuda"), default="cpu",
+                     help="where the rasterizer and kernel tests put their tensors (cuda: run them on a GPU machine)")
+
+
+@pytest.fixture(scope="session")
+def device(request) -> torch.device:
+    """The device of `pytest --device` (cpu by default); tests that take it check the kernels there."""
+    name = request.config.getoption("--device")
+    if name == "cuda" and not torch.cuda.is_available():
+        pytest.fail("--device cuda: no CUDA device is available here", pytrace=False)
+    return torch.device(name)

@@ -37,18 +37,22 @@ def random_splats(n, seed, dtype=torch.float32, spread=1.0, log_scale=(-3.5, -1.
                   opacities=opacities, sh=torch.randn(n, sh_bases, 3, generator=g, dtype=dtype) * 0.3)
 
 
-def leaf(splats: Splats) -> Splats:
-    return Splats(*(getattr(splats, p).detach().clone().requires_grad_() for p in PARAMS))
+def on(device, splats: Splats) -> Splats:
+    return Splats(*(getattr(splats, p).to(device) for p in PARAMS))
+
+
+def leaf(splats: Splats, device="cpu") -> Splats:
+    return Splats(*(getattr(splats, p).detach().to(device).clone().requires_grad_() for p in PARAMS))
 
 
 def gradients(result, splats: Splats, seed: int):
     """Backward of a random linear function of rgb, alpha and depth; returns the parameter and means2d gradients."""
     g = torch.Generator().manual_seed(1000 + seed)
     h, w = result.alpha.shape
-    dtype = result.rgb.dtype
-    loss = ((result.rgb * torch.randn(h, w, 3, generator=g, dtype=dtype)).sum()
-            + (result.alpha * torch.randn(h, w, generator=g, dtype=dtype)).sum()
-            + (result.depth * torch.randn(h, w, generator=g, dtype=dtype)).sum())
+    dtype, device = result.rgb.dtype, result.rgb.device
+    loss = ((result.rgb * torch.randn(h, w, 3, generator=g, dtype=dtype).to(device)).sum()
+            + (result.alpha * torch.randn(h, w, generator=g, dtype=dtype).to(device)).sum()
+            + (result.depth * torch.randn(h, w, generator=g, dtype=dtype).to(device)).sum())
     for p in PARAMS:
         getattr(splats, p).grad = None
     loss.backward()
@@ -63,8 +67,10 @@ def assert_close_relative(actual, expected, rtol, name):
     assert error <= rtol, f"{name}: max error {error:.2e} of the largest magnitude (allowed {rtol:.0e})"
 
 
-def compare_with_reference(splats, camera, background, rtol=1e-4, seed=0, **options):
-    fast_in, ref_in = leaf(splats), leaf(splats)
+def compare_with_reference(splats, camera, background, rtol=1e-4, seed=0, device="cpu", **options):
+    """Render on `device` with the Warp rasterizer and with the dense oracle: images and gradients must agree."""
+    fast_in, ref_in = leaf(splats, device), leaf(splats, device)
+    camera = camera.to(device)
     fast = render(fast_in, camera, background, **options)
     ref = reference_render(ref_in, camera, background, **options)
     assert torch.equal(fast.radii, ref.radii)
@@ -80,14 +86,14 @@ def compare_with_reference(splats, camera, background, rtol=1e-4, seed=0, **opti
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-def test_random_scene_matches_reference(seed):
+def test_random_scene_matches_reference(seed, device):
     splats = random_splats(60, seed)
-    fast, _ = compare_with_reference(splats, make_camera(), background=(0.2, 0.5, 0.9), seed=seed)
+    fast, _ = compare_with_reference(splats, make_camera(), background=(0.2, 0.5, 0.9), seed=seed, device=device)
     assert fast.alpha.max() > 0.5, "the scene should cover part of the image"
 
 
 @pytest.mark.parametrize("seed", SEEDS[:2])
-def test_early_termination_and_alpha_clamp_match_reference(seed):
+def test_early_termination_and_alpha_clamp_match_reference(seed, device):
     # A stack of large, nearly opaque Gaussians on the optical axis: alpha is clamped at 0.99 and the walk stops
     # once the transmittance would fall below 1e-4, while random splats lie in front and behind.
     stack = Splats(means=torch.tensor([[0.0, 0.0, z] for z in (-0.4, -0.2, 0.0, 0.2, 0.4)]),
@@ -96,52 +102,53 @@ def test_early_termination_and_alpha_clamp_match_reference(seed):
     extra = random_splats(40, seed)
     splats = Splats(*(torch.cat([getattr(stack, p), getattr(extra, p)]) for p in PARAMS))
     camera = make_camera()
-    fast, _ = compare_with_reference(splats, camera, background=(1.0, 1.0, 1.0), seed=seed)
+    fast, _ = compare_with_reference(splats, camera, background=(1.0, 1.0, 1.0), seed=seed, device=device)
     transmittance = 1.0 - fast.alpha.detach().double()
     # Five clamped alphas would leave T = 1e-10; the walk stops before T falls under 1e-4, so T bottoms out there.
     assert transmittance.min() >= 1e-4 - 1e-6
     assert transmittance.min() < 1e-3, "some pixel must see several clamped alphas and reach the stopping point"
 
 
-def test_sh_degrees_and_background():
+def test_sh_degrees_and_background(device):
     splats = random_splats(50, 7)
     for degree in range(4):
-        compare_with_reference(splats, make_camera(), background=(0.0, 1.0, 0.3), sh_degree=degree)
+        compare_with_reference(splats, make_camera(), background=(0.0, 1.0, 0.3), sh_degree=degree, device=device)
 
 
-def test_opacity_aware_radius_matches_reference():
-    fast, _ = compare_with_reference(random_splats(60, 11), make_camera(), None, opacity_aware_radius=True)
-    plain = render(random_splats(60, 11), make_camera())
+def test_opacity_aware_radius_matches_reference(device):
+    fast, _ = compare_with_reference(random_splats(60, 11), make_camera(), None, opacity_aware_radius=True,
+                                     device=device)
+    plain = render(on(device, random_splats(60, 11)), make_camera().to(device))
     assert (fast.radii <= plain.radii).all() and (fast.radii < plain.radii).any()
 
 
 @pytest.mark.parametrize("size", [(16, 16), (33, 70), (70, 33), (17, 1)])
-def test_odd_and_non_square_images(size):
+def test_odd_and_non_square_images(size, device):
     width, height = size
     camera = Camera(K=intrinsics(40.0, 40.0, width / 2, height / 2), world_to_camera=make_camera().world_to_camera,
                     width=width, height=height)
-    fast, _ = compare_with_reference(random_splats(50, 3), camera, background=(0.1, 0.2, 0.3))
+    fast, _ = compare_with_reference(random_splats(50, 3), camera, background=(0.1, 0.2, 0.3), device=device)
     assert fast.rgb.shape == (height, width, 3)
 
 
-def test_huge_gaussian_covering_the_whole_image():
+def test_huge_gaussian_covering_the_whole_image(device):
     splats = Splats(means=torch.tensor([[0.05, -0.03, 0.0]]), quats=torch.tensor([[0.9, 0.1, 0.2, 0.3]]),
                     scales=torch.tensor([[3.0, 2.0, 2.5]]), opacities=torch.tensor([0.7]),
                     sh=torch.rand(1, 16, 3) * 0.2)
     camera = make_camera()
-    fast, _ = compare_with_reference(splats, camera, background=(0.0, 0.0, 1.0))
+    fast, _ = compare_with_reference(splats, camera, background=(0.0, 0.0, 1.0), device=device)
     assert (fast.alpha > 0.4).all(), "a Gaussian much larger than the view covers every pixel"
 
 
-def test_gaussians_behind_the_camera_are_culled():
+def test_gaussians_behind_the_camera_are_culled(device):
     splats = random_splats(40, 5)
     behind = random_splats(10, 6)
     behind.means[:, 2] = -3.5 - behind.means[:, 2].abs()  # camera at z = -3 looking along +z
     mixed = Splats(*(torch.cat([getattr(splats, p), getattr(behind, p)]) for p in PARAMS))
-    fast, _ = compare_with_reference(mixed, make_camera(), None)
+    fast, _ = compare_with_reference(mixed, make_camera(), None, device=device)
     assert (fast.radii[40:] == 0).all() and not fast.contributed[40:].any()
-    inputs = leaf(mixed)
-    out = render(inputs, make_camera())
+    inputs = leaf(mixed, device)
+    out = render(inputs, make_camera().to(device))
     out.rgb.sum().backward()
     assert (inputs.means.grad[40:] == 0).all() and torch.isfinite(inputs.means.grad).all()
 
@@ -155,30 +162,29 @@ def test_zero_gaussians_render_the_background():
     assert empty.means.grad.shape == (0, 3)
 
 
-def test_all_culled_renders_the_background_with_zero_gradients():
-    splats = leaf(random_splats(20, 9))
+def test_all_culled_renders_the_background_with_zero_gradients(device):
+    splats = leaf(random_splats(20, 9), device)
     with torch.no_grad():
         splats.means[:, 2] -= 10.0  # everything behind the camera
-    out = render(splats, make_camera(), background=(1.0, 1.0, 1.0))
+    out = render(splats, make_camera().to(device), background=(1.0, 1.0, 1.0))
     assert (out.radii == 0).all() and (out.rgb == 1.0).all() and (out.alpha == 0).all()
     out.rgb.sum().backward()
     for p in PARAMS:
         assert (getattr(splats, p).grad == 0).all()
 
 
-def test_depth_is_the_expected_camera_depth():
+def test_depth_is_the_expected_camera_depth(device):
     # One opaque Gaussian facing the camera at known depth: expected depth there is exactly its z.
     splats = Splats(means=torch.tensor([[0.0, 0.0, 1.0]]), quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
                     scales=torch.tensor([[0.3, 0.3, 0.01]]), opacities=torch.tensor([0.9]), sh=torch.zeros(1, 1, 3))
-    camera = make_camera()
-    out = render(splats, camera)
-    assert out.depth[18, 22] == pytest.approx(4.0, abs=1e-5)
+    out = render(on(device, splats), make_camera().to(device))
+    assert float(out.depth[18, 22]) == pytest.approx(4.0, abs=1e-5)
     assert out.rgb[18, 22].tolist() == pytest.approx([0.5 * float(out.alpha[18, 22])] * 3, abs=1e-6)
     assert out.contributed.tolist() == [True]
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-def test_composite_gradients_of_2d_quantities(seed):
+def test_composite_gradients_of_2d_quantities(seed, device):
     """CompositeFunction alone, on random 2D inputs: gradients of means2d, conics, opacities, colours, depths."""
     g = torch.Generator().manual_seed(seed)
     n, width, height = 80, 40, 35
@@ -196,6 +202,8 @@ def test_composite_gradients_of_2d_quantities(seed):
     tile_max = torch.minimum(torch.floor((means2d + radii[:, None]) / 16) + 1,
                              torch.tensor([3, 3])).to(torch.int32)
     background = torch.tensor([0.3, 0.6, 0.1])
+    means2d, conics, opacities, colors, depths, radii, tile_min, tile_max, background = (
+        t.to(device) for t in (means2d, conics, opacities, colors, depths, radii, tile_min, tile_max, background))
     bins = bin_gaussians(tile_min, tile_max, depths, radii, 3, 3)
     inputs = [t.clone().requires_grad_() for t in (means2d, conics, opacities, colors, depths)]
     ref_inputs = [t.clone().requires_grad_() for t in (means2d, conics, opacities, colors, depths)]
@@ -205,16 +213,17 @@ def test_composite_gradients_of_2d_quantities(seed):
     torch.testing.assert_close(rgb, ref_rgb, atol=1e-5, rtol=0)
     torch.testing.assert_close(alpha, ref_alpha, atol=1e-5, rtol=0)
     torch.testing.assert_close(depth, ref_depth, atol=1e-4, rtol=0)
-    weights = [torch.randn(t.shape, generator=g) for t in (rgb, alpha, depth)]
+    weights = [torch.randn(t.shape, generator=g).to(device) for t in (rgb, alpha, depth)]
     sum(((o * w).sum() for o, w in zip((rgb, alpha, depth), weights))).backward()
     sum(((o * w).sum() for o, w in zip((ref_rgb, ref_alpha, ref_depth), weights))).backward()
     for name, a, b in zip(("means2d", "conics", "opacities", "colors", "depths"), inputs, ref_inputs):
         assert_close_relative(a.grad, b.grad, 1e-4, name)
 
 
-def test_gradcheck_float64_full_render():
-    splats = leaf(random_splats(6, 21, dtype=torch.float64, log_scale=(-1.8, -1.2), opacity=(0.3, 0.8), sh_bases=4))
-    camera = make_camera(width=20, height=18)
+def test_gradcheck_float64_full_render(device):
+    splats = leaf(random_splats(6, 21, dtype=torch.float64, log_scale=(-1.8, -1.2), opacity=(0.3, 0.8), sh_bases=4),
+                  device)
+    camera = make_camera(width=20, height=18).to(device)
 
     def f(means, quats, scales, opacities, sh):
         out = render(Splats(means, quats, scales, opacities, sh), camera, background=(0.1, 0.2, 0.3))
@@ -223,7 +232,7 @@ def test_gradcheck_float64_full_render():
     assert torch.autograd.gradcheck(f, tuple(getattr(splats, p) for p in PARAMS), eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
-def test_gradcheck_float64_composite():
+def test_gradcheck_float64_composite(device):
     g = torch.Generator().manual_seed(4)
     n = 12
     means2d = (torch.rand(n, 2, generator=g, dtype=torch.float64) * 20).requires_grad_()
@@ -234,8 +243,11 @@ def test_gradcheck_float64_composite():
     radii = torch.full((n,), 30, dtype=torch.int32)
     tile_min = torch.zeros(n, 2, dtype=torch.int32)
     tile_max = torch.full((n, 2), 2, dtype=torch.int32)
+    means2d, conics, opacities, colors, depths, radii, tile_min, tile_max = (
+        t.detach().to(device).requires_grad_(t.requires_grad)
+        for t in (means2d, conics, opacities, colors, depths, radii, tile_min, tile_max))
     bins = bin_gaussians(tile_min, tile_max, depths, radii, 2, 2)
-    background = torch.tensor([0.5, 0.1, 0.9], dtype=torch.float64)
+    background = torch.tensor([0.5, 0.1, 0.9], dtype=torch.float64, device=device)
 
     def f(*inputs):
         return CompositeFunction.apply(*inputs, background, bins, 20, 20)[:3]
@@ -261,15 +273,15 @@ def test_threaded_cpu_launcher_matches_single_thread():
         assert_close_relative(results[1][1][p], results[0][1][p], 1e-5, p)
 
 
-def test_contributed_and_visibility_flags():
-    splats = random_splats(60, 17)
-    out = render(splats, make_camera())
+def test_contributed_and_visibility_flags(device):
+    splats = on(device, random_splats(60, 17))
+    out = render(splats, make_camera().to(device))
     assert out.contributed.dtype == torch.bool and out.contributed.shape == (60,)
     assert not (out.contributed & ~out.visible).any(), "only visible Gaussians can contribute"
     # A tiny, nearly transparent Gaussian is visible (it covers a tile) but never reaches alpha 1/255.
     faint = Splats(means=torch.zeros(1, 3), quats=torch.tensor([[1.0, 0, 0, 0]]), scales=torch.full((1, 3), 0.05),
                    opacities=torch.tensor([0.002]), sh=torch.zeros(1, 1, 3))
-    out = render(faint, make_camera())
+    out = render(on(device, faint), make_camera().to(device))
     assert out.visible.tolist() == [True] and out.contributed.tolist() == [False]
 
 
@@ -283,8 +295,9 @@ def test_bad_inputs_raise_clear_errors():
         render(Splats(splats.means, splats.quats.double(), splats.scales, splats.opacities, splats.sh), make_camera())
 
 
-def test_binning_lists_every_covered_tile_front_to_back():
-    proj = project_gaussians(*(getattr(random_splats(80, 2), p) for p in PARAMS[:4]), make_camera(64, 48))
+def test_binning_lists_every_covered_tile_front_to_back(device):
+    proj = project_gaussians(*(getattr(on(device, random_splats(80, 2)), p) for p in PARAMS[:4]),
+                             make_camera(64, 48).to(device))
     bins = bin_gaussians(proj.tile_min, proj.tile_max, proj.depths, proj.radii, 4, 3)
     expected_pairs = int(((proj.tile_max - proj.tile_min).prod(dim=1) * (proj.radii > 0)).sum())
     assert bins.num_pairs == expected_pairs
@@ -313,7 +326,7 @@ def test_cuda_matches_cpu():
     camera = make_camera(width=120, height=90)
     outputs = {}
     for device in ("cpu", "cuda"):
-        inputs = Splats(*(getattr(splats, p).to(device).requires_grad_() for p in PARAMS))
+        inputs = leaf(splats, device)
         out = render(inputs, camera.to(device), background=(0.2, 0.2, 0.2))
         (out.rgb * 0.5 + out.alpha[..., None]).sum().backward()
         outputs[device] = (out.rgb.detach().cpu(), {p: getattr(inputs, p).grad.cpu() for p in PARAMS})
@@ -352,12 +365,14 @@ def test_block_masks_change_nothing_but_the_work():
                            alpha_extent=proj.alpha_extent)
     assert masked.num_pairs < plain.num_pairs and (masked.pair_masks != 0xFFFF).any()
     grads = []
+    set_cpu_threads(1)  # with several, the bands (cut by pairs per tile) and so the summation order would differ
     for bins in (plain, masked):
         inputs = [t.detach().clone().requires_grad_() for t in (proj.means2d, proj.conics, splats.opacities, colors,
                                                                 proj.depths)]
         rgb, alpha, depth, contributed = CompositeFunction.apply(*inputs, torch.tensor([0.1, 0.2, 0.3]), bins, 96, 80)
         (rgb.sum() + alpha.sum() * 0.5 + depth.sum() * 0.1).backward()
         grads.append((rgb.detach(), alpha.detach(), contributed, [t.grad for t in inputs]))
+    set_cpu_threads(None)
     assert torch.equal(grads[0][0], grads[1][0]) and torch.equal(grads[0][1], grads[1][1])
     assert torch.equal(grads[0][2], grads[1][2])
     for a, b in zip(grads[0][3], grads[1][3]):

@@ -44,8 +44,8 @@ def initial_psnr(config: TrainConfig, scene) -> float:
 
 
 @pytest.mark.parametrize("strategy", ["mcmc", "adc"])
-def test_training_improves_test_psnr_and_writes_a_run(tmp_path, demo_scene, strategy):
-    config = small_config(tmp_path / strategy, strategy=strategy)
+def test_training_improves_test_psnr_and_writes_a_run(tmp_path, demo_scene, strategy, device):
+    config = small_config(tmp_path / strategy, strategy=strategy, device=device.type)
     before = initial_psnr(config, demo_scene)
     metrics = train(config)
     assert metrics["psnr"] > before + 4.0, (before, metrics["psnr"])
@@ -54,7 +54,7 @@ def test_training_improves_test_psnr_and_writes_a_run(tmp_path, demo_scene, stra
         assert (run / name).is_file(), name
     written = json.loads((run / "metrics.json").read_text())
     assert {"psnr", "ssim", "lpips", "num_gaussians", "steps", "train_seconds", "device"} <= written.keys()
-    assert written["steps"] == 300 and written["device"] == "cpu"
+    assert written["steps"] == 300 and written["device"] == device.type
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log] == [100, 200, 300]
     if strategy == "mcmc":

@@ -13,7 +13,7 @@ import os
 import torch
 import warp as wp
 
-from .runtime import ensure_warp
+from .runtime import ensure_warp, warp_device
 
 
 def _training_kernels(device: torch.device, dtype: torch.dtype) -> list:
@@ -51,13 +51,13 @@ def _is_cached(module, device) -> bool:
 def modules_to_compile(device: torch.device, dtype: torch.dtype = torch.float32) -> int:
     """How many of the training kernels' modules are not yet in Warp's cache for this device."""
     ensure_warp()
-    wp_device = wp.get_device(str(device) if device.type == "cpu" else wp.device_from_torch(device))
+    wp_device = wp.get_device(str(device) if device.type == "cpu" else warp_device(device))
     return sum(not _is_cached(m, wp_device) for m in _modules(device, dtype))
 
 
 def compile_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -> None:
     """Compile (or load from the cache) every kernel a training step launches on this device."""
     ensure_warp()
-    wp_device = wp.get_device(str(device) if device.type == "cpu" else wp.device_from_torch(device))
+    wp_device = wp.get_device(str(device) if device.type == "cpu" else warp_device(device))
     for module in _modules(device, dtype):
         module.load(wp_device)

@@ -9,9 +9,15 @@ run bands in parallel. Per pixel, front to back (3DGS):
     C = sum_i alpha_i T_i c_i + T_final * background,   D = sum_i alpha_i T_i z_i
 
 Each pair carries a mask of the 4x4-pixel blocks of its tile the Gaussian can reach (binning.py); a pixel skips a
-pair whose block bit is clear, which only spares work. The backward walks the same list back to front from the last contributor, recovering T_i by division, and adds
-gradients for the 2D means, conics, opacities, colours and depths. Warp's automatic differentiation is not used: it
-returns wrong gradients for this loop (dynamic range with an early exit) without any error.
+pair whose block bit is clear, which only spares work. The backward walks the same list back to front from the last
+contributor, recovering T_i by division, and adds gradients for the 2D means, conics, opacities, colours and depths.
+Warp's automatic differentiation is not used: it returns wrong gradients for this loop (dynamic range with an early
+exit) without any error.
+
+On CUDA the 32 threads of a warp (32 pixels of one tile) walk the list in step, from the warp's last contributor, and
+sum their 10 gradient terms for the Gaussian with shuffles before one lane adds them to memory: one atomic add per
+warp instead of one per pixel (gsplat does the same). On the CPU, and for float64, the lane helpers below do nothing
+and every pixel adds its own terms.
 """
 
 from __future__ import annotations
@@ -41,10 +47,62 @@ def pixel_of_thread(t: int, first_tile: int, tiles_x: int):
     return tile, px, py, block_bit
 
 
+# Warp-level helpers for the float32 CUDA backward. In CPU code (and for float64, which Warp's CUDA headers have no
+# shuffles for) they reduce to a single lane: the sum and maximum of one value, and every thread leads.
+_ON_CUDA = "#if defined(__CUDA_ARCH__)\n{cuda}\n#else\n{cpu}\n#endif\n"
+_FULL_WARP = "0xffffffffu"
+
+
+@wp.func_native(_ON_CUDA.format(
+    cuda=f"float v = value;\nfor (int o = 16; o > 0; o >>= 1) v += __shfl_xor_sync({_FULL_WARP}, v, o);\nreturn v;",
+    cpu="return value;"))
+def _warp_sum_f32(value: wp.float32) -> wp.float32: ...
+
+
+@wp.func_native(_ON_CUDA.format(
+    cuda=f"int v = value;\nfor (int o = 16; o > 0; o >>= 1) {{ int w = __shfl_xor_sync({_FULL_WARP}, v, o); "
+         f"v = w > v ? w : v; }}\nreturn v;",
+    cpu="return value;"))
+def _warp_max_f32(value: int) -> int: ...
+
+
+@wp.func_native(_ON_CUDA.format(cuda=f"return __ballot_sync({_FULL_WARP}, flag) != 0 ? 1 : 0;", cpu="return flag;"))
+def _warp_any_f32(flag: int) -> int: ...
+
+
+@wp.func_native(_ON_CUDA.format(cuda="return (threadIdx.x & 31) == 0 ? 1 : 0;", cpu="return 1;"))
+def _leads_warp_f32() -> int: ...
+
+
+@wp.func
+def _warp_sum_f64(value: wp.float64):
+    return value
+
+
+@wp.func
+def _warp_max_f64(value: int):
+    return value
+
+
+@wp.func
+def _warp_any_f64(flag: int):
+    return flag
+
+
+@wp.func
+def _leads_warp_f64():
+    return 1
+
+
 @functools.lru_cache(maxsize=None)
 def composite_kernels(dtype):
     """(forward, backward) kernels for scalar type wp.float32 or wp.float64."""
     vec3 = wp.types.vector(3, dtype)
+    single = dtype == wp.float32
+    warp_sum = _warp_sum_f32 if single else _warp_sum_f64
+    warp_max = _warp_max_f32 if single else _warp_max_f64
+    warp_any = _warp_any_f32 if single else _warp_any_f64
+    leads_warp = _leads_warp_f32 if single else _leads_warp_f64
 
     @wp.kernel(module="unique")
     def composite_forward(
@@ -111,17 +169,22 @@ def composite_kernels(dtype):
         grad_depths: wp.array(dtype=dtype),
     ):
         tile, px, py, block_bit = pixel_of_thread(wp.tid(), first_tile, tiles_x)
-        if px >= width or py >= height:
-            return
+        # A pixel outside the image (a partial tile) stays in the loop, contributing nothing: its warp's shuffles
+        # need every lane.
+        inside = px < width and py < height
+        qx = wp.min(px, width - 1)
+        qy = wp.min(py, height - 1)
         pix_x = dtype(px) + dtype(0.5)
         pix_y = dtype(py) + dtype(0.5)
         start = tile_ranges[tile, 0]
-        last = last_contributor[py, px]
+        last = int(0)
+        if inside:
+            last = last_contributor[qy, qx]
 
-        t_final = final_transmittance[py, px]
-        dl_drgb = vec3(grad_rgb[py, px, 0], grad_rgb[py, px, 1], grad_rgb[py, px, 2])
-        dl_ddepth = grad_depth[py, px]
-        dl_dalpha_out = grad_alpha[py, px]
+        t_final = final_transmittance[qy, qx]
+        dl_drgb = vec3(grad_rgb[qy, qx, 0], grad_rgb[qy, qx, 1], grad_rgb[qy, qx, 2])
+        dl_ddepth = grad_depth[qy, qx]
+        dl_dalpha_out = grad_alpha[qy, qx]
         bg = vec3(background[0], background[1], background[2])
         bg_term = wp.dot(bg, dl_drgb)
 
@@ -131,9 +194,8 @@ def composite_kernels(dtype):
         next_alpha = dtype(0.0)
         next_rgb = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
         next_depth = dtype(0.0)
-        for j in range(last - 1, -1, -1):
-            if (pair_masks[start + j] & block_bit) == 0:
-                continue
+        zero = dtype(0.0)
+        for j in range(warp_max(last) - 1, -1, -1):
             g = gaussian_ids[start + j]
             dx = means2d[g, 0] - pix_x
             dy = means2d[g, 1] - pix_y
@@ -141,40 +203,65 @@ def composite_kernels(dtype):
             cb = conics[g, 1]
             cc = conics[g, 2]
             power = dtype(-0.5) * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-            if power > dtype(0.0) or power < dtype(POWER_SKIP):
-                continue
-            gauss = wp.exp(power)
-            opacity = opacities[g]
-            raw_alpha = opacity * gauss
+            gauss = wp.exp(wp.min(power, zero))
+            raw_alpha = opacities[g] * gauss
             alpha = wp.min(dtype(ALPHA_MAX), raw_alpha)
-            if alpha < dtype(ALPHA_MIN):
+            used = (j < last and (pair_masks[start + j] & block_bit) != 0 and power <= zero
+                    and power >= dtype(POWER_SKIP) and alpha >= dtype(ALPHA_MIN))
+            # The ten terms of this pixel (zero where it does not use the Gaussian).
+            d_color = vec3(zero, zero, zero)
+            d_depth = zero
+            d_opacity = zero
+            d_mean_x = zero
+            d_mean_y = zero
+            d_conic_a = zero
+            d_conic_b = zero
+            d_conic_c = zero
+            if used:
+                one_minus_alpha = dtype(1.0) - alpha
+                transmittance = transmittance / one_minus_alpha
+                weight = alpha * transmittance
+                color = vec3(colors[g, 0], colors[g, 1], colors[g, 2])
+                depth = depths[g]
+                d_color = weight * dl_drgb
+                d_depth = weight * dl_ddepth
+
+                behind_rgb = next_alpha * next_rgb + (dtype(1.0) - next_alpha) * behind_rgb
+                behind_depth = next_alpha * next_depth + (dtype(1.0) - next_alpha) * behind_depth
+                next_alpha = alpha
+                next_rgb = color
+                next_depth = depth
+
+                dl_dalpha = transmittance * (wp.dot(color - behind_rgb, dl_drgb) + (depth - behind_depth) * dl_ddepth)
+                # The background and the output alpha (1 - T_final) both depend on alpha through T_final.
+                dl_dalpha = dl_dalpha + (t_final / one_minus_alpha) * (dl_dalpha_out - bg_term)
+                if raw_alpha <= dtype(ALPHA_MAX):  # clamped: alpha no longer depends on opacity or position
+                    d_opacity = gauss * dl_dalpha
+                    dl_dpower = raw_alpha * dl_dalpha
+                    d_mean_x = -dl_dpower * (ca * dx + cb * dy)
+                    d_mean_y = -dl_dpower * (cb * dx + cc * dy)
+                    d_conic_a = dtype(-0.5) * dl_dpower * dx * dx
+                    d_conic_b = -dl_dpower * dx * dy
+                    d_conic_c = dtype(-0.5) * dl_dpower * dy * dy
+            if warp_any(wp.where(used, 1, 0)) == 0:
                 continue
-            one_minus_alpha = dtype(1.0) - alpha
-            transmittance = transmittance / one_minus_alpha
-            weight = alpha * transmittance
-            color = vec3(colors[g, 0], colors[g, 1], colors[g, 2])
-            depth = depths[g]
-            for ch in range(3):
-                wp.atomic_add(grad_colors, g, ch, weight * dl_drgb[ch])
-            wp.atomic_add(grad_depths, g, weight * dl_ddepth)
-
-            behind_rgb = next_alpha * next_rgb + (dtype(1.0) - next_alpha) * behind_rgb
-            behind_depth = next_alpha * next_depth + (dtype(1.0) - next_alpha) * behind_depth
-            next_alpha = alpha
-            next_rgb = color
-            next_depth = depth
-
-            dl_dalpha = transmittance * (wp.dot(color - behind_rgb, dl_drgb) + (depth - behind_depth) * dl_ddepth)
-            # The background and the output alpha (1 - T_final) both depend on alpha through T_final.
-            dl_dalpha = dl_dalpha + (t_final / one_minus_alpha) * (dl_dalpha_out - bg_term)
-            if raw_alpha > dtype(ALPHA_MAX):
-                continue  # clamped: alpha no longer depends on opacity or position
-            wp.atomic_add(grad_opacities, g, gauss * dl_dalpha)
-            dl_dpower = raw_alpha * dl_dalpha
-            wp.atomic_add(grad_means2d, g, 0, -dl_dpower * (ca * dx + cb * dy))
-            wp.atomic_add(grad_means2d, g, 1, -dl_dpower * (cb * dx + cc * dy))
-            wp.atomic_add(grad_conics, g, 0, dtype(-0.5) * dl_dpower * dx * dx)
-            wp.atomic_add(grad_conics, g, 1, -dl_dpower * dx * dy)
-            wp.atomic_add(grad_conics, g, 2, dtype(-0.5) * dl_dpower * dy * dy)
+            d_color = vec3(warp_sum(d_color[0]), warp_sum(d_color[1]), warp_sum(d_color[2]))
+            d_depth = warp_sum(d_depth)
+            d_opacity = warp_sum(d_opacity)
+            d_mean_x = warp_sum(d_mean_x)
+            d_mean_y = warp_sum(d_mean_y)
+            d_conic_a = warp_sum(d_conic_a)
+            d_conic_b = warp_sum(d_conic_b)
+            d_conic_c = warp_sum(d_conic_c)
+            if leads_warp() == 1:  # lane 0 on CUDA; every pixel that used it elsewhere
+                for ch in range(3):
+                    wp.atomic_add(grad_colors, g, ch, d_color[ch])
+                wp.atomic_add(grad_depths, g, d_depth)
+                wp.atomic_add(grad_opacities, g, d_opacity)
+                wp.atomic_add(grad_means2d, g, 0, d_mean_x)
+                wp.atomic_add(grad_means2d, g, 1, d_mean_y)
+                wp.atomic_add(grad_conics, g, 0, d_conic_a)
+                wp.atomic_add(grad_conics, g, 1, d_conic_b)
+                wp.atomic_add(grad_conics, g, 2, d_conic_c)
 
     return composite_forward, composite_backward

@@ -32,8 +32,9 @@ def reference_render(gaussians, camera: Camera, background=None, sh_degree: int 
                      near: float = 0.01, eps2d: float = 0.3, opacity_aware_radius: bool = False) -> ReferenceResult:
     means, quats, scales = gaussians.means, gaussians.quats, gaussians.scales
     opacities, sh = gaussians.opacities, gaussians.sh
-    dtype = means.dtype
-    bg = torch.zeros(3, dtype=dtype) if background is None else torch.as_tensor(background, dtype=dtype).reshape(3)
+    dtype, device = means.dtype, means.device
+    bg = torch.zeros(3, dtype=dtype, device=device) if background is None else \
+        torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
     degree = round(math.sqrt(sh.shape[1])) - 1 if sh_degree is None else sh_degree
 
     means2d, conics, depths, radii, tile_min, tile_max = reference_project(
@@ -51,9 +52,9 @@ def reference_render(gaussians, camera: Camera, background=None, sh_degree: int 
 def reference_project(means, quats, scales, opacities, camera: Camera, *, near=0.01, eps2d=0.3,
                       opacity_aware_radius=False):
     """Per-Gaussian 2D mean, conic, depth, pixel radius and tile rectangle, written out matrix by matrix."""
-    dtype = means.dtype
-    w2c = camera.world_to_camera.to(dtype)
-    K = camera.K.to(dtype)
+    dtype, device = means.dtype, means.device
+    w2c = camera.world_to_camera.to(device, dtype)
+    K = camera.K.to(device, dtype)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     W, H = camera.width, camera.height
     out_means2d, out_conics, out_depths, out_radii, out_min, out_max = [], [], [], [], [], []
@@ -69,18 +70,18 @@ def reference_project(means, quats, scales, opacities, camera: Camera, *, near=0
         ])
         sigma = rot @ torch.diag(scales[i] ** 2) @ rot.T
         visible = bool(z > near)
-        zs = z if visible else torch.ones((), dtype=dtype)
+        zs = z if visible else torch.ones((), dtype=dtype, device=device)
         # View direction clamped to 1.3x the field of view for the Jacobian only.
         tan_x, tan_y = 0.5 * W / fx, 0.5 * H / fy
         u = torch.clamp(x / zs, -(cx / fx + 0.3 * tan_x), (W - cx) / fx + 0.3 * tan_x) * zs
         v = torch.clamp(y / zs, -(cy / fy + 0.3 * tan_y), (H - cy) / fy + 0.3 * tan_y) * zs
-        zero = torch.zeros((), dtype=dtype)
+        zero = torch.zeros((), dtype=dtype, device=device)
         J = torch.stack([torch.stack([fx / zs, zero, -fx * u / zs ** 2]),
                          torch.stack([zero, fy / zs, -fy * v / zs ** 2])])
-        cov2d = J @ w2c[:3, :3] @ sigma @ w2c[:3, :3].T @ J.T + eps2d * torch.eye(2, dtype=dtype)
+        cov2d = J @ w2c[:3, :3] @ sigma @ w2c[:3, :3].T @ J.T + eps2d * torch.eye(2, dtype=dtype, device=device)
         det = torch.linalg.det(cov2d)
         visible = visible and bool(det > 0)
-        inv = torch.linalg.inv(cov2d) if visible else torch.eye(2, dtype=dtype)
+        inv = torch.linalg.inv(cov2d) if visible else torch.eye(2, dtype=dtype, device=device)
         mean2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy])
 
         radius, lo, hi = 0, (0, 0), (0, 0)
@@ -106,27 +107,27 @@ def reference_project(means, quats, scales, opacities, camera: Camera, *, near=0
         out_min.append(lo)
         out_max.append(hi)
     n = means.shape[0]
+    ints = dict(dtype=torch.int32, device=device)
     if n == 0:
         empty = means.new_zeros(0, 2)
-        return (empty, means.new_zeros(0, 3), means.new_zeros(0), torch.zeros(0, dtype=torch.int32),
-                torch.zeros(0, 2, dtype=torch.int32), torch.zeros(0, 2, dtype=torch.int32))
+        return (empty, means.new_zeros(0, 3), means.new_zeros(0), torch.zeros(0, **ints),
+                torch.zeros(0, 2, **ints), torch.zeros(0, 2, **ints))
     return (torch.stack(out_means2d), torch.stack(out_conics), torch.stack(out_depths),
-            torch.tensor(out_radii, dtype=torch.int32), torch.tensor(out_min, dtype=torch.int32),
-            torch.tensor(out_max, dtype=torch.int32))
+            torch.tensor(out_radii, **ints), torch.tensor(out_min, **ints), torch.tensor(out_max, **ints))
 
 
 def reference_composite(means2d, conics, opacities, colors, depths, radii, tile_min, tile_max, background,
                         width: int, height: int):
     """Dense front-to-back compositing -> (rgb [H,W,3], alpha [H,W], alpha-weighted depth sum [H,W])."""
-    dtype = means2d.dtype
-    ys, xs = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    dtype, device = means2d.dtype, means2d.device
+    ys, xs = torch.meshgrid(torch.arange(height, device=device), torch.arange(width, device=device), indexing="ij")
     px, py = xs.reshape(-1), ys.reshape(-1)
     keep = torch.nonzero(radii > 0).squeeze(1)
     # Front to back; equal depths keep index order, as the fast path does.
     keep = keep[torch.argsort(depths.detach()[keep], stable=True)]
     if keep.numel() == 0:
         rgb = background.reshape(1, 1, 3).expand(height, width, 3).clone()
-        zeros = torch.zeros(height, width, dtype=dtype)
+        zeros = torch.zeros(height, width, dtype=dtype, device=device)
         return rgb + 0 * means2d.sum(), zeros, zeros.clone()
     m, q = means2d[keep], conics[keep]
     dx = m[None, :, 0] - (px[:, None].to(dtype) + 0.5)   # [P, N]

@@ -99,6 +99,14 @@ def _bands(tile_ranges: torch.Tensor, num_bands: int) -> list[tuple[int, int]]:
     return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
+def warp_device(device: torch.device) -> wp.Device:
+    """The Warp device of a torch device; a bare "cuda" is torch's current CUDA device, as torch reads it (Warp's
+    device_from_torch needs the index)."""
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", torch.cuda.current_device())
+    return wp.device_from_torch(device)
+
+
 def warp_view(tensor: torch.Tensor) -> wp.array:
     """A Warp array over the tensor's memory (no copy)."""
     return wp.from_torch(tensor.detach(), requires_grad=False)
@@ -111,7 +119,7 @@ def run_bands(kernel, inputs_for_worker, num_tiles: int, tile_ranges: torch.Tens
     if device.type == "cuda":
         with wp.ScopedStream(wp.stream_from_torch(device)):
             wp.launch(kernel, dim=num_tiles * threads_per_tile, inputs=inputs_for_worker(0, 0),
-                      device=wp.device_from_torch(device))
+                      device=warp_device(device))
         return
     if num_workers == 1:
         wp.launch(kernel, dim=num_tiles * threads_per_tile, inputs=inputs_for_worker(0, 0), device="cpu")
@@ -147,7 +155,7 @@ def run_ranges(kernel, n: int, device: torch.device, arguments: list, min_per_th
     one launch."""
     if n == 0:
         return
-    wp_device = wp.device_from_torch(device)
+    wp_device = warp_device(device)
 
     def run(first: int, last: int) -> None:
         wp.launch(kernel, dim=last - first, inputs=[first] + arguments, device=wp_device)

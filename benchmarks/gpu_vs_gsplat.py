@@ -1,0 +1,218 @@
+"""mcsplat against gsplat on one GPU: the same scene, initial Gaussians, views, schedule, loss and cap, MCMC on both.
+
+    python benchmarks/gpu_vs_gsplat.py --data PATH/TO/lego --cap 300000 --steps 5000 [--init 150000]
+
+Both arms run the same loop over the same view order, from the same random initialisation (mcsplat's, seed 0):
+    mcsplat   mcsplat.trainer.train_step, the trainer's own step (Warp rasterizer, mcsplat's MCMC strategy)
+    gsplat    gsplat.rasterization (packed=False, classic, eps2d 0.3, as gsplat's simple_trainer) and
+              gsplat.strategy.MCMCStrategy, called after the Adam step as simple_trainer does
+Shared by both: one fused torch Adam per parameter with mcsplat's learning rates (the paper's), the position rate's
+log-linear decay, 0.8 L1 + 0.2 D-SSIM (mcsplat.losses) plus the 0.01 opacity and scale regularizers, SH degree +1 every
+1,000 steps, refinement every 100 steps from 500 to 25,000 with growth of 5% up to the cap.
+
+Printed per arm: median ms per step (the device synchronised around each step) over the last --timed steps, peak GPU
+memory (torch.cuda.max_memory_allocated over the training), test PSNR / SSIM (each arm's own renderer, final SH
+degree), the Gaussian count. JSON lines and a table go to --out (default benchmarks/results/gpu_vs_gsplat).
+gsplat JIT-compiles its CUDA extension at first use: it needs nvcc and ninja; TORCH_CUDA_ARCH_LIST limits the targets.
+"""
+
+from __future__ import annotations
+
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import torch
+
+import _common as C
+from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.data import load_scene
+from mcsplat.losses import photometric_loss
+from mcsplat.metrics import psnr, ssim_metric
+from mcsplat.optim import make_optimizers, means_lr_at, set_means_lr
+from mcsplat.render import render
+from mcsplat.trainer import ViewSampler, background_of, initial_model, make_strategy, sh_degree_at, train_step
+
+
+class Setup:
+    """What both arms share: the configuration, the scene, the background and the view order."""
+
+    def __init__(self, args):
+        self.config = TrainConfig(data=Path(args.data), steps=args.steps, cap_max=args.cap, device=args.device,
+                                  seed=args.seed, model=ModelConfig(num_init_points=args.init))
+        self.device = torch.device(args.device)
+        self.scene = load_scene(self.config.data)
+        self.background = background_of(self.config, self.scene)
+        self.radius = self.scene.radius
+
+    def fresh(self):
+        """The initial model and the generator both arms start from (identical for both)."""
+        generator = torch.Generator(device=self.device).manual_seed(self.config.seed)
+        model, _ = initial_model(self.config, self.scene, self.device, generator)
+        return model, generator
+
+    def views(self):
+        sampler = ViewSampler(len(self.scene.train), self.config.seed)
+        for _ in range(self.config.steps):
+            yield self.scene.train[sampler.next()]
+
+
+class McsplatArm:
+    name = "mcsplat"
+
+    def __init__(self, setup: Setup):
+        self.setup = setup
+        self.model, generator = setup.fresh()
+        self.optimizers = make_optimizers(self.model, setup.config.optim, setup.radius)
+        self.strategy = make_strategy(setup.config, setup.radius, generator)
+
+    def step(self, step: int, view) -> None:
+        s = self.setup
+        train_step(step, self.model, self.optimizers, self.strategy, view, config=s.config, scene_radius=s.radius,
+                   background=s.background, device=s.device)
+
+    def count(self) -> int:
+        return self.model.num_gaussians
+
+    @torch.no_grad()
+    def render(self, view, sh_degree: int) -> torch.Tensor:
+        return render(self.model, view.camera.to(self.setup.device), self.setup.background, sh_degree).rgb
+
+
+class GsplatArm:
+    name = "gsplat"
+    KEYS = {"means": "means", "scales": "log_scales", "quats": "quats", "opacities": "opacity_logits",
+            "sh0": "sh0", "shN": "shN"}  # gsplat's name -> mcsplat's (both keep log scales and logit opacities)
+
+    def __init__(self, setup: Setup):
+        from gsplat.strategy import MCMCStrategy
+
+        self.setup = setup
+        model, _ = setup.fresh()
+        config = setup.config
+        rates = config.optim.learning_rates(setup.radius)
+        self.params = torch.nn.ParameterDict({k: torch.nn.Parameter(model.params[m].detach().clone())
+                                              for k, m in self.KEYS.items()})
+        self.optimizers = {k: torch.optim.Adam([self.params[k]], lr=rates[m], eps=config.optim.eps,
+                                               betas=config.optim.betas, fused=True) for k, m in self.KEYS.items()}
+        mc = config.mcmc
+        self.strategy = MCMCStrategy(cap_max=mc.cap_max, noise_lr=mc.noise_lr, refine_start_iter=mc.refine_start,
+                                     refine_stop_iter=mc.refine_stop, refine_every=mc.refine_every,
+                                     min_opacity=mc.min_opacity)
+        self.strategy.check_sanity(self.params, self.optimizers)
+        self.state = self.strategy.initialize_state()
+        self.bg = torch.tensor(setup.background, dtype=torch.float32, device=setup.device)
+
+    def _rasterize(self, camera, sh_degree: int):
+        from gsplat import rasterization
+
+        p = self.params
+        colors, alphas, info = rasterization(
+            p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]),
+            torch.cat([p["sh0"], p["shN"]], 1), camera.world_to_camera[None].float(), camera.K[None].float(),
+            camera.width, camera.height, sh_degree=sh_degree, backgrounds=self.bg[None], packed=False,
+            near_plane=0.01, far_plane=1e10, eps2d=0.3, rasterize_mode="classic")
+        return colors[0], info
+
+    def step(self, step: int, view) -> None:
+        s, config = self.setup, self.setup.config
+        set_means_lr(self.optimizers, means_lr_at(step, config.steps, config.optim, s.radius))
+        camera = view.camera.to(s.device)
+        image, info = self._rasterize(camera, sh_degree_at(config, step))
+        mc = config.mcmc
+        loss = (photometric_loss(image, view.image_float(s.device), config.ssim_weight)
+                + mc.opacity_reg * torch.sigmoid(self.params["opacities"]).mean()
+                + mc.scale_reg * torch.exp(self.params["scales"]).mean())
+        loss.backward()
+        loss.item()  # as mcsplat's step reads its loss (and checks it is finite)
+        for opt in self.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        self.strategy.step_post_backward(self.params, self.optimizers, self.state, step, info,
+                                         lr=means_lr_at(step + 1, config.steps, config.optim, s.radius))
+
+    def count(self) -> int:
+        return len(self.params["means"])
+
+    @torch.no_grad()
+    def render(self, view, sh_degree: int) -> torch.Tensor:
+        return self._rasterize(view.camera.to(self.setup.device), sh_degree)[0]
+
+
+def run_arm(arm_class, setup: Setup, timed: int) -> dict:
+    cuda = setup.device.type == "cuda"
+    if cuda:
+        torch.cuda.synchronize()
+        torch.cuda.empty_cache()
+        torch.cuda.reset_peak_memory_stats()
+    arm = arm_class(setup)
+    seconds = []
+    started = time.perf_counter()
+    for step, view in enumerate(setup.views()):
+        tick = C.now(setup.device)
+        arm.step(step, view)
+        seconds.append(C.now(setup.device) - tick)
+        if (step + 1) % 1000 == 0:
+            print(f"  {arm.name}: step {step + 1:,}, {arm.count():,} Gaussians, "
+                  f"{1000 * C.median(seconds[-200:]):.2f} ms/step lately", flush=True)
+    total = time.perf_counter() - started
+    peak = torch.cuda.max_memory_allocated() / 2**20 if cuda else C.peak_rss_mb()
+    degree = sh_degree_at(setup.config, setup.config.steps - 1)
+    scores = []
+    for view in setup.scene.test:
+        image = arm.render(view, degree).clamp(0, 1)
+        target = view.image_float(setup.device)
+        scores.append((psnr(image, target), ssim_metric(image, target)))
+    return {"arm": arm.name, "steps": setup.config.steps, "cap": setup.config.cap_max,
+            "num_gaussians": arm.count(), "median_step_ms": 1000 * C.median(seconds[-timed:]),
+            "timed_steps": min(timed, len(seconds)), "train_seconds": round(total, 2), "peak_gpu_mb": round(peak, 1),
+            "psnr": sum(s[0] for s in scores) / len(scores), "ssim": sum(s[1] for s in scores) / len(scores),
+            "test_views": len(scores)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", required=True, help="a Blender scene folder (lego 400 in the README's figures)")
+    parser.add_argument("--cap", type=int, default=300_000)
+    parser.add_argument("--init", type=int, default=None, help="random initial points (default: cap / 2)")
+    parser.add_argument("--steps", type=int, default=5000)
+    parser.add_argument("--timed", type=int, default=1000, help="the median is taken over the last N steps")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--arms", nargs="+", default=["gsplat", "mcsplat"], choices=["gsplat", "mcsplat"])
+    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--device", default="cuda", choices=["cuda", "cpu"],
+                        help="cpu only checks the script with the mcsplat arm (gsplat needs CUDA)")
+    args = parser.parse_args()
+    C.cuda_or_exit(args.device, "gpu_vs_gsplat")
+    args.init = args.init or args.cap // 2
+    setup = Setup(args)
+    out = args.out or C.results_dir("gpu_vs_gsplat")
+    out.mkdir(parents=True, exist_ok=True)
+    info = C.machine(args.device)
+    print(C.machine_line(info), flush=True)
+    records = []
+    for name in args.arms:
+        print(f"{name}: {args.steps:,} steps, cap {args.cap:,}, {args.init:,} initial points", flush=True)
+        record = run_arm({"gsplat": GsplatArm, "mcsplat": McsplatArm}[name], setup, args.timed)
+        record.update(info)
+        C.emit(record)
+        records.append(record)
+    C.append_jsonl(out / "results.jsonl", records)
+    by_arm = {r["arm"]: r for r in records}
+    if len(by_arm) == 2:
+        ratio = by_arm["mcsplat"]["median_step_ms"] / by_arm["gsplat"]["median_step_ms"]
+        print(f"step time mcsplat / gsplat: {ratio:.2f}x; PSNR mcsplat - gsplat: "
+              f"{by_arm['mcsplat']['psnr'] - by_arm['gsplat']['psnr']:+.2f} dB")
+    table = C.markdown_table(records, [("arm", "arm", ""), ("Gaussians", "num_gaussians", ","),
+                                       ("median ms/step", "median_step_ms", ".2f"), ("peak GPU MB", "peak_gpu_mb", ".0f"),
+                                       ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"),
+                                       ("train s", "train_seconds", ".1f")])
+    print(table)
+    C.write_text(out / "results.md", table + "\n")
+
+
+if __name__ == "__main__":
+    main()
