@@ -208,7 +208,7 @@ def markdown(rows: list[dict]) -> str:
             ("sched. scale", "schedule_scale", ".4g"), ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"),
             ("LPIPS-vgg", "lpips", ".4f"), ("final #G", "num_gaussians", ""), ("test views", "test_views", ""),
             ("train min", "train_seconds", lambda r: f"{r['train_seconds'] / 60:.1f}"),
-            ("ms/step", "ms_per_step", ".0f"), ("threads", "threads", "")]
+            ("ms/step", "ms_per_step", ".0f"), ("threads", "threads", ""), ("device", "device", "")]
     machines = sorted({C.machine_line(r["machine"]) for r in rows if r.get("machine")})
     lines = ["# Quality at equal budget: MCMC vs ADC", "",
              "Same steps, init, seed and hard cap for both strategies; schedules scaled by the schedule scale "
