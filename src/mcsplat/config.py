@@ -42,8 +42,9 @@ class TrainConfig:
     """Run directory (default: runs/<scene folder name>)."""
     strategy: Literal["mcmc", "adc"] = "mcmc"
     """mcmc: the paper's method. adc: classic 3DGS densification, the baseline."""
-    cap_max: int | None = None
-    """Maximum number of Gaussians (sets --mcmc.cap-max, or --adc.cap-max for the budgeted baseline)."""
+    cap_max: int | Literal["auto"] | None = None
+    """Maximum number of Gaussians (sets --mcmc.cap-max, or --adc.cap-max for the budgeted baseline). auto (MCMC):
+    grow only while the screen gradients ask for more Gaussians, up to --mcmc.cap-max (see the README)."""
     steps: int = 30_000
     """Training steps (the paper: 30,000)."""
     downscale: int = 1
@@ -97,7 +98,9 @@ class TrainConfig:
                   (self.downscale >= 1, "--downscale must be at least 1"),
                   (self.eval_every >= 0, "--eval-every must be 0 (off) or positive"),
                   (self.save_every >= 0, "--save-every must be 0 (off) or positive"),
-                  (self.cap_max is None or self.cap_max >= 1, "--cap-max must be at least 1"),
+                  (self.cap_max in (None, "auto") or self.cap_max >= 1, "--cap-max must be at least 1 or auto"),
+                  (self.cap_max != "auto" or self.strategy == "mcmc",
+                   "--cap-max auto is for the MCMC strategy (ADC's growth has its own rule); give ADC a number"),
                   (self.threads is None or self.threads >= 1, "--threads must be at least 1"),
                   (self.sh_increase_every >= 1, "--sh-increase-every must be at least 1"),
                   (self.dist_timeout > 0, "--dist-timeout must be positive"),
@@ -110,7 +113,9 @@ class TrainConfig:
         for ok, message in checks:
             if not ok:
                 raise MCSplatError(message)
-        if self.cap_max is not None:
+        if self.cap_max == "auto":
+            self.mcmc.auto_cap = True
+        elif self.cap_max is not None:
             self.mcmc.cap_max = self.cap_max
             self.adc.cap_max = self.cap_max
 

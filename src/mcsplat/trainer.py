@@ -25,6 +25,7 @@ from tqdm import tqdm
 from . import __version__
 from .config import TrainConfig, load_config, save_config, to_jsonable
 from .data import Scene, View, load_scene
+from .data.scene import OBJECT_CENTRIC_KINDS
 from .distributed import ProcessGroup, SingleProcess, join, scaled_for_processes, threads_per_process
 from .errors import MCSplatError
 from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Listener, RefineDone, RunFinished,
@@ -111,7 +112,8 @@ def initial_model(config: TrainConfig, scene: Scene, device: torch.device, gener
         model = GaussianModel.from_points(scene.points, scene.point_colors, init_scale=m.init_scale,
                                           init_opacity=m.init_opacity, sh_degree=m.sh_degree, device=device)
         return model, f"SfM ({model.num_gaussians:,} points)"
-    model = GaussianModel.random_init(scene.radius, blender=scene.kind == "blender", num_points=m.num_init_points,
+    model = GaussianModel.random_init(scene.radius, blender=scene.kind in OBJECT_CENTRIC_KINDS,
+                                      num_points=m.num_init_points,
                                       extent=m.init_extent, init_scale=m.init_scale, init_opacity=m.init_opacity,
                                       sh_degree=m.sh_degree, generator=generator, device=device)
     return model, f"random ({model.num_gaussians:,} points)"
@@ -462,6 +464,8 @@ class TrainingRun:
                    "device": str(self.device), "strategy": config.strategy, "test_views": evaluation.views,
                    "sh_degree": final_degree, "processes": self.team.world_size,
                    "invisible_gaussians": invisible.as_dict(),
+                   # --cap-max auto: where growth stopped (None: the demand never fell, the ceiling decided)
+                   **({"auto_cap": self.strategy.chosen_cap} if config.cap_max == "auto" else {}),
                    "per_view_psnr": evaluation.per_view_psnr}
         if self.team.is_main:
             atomic_write_text(run_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")

@@ -7,29 +7,31 @@ import struct
 from pathlib import Path
 from typing import Sequence
 
-from mcsplat.data import blender, colmap, llff
+from mcsplat.data import blender, colmap, idr, llff
 from mcsplat.data.scene import NAMED_BACKGROUNDS, Scene, check_options, parse_background
 from mcsplat.errors import DataError
 
 LOOKED_FOR = ("sparse/0/ or sparse/ with cameras, images, points3D .bin/.txt (COLMAP), transforms_train.json or "
-              "transforms.json (Blender/NeRF), poses_bounds.npy (LLFF)")
+              "transforms.json (Blender/NeRF), poses_bounds.npy (LLFF), cameras.npz (IDR, NeuS, MonoSDF)")
 
 
 def detect_kind(root: Path) -> str:
-    """"colmap", "blender" or "llff" (in that order of priority); DataError if the folder holds none of them."""
+    """"colmap", "blender", "llff" or "idr" (in that order of priority); DataError if the folder holds none."""
     if colmap.find_model(root) is not None:
         return "colmap"
     if blender.is_blender(root):
         return "blender"
     if llff.is_llff(root):
         return "llff"
+    if idr.is_idr(root):
+        return "idr"
     partial = colmap.incomplete_model(root)
     raise DataError(f"no scene found in {root}: looked for {LOOKED_FOR}" + (f"; {partial}" if partial else ""))
 
 
 def load_scene(path: str | os.PathLike, downscale: int = 1, background: str | Sequence[float] | None = None,
                test_every: int = 8) -> Scene:
-    """Load a COLMAP, Blender/NeRF or LLFF scene folder (auto-detected).
+    """Load a COLMAP, Blender/NeRF, LLFF or IDR (cameras.npz) scene folder (auto-detected).
 
     downscale: load images at 1/N resolution (images_N/ when the folder has it, else resized); K follows.
     background: "white", "black" or an RGB triple in [0, 1]; default white for Blender, black otherwise. Images with
@@ -47,7 +49,8 @@ def load_scene(path: str | os.PathLike, downscale: int = 1, background: str | Se
                         "transforms_*.json or poses_bounds.npy)")
     kind = detect_kind(root)
     rgb = parse_background(background, NAMED_BACKGROUNDS["white" if kind == "blender" else "black"])
-    loader = {"colmap": colmap.load_colmap, "blender": blender.load_blender, "llff": llff.load_llff}[kind]
+    loader = {"colmap": colmap.load_colmap, "blender": blender.load_blender, "llff": llff.load_llff,
+              "idr": idr.load_idr}[kind]
     try:
         scene = loader(root, downscale, rgb, test_every)
     except DataError:

@@ -12,7 +12,9 @@ from mcsplat.camera import Camera
 from mcsplat.data.image_store import LazyImage
 from mcsplat.errors import MCSplatError
 
-KINDS = ("colmap", "blender", "llff")
+KINDS = ("colmap", "blender", "llff", "idr")
+# Scenes normalised around one object (Blender's [-1.3, 1.3]^3, IDR's unit sphere): random init fills that box.
+OBJECT_CENTRIC_KINDS = ("blender", "idr")
 
 Background = tuple[float, float, float]
 NAMED_BACKGROUNDS: dict[str, Background] = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}

@@ -38,6 +38,7 @@ from ..gaussians import PARAM_KEYS, GaussianModel
 from ..optim import append_rows, remove_rows, set_rows, zero_moments
 from ..render.project import quaternion_to_rotation
 from .base import ALONE
+from .screen_gradients import ndc_gradient_norms
 
 __all__ = ["ADCConfig", "ADCStrategy"]
 
@@ -134,17 +135,9 @@ class ADCStrategy:
                            height: int) -> None:
         if step >= self.config.densify_stop or model.num_gaussians == 0:
             return
-        grad = render_result.means2d.grad
-        if grad is None:
-            raise RuntimeError("ADC needs render_result.means2d.grad: call step_post_backward after loss.backward() "
-                               "on a render of parameters that require gradients")
-        if grad.shape[0] != model.num_gaussians:
-            raise ValueError(f"the render has {grad.shape[0]} Gaussians but the model {model.num_gaussians}")
+        visible, norms = ndc_gradient_norms(render_result, model.num_gaussians, width, height)
         self._ensure_stats(model)
         radii = render_result.radii
-        visible = radii > 0
-        ndc_scale = torch.tensor([0.5 * width, 0.5 * height], dtype=grad.dtype, device=grad.device)
-        norms = torch.linalg.vector_norm(grad[visible] * ndc_scale, dim=-1)
         self.grad_accum[visible] += norms.to(self.grad_accum.dtype)
         self.grad_count[visible] += 1
         self.max_radii[visible] = torch.maximum(self.max_radii[visible], radii[visible].to(self.max_radii.dtype))

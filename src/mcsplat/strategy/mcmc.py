@@ -7,7 +7,8 @@ Per step, after the Adam steps (`step_post_optimizer`), in gsplat's order (since
    a. if there are more than cap_max Gaussians, remove the least opaque ones down to cap_max (not in the official
       code nor in gsplat; gsplat #516 / PR #939 - an SfM init larger than the cap, or a smaller cap on resume);
    b. relocate the dead Gaussians onto live ones (SPEC section 5);
-   c. grow by 5% up to cap_max (SPEC section 6);
+   c. grow by 5% up to cap_max (SPEC section 6); with auto_cap, by at most the number of Gaussians whose screen
+      gradient asks for more (strategy/auto_cap.py), so that the count stops where the scene needs no more;
 2. add the SGLD noise to the positions (SPEC section 4), on every step, with the learning rate the caller passes.
 
 How the official code (ubc-vision/3dgs-mcmc, SPEC sections 2 and 13) differs:
@@ -33,8 +34,10 @@ import torch
 
 from ..gaussians import PARAM_KEYS, GaussianModel
 from ..optim import append_rows, copy_rows, remove_rows, set_rows, zero_moments
+from .auto_cap import DEFAULT_DEMAND_SHARE, DEFAULT_DEMAND_THRESHOLD, growth_demand
 from .base import ALONE
 from .relocation import DEFAULT_MAX_COPIES, relocation_params, sample_by_weight
+from .screen_gradients import ScreenGradients
 
 __all__ = ["MCMCConfig", "MCMCStrategy", "inject_noise", "noise_gate", "relocate_dead", "grow", "prune_to_cap",
            "NOISE_GATE_K", "NOISE_GATE_CENTER"]
@@ -65,6 +68,9 @@ class MCMCConfig:
     grow_rate: float = 1.05         # growth factor per refine step
     min_opacity: float = 0.005      # dead: opacity <= min_opacity
     max_copies: int = DEFAULT_MAX_COPIES  # N clamp in Eq. 9
+    auto_cap: bool = False          # grow only where the screen gradient asks for more (cap_max is then a ceiling)
+    demand_threshold: float = DEFAULT_DEMAND_THRESHOLD  # the automatic cap's gradient threshold (3DGS's, NDC units)
+    demand_share: float = DEFAULT_DEMAND_SHARE  # the automatic cap stops growth once D < demand_share N
 
     def __post_init__(self) -> None:
         if int(self.cap_max) != self.cap_max or self.cap_max < 1:
@@ -81,6 +87,10 @@ class MCMCConfig:
             raise ValueError(f"grow_rate must be a finite number >= 1, got {self.grow_rate}")
         if not 0.0 <= self.min_opacity < 1.0:
             raise ValueError(f"min_opacity must be in [0, 1), got {self.min_opacity}")
+        if not (math.isfinite(self.demand_threshold) and self.demand_threshold > 0):
+            raise ValueError(f"demand_threshold must be a finite number > 0, got {self.demand_threshold}")
+        if not 0.0 <= self.demand_share < 1.0:
+            raise ValueError(f"demand_share must be in [0, 1), got {self.demand_share}")
         if not 1 <= self.max_copies <= 1000:
             raise ValueError(f"max_copies must be in [1, 1000], got {self.max_copies}")
         self.cap_max = int(self.cap_max)
@@ -212,6 +222,8 @@ class MCMCStrategy:
         self.scene_radius = scene_radius  # the noise scale comes in through the position learning rate
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.collective = ALONE
+        self.gradients = ScreenGradients()  # kept only with auto_cap
+        self.chosen_cap: int | None = None   # auto_cap: the count at which growth stopped
 
     def is_refine_step(self, step: int) -> bool:
         c = self.config
@@ -226,7 +238,10 @@ class MCMCStrategy:
 
     def step_post_backward(self, step: int, model: GaussianModel, render_result: Any, width: int,
                            height: int) -> None:
-        """MCMC keeps no gradient statistics."""
+        """With auto_cap, the screen-gradient statistic that decides the growth; the paper's MCMC keeps none."""
+        if (self.config.auto_cap and self.chosen_cap is None and step < self.config.refine_stop
+                and model.num_gaussians):
+            self.gradients.add(render_result, model.num_gaussians, width, height)
 
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Optimizers,
                             means_lr: float) -> dict:
@@ -240,19 +255,44 @@ class MCMCStrategy:
                               f"nothing to copy from; relocation and growth skipped (gsplat #1027)", RuntimeWarning,
                               stacklevel=2)
             else:
+                cap = self._auto_cap(model, info) if c.auto_cap else c.cap_max
                 slots, _ = relocate_dead(model, optimizers, self.generator, min_opacity=c.min_opacity,
                                          max_copies=c.max_copies, agree=self.collective.agree)
-                added = grow(model, optimizers, self.generator, cap_max=c.cap_max, grow_rate=c.grow_rate,
+                added = grow(model, optimizers, self.generator, cap_max=cap, grow_rate=c.grow_rate,
                              min_opacity=c.min_opacity, max_copies=c.max_copies, agree=self.collective.agree)
                 info["relocated"], info["added"] = int(slots.numel()), int(added.numel())
+            if c.auto_cap and self.chosen_cap is None:
+                self.gradients.reset(model.num_gaussians, model.means.device)
         inject_noise(model, c.noise_lr * means_lr, self.generator)
         info["num_gaussians"] = model.num_gaussians
         return info
 
+    def _auto_cap(self, model: GaussianModel, info: dict) -> int:
+        """This refine step's cap under auto_cap: N + D while D >= demand_share N; from the first step where it is
+        not, the count of that step for the rest of the run."""
+        n = model.num_gaussians
+        if self.chosen_cap is None:
+            info["wanted"] = wanted = self._growth_demand(model)
+            if wanted >= self.config.demand_share * n:
+                return min(self.config.cap_max, n + wanted)
+            self.chosen_cap = n
+        return min(self.config.cap_max, self.chosen_cap)
+
+    def _growth_demand(self, model: GaussianModel) -> int:
+        """The automatic cap's D, from every process's views when several train together."""
+        g = self.gradients
+        if g.total is not None:
+            self.collective.sum_(g.total)
+            self.collective.sum_(g.views)
+        return growth_demand(g, model.opacities.detach(), self.config.demand_threshold, self.config.min_opacity)
+
     def state_dict(self) -> dict:
-        """MCMC keeps no state between steps besides the generator, which belongs to the caller (save it there)."""
-        return {"strategy": "mcmc", "config": asdict(self.config)}
+        """The automatic cap's statistic (the generator belongs to the caller: save it there)."""
+        return {"strategy": "mcmc", "config": asdict(self.config), "gradients": self.gradients.state_dict(),
+                "chosen_cap": self.chosen_cap}
 
     def load_state_dict(self, state: dict) -> None:
         if state.get("strategy") != "mcmc":
             raise ValueError(f"this is not an MCMC strategy state (strategy={state.get('strategy')!r})")
+        self.gradients.load_state_dict(state.get("gradients") or {})
+        self.chosen_cap = state.get("chosen_cap")

@@ -1,0 +1,142 @@
+"""`--cap-max auto` against fixed caps on the shared scenes: is the automatic cap as good as the best cap tried?
+
+    .venv/bin/python benchmarks/auto_cap.py                     # 4 scenes x (10k, 30k, 100k, auto), 3,000 steps
+    .venv/bin/python benchmarks/auto_cap.py --report            # only rebuild results.md from results.jsonl
+
+Every scene trains with MCMC at each fixed cap and once with `--cap-max auto`, from the same init (lego and DTU:
+5,000 random points; the other captures: their SfM points), with the same steps and schedules (the paper's, multiplied by
+--schedule-scale, like budget.py). The target (issue 15): the automatic cap's test PSNR within 0.3 dB of the best
+fixed cap's, with at most 1.5x that cap's count. Two runs at a time, one thread each; a finished run is reused, an
+interrupted one resumed. Runs live in results/auto_cap/runs/ (git-ignored).
+"""
+
+from __future__ import annotations
+
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
+import argparse
+import json
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import _common as C
+
+# name -> (folder under the shared data, init, downscale, random init points)
+SCENES = {"lego": (C.LEGO, "random", 2, 5000), "bird": ("colmap_bird", "sfm", 4, 0),
+          "cup": ("colmap_cup", "sfm", 4, 0), "fern": ("llff_fern/fern", "sfm", 1, 0),
+          "dtu": ("dtu_scan24_monosdf/scan24", "random", 1, 5000)}
+PSNR_MARGIN = 0.3
+COUNT_FACTOR = 1.5
+
+
+def run_name(scene: str, cap, steps: int) -> str:
+    return f"{scene}-{'auto' if cap == 'auto' else C.human(int(cap))}-{steps}steps"
+
+
+def train_one(job: dict) -> dict:
+    """Train (or reuse, or resume) one run in this process; returns its record."""
+    from budget import Schedule
+    from mcsplat.config import ModelConfig, TrainConfig
+    from mcsplat.strategy.mcmc import MCMCConfig
+    from mcsplat.trainer import CHECKPOINT, train
+
+    run_dir = Path(job["run_dir"])
+    if (run_dir / "metrics.json").is_file():
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+    else:
+        sched = Schedule(job["schedule_scale"]).values()
+        folder, init, downscale, points = SCENES[job["scene"]]
+        cap = job["cap"] if job["cap"] == "auto" else int(job["cap"])
+        config = TrainConfig(
+            data=Path(job["data_root"]) / folder, out=run_dir, cap_max=cap, steps=job["steps"], downscale=downscale,
+            threads=job["threads"], seed=0, quiet=True, lpips_net="alex", save_renders=False,
+            save_every=max(1, job["steps"] // 5), resume=(run_dir / CHECKPOINT).is_file(),
+            sh_increase_every=sched["sh_increase_every"],
+            model=ModelConfig(init=init, num_init_points=points or 100_000),
+            mcmc=MCMCConfig(refine_start=sched["refine_start"], refine_stop=sched["refine_stop"],
+                            refine_every=sched["refine_every"]))
+        metrics = train(config)
+    return {"scene": job["scene"], "cap": job["cap"], "steps": metrics["steps"], "psnr": round(metrics["psnr"], 3),
+            "ssim": round(metrics["ssim"], 4), "num_gaussians": metrics["num_gaussians"],
+            "train_seconds": metrics["train_seconds"], "schedule_scale": job["schedule_scale"],
+            "test_views": metrics["test_views"], "benchmark": "auto_cap"}
+
+
+def run_in_subprocess(job: dict) -> dict:
+    done = subprocess.run([sys.executable, __file__, "--worker", json.dumps(job)], capture_output=True, text=True)
+    if done.returncode != 0:
+        return {**job, "error": (done.stderr.strip().splitlines() or ["failed"])[-1]}
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def verdicts(records: list[dict]) -> list[dict]:
+    """Per scene: the best fixed cap, the automatic cap's run, and whether it meets the target."""
+    out = []
+    for scene in dict.fromkeys(r["scene"] for r in records):
+        rows = [r for r in records if r["scene"] == scene and "error" not in r]
+        fixed = [r for r in rows if r["cap"] != "auto"]
+        auto = next((r for r in rows if r["cap"] == "auto"), None)
+        if not fixed or auto is None:
+            continue
+        best = max(fixed, key=lambda r: r["psnr"])
+        gap = auto["psnr"] - best["psnr"]
+        ratio = auto["num_gaussians"] / best["num_gaussians"]
+        out.append({"scene": scene, "best_cap": best["cap"], "best_psnr": best["psnr"],
+                    "best_count": best["num_gaussians"], "auto_psnr": auto["psnr"], "auto_count": auto["num_gaussians"],
+                    "gap": gap, "count_ratio": ratio, "passes": gap >= -PSNR_MARGIN and ratio <= COUNT_FACTOR})
+    return out
+
+
+def report(records: list[dict], out: Path) -> str:
+    table = C.markdown_table(records, [
+        ("scene", "scene", ""), ("cap", "cap", lambda r: "auto" if r["cap"] == "auto" else C.human(int(r["cap"]))),
+        ("steps", "steps", ""), ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"),
+        ("final #G", "num_gaussians", ","), ("train min", "train_seconds", lambda r: f"{r['train_seconds'] / 60:.1f}"),
+        ("test views", "test_views", "")])
+    checks = C.markdown_table(verdicts(records), [
+        ("scene", "scene", ""), ("best fixed cap", "best_cap", lambda r: C.human(int(r["best_cap"]))),
+        ("its PSNR", "best_psnr", ".2f"), ("auto PSNR", "auto_psnr", ".2f"), ("PSNR gap", "gap", "+.2f"),
+        ("auto count", "auto_count", ","), ("count / best cap's", "count_ratio", ".2f"),
+        ("meets the target", "passes", lambda r: "yes" if r["passes"] else "**no**")])
+    text = (f"# --cap-max auto against fixed caps\n\n{table}\n\nTarget: PSNR within {PSNR_MARGIN} dB of the best fixed "
+            f"cap, at most {COUNT_FACTOR}x its count.\n\n{checks}\n")
+    C.write_text(out / "results.md", text)
+    return text
+
+
+def latest(records: list[dict]) -> list[dict]:
+    by_key = {(r["scene"], r["cap"], r["steps"]): r for r in records}
+    return list(by_key.values())
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    parser.add_argument("--caps", nargs="+", default=["100000", "30000", "10000", "auto"])
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--schedule-scale", type=float, default=None, help="default: steps / 30000")
+    parser.add_argument("--parallel", type=int, default=2, help="runs at a time (one thread each)")
+    parser.add_argument("--data-root", default=str(C.DATA_ROOT))
+    parser.add_argument("--report", action="store_true", help="only rebuild results.md")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        print(json.dumps(train_one(json.loads(args.worker))), flush=True)
+        return
+    out = C.results_dir("auto_cap")
+    if not args.report:
+        scale = args.schedule_scale or args.steps / 30_000
+        jobs = [{"scene": s, "cap": cap, "steps": args.steps, "schedule_scale": scale, "threads": 1,
+                 "data_root": args.data_root, "run_dir": str(out / "runs" / run_name(s, cap, args.steps))}
+                for cap in args.caps for s in args.scenes]
+        with ThreadPoolExecutor(args.parallel) as pool:
+            for record in pool.map(run_in_subprocess, jobs):
+                C.emit(record)
+                C.append_jsonl(out / "results.jsonl", [record])
+    print(report(latest(C.read_jsonl(out / "results.jsonl")), out))
+
+
+if __name__ == "__main__":
+    main()

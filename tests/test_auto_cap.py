@@ -1,0 +1,115 @@
+"""`--cap-max auto`: the screen-gradient demand, growth limited by it, the cap fixed once the demand falls, resume."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from mcsplat.config import TrainConfig, from_jsonable, to_jsonable
+from mcsplat.errors import MCSplatError
+from mcsplat.optim import OptimConfig, make_optimizers
+from mcsplat.strategy.auto_cap import growth_demand
+from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
+from mcsplat.strategy.screen_gradients import ScreenGradients
+
+from test_mcmc import RADIUS, make_model
+
+WIDTH, HEIGHT = 40, 20
+
+
+def fake_render(grad2d: torch.Tensor, visible: torch.Tensor | None = None) -> SimpleNamespace:
+    """What the statistic reads from a render after its backward: means2d.grad (per pixel) and radii."""
+    n = grad2d.shape[0]
+    radii = torch.ones(n, dtype=torch.int32) if visible is None else visible.to(torch.int32)
+    return SimpleNamespace(means2d=SimpleNamespace(grad=grad2d), radii=radii)
+
+
+def per_pixel(ndc_norm: float, n: int) -> torch.Tensor:
+    """A per-pixel x gradient whose NDC norm (x times width / 2) is `ndc_norm`, for n Gaussians."""
+    return torch.tensor([[ndc_norm / (0.5 * WIDTH), 0.0]]).repeat(n, 1)
+
+
+def test_the_statistic_is_the_mean_ndc_norm_over_the_views_that_saw_each_gaussian():
+    g = ScreenGradients()
+    grad = torch.tensor([[0.01, 0.0], [0.0, 0.02], [0.03, 0.04]])
+    g.add(fake_render(grad), 3, WIDTH, HEIGHT)
+    g.add(fake_render(grad * 3, visible=torch.tensor([True, False, False])), 3, WIDTH, HEIGHT)
+    expected = torch.tensor([(0.01 * 20 + 0.03 * 20) / 2, 0.02 * 10, ((0.03 * 20) ** 2 + (0.04 * 10) ** 2) ** 0.5])
+    torch.testing.assert_close(g.means(), expected)
+    assert g.views.tolist() == [2, 1, 1]
+
+
+def test_demand_counts_live_gaussians_at_or_over_the_threshold():
+    g = ScreenGradients()
+    g.add(fake_render(torch.cat([per_pixel(3e-4, 4), per_pixel(1e-4, 6)])), 10, WIDTH, HEIGHT)
+    opacities = torch.tensor([0.5, 0.5, 0.5, 0.001] + [0.5] * 6)  # one of the four is dead
+    assert growth_demand(g, opacities, threshold=2e-4, min_opacity=0.005) == 3
+    assert growth_demand(ScreenGradients(), opacities, 2e-4, 0.005) == 0, "no views yet: no demand"
+
+
+def make_auto(n: int, **options) -> tuple:
+    model = make_model([0.5] * n, seed=1)
+    optimizers = make_optimizers(model, OptimConfig(), RADIUS)
+    config = MCMCConfig(cap_max=10_000, auto_cap=True, refine_start=0, refine_every=10, **options)
+    return model, optimizers, MCMCStrategy(config, RADIUS, torch.Generator().manual_seed(0))
+
+
+def refine(strategy, model, optimizers, step: int, ndc_norms: torch.Tensor) -> dict:
+    """One step whose view gave these NDC gradient norms, then the strategy's refine step."""
+    strategy.step_post_backward(step, model, fake_render(ndc_norms[:, None] * torch.tensor([[2.0 / WIDTH, 0.0]])),
+                                WIDTH, HEIGHT)
+    return strategy.step_post_optimizer(step, model, optimizers, means_lr=0.0)
+
+
+def test_growth_is_the_demand_capped_at_five_percent_then_the_cap_stays_where_demand_fell():
+    model, optimizers, strategy = make_auto(400)
+    wanting = torch.zeros(400)
+    wanting[:12] = 1e-3  # 12 ask for more (3% of 400): grow by 12, not by 5% (20)
+    info = refine(strategy, model, optimizers, 10, wanting)
+    assert info["wanted"] == 12 and info["added"] == 12 and model.num_gaussians == 412
+    info = refine(strategy, model, optimizers, 20, torch.full((412,), 1e-3))  # all ask: MCMC's 5%
+    assert info["added"] == int(1.05 * 412) - 412 and strategy.chosen_cap is None
+    n = model.num_gaussians
+    few = torch.zeros(n)
+    few[:3] = 1e-3  # under 1% of N: the count is fixed here
+    info = refine(strategy, model, optimizers, 30, few)
+    assert info["added"] == 0 and strategy.chosen_cap == n
+    info = refine(strategy, model, optimizers, 40, torch.full((n,), 1e-3))  # demand again: the cap holds
+    assert info["added"] == 0 and "wanted" not in info and model.num_gaussians == n
+
+
+def test_the_ceiling_still_holds():
+    model, optimizers, strategy = make_auto(400)
+    strategy.config.cap_max = 405
+    info = refine(strategy, model, optimizers, 10, torch.full((400,), 1e-3))
+    assert info["added"] == 5 and model.num_gaussians == 405
+
+
+def test_a_restored_strategy_takes_the_same_decisions():
+    model, optimizers, strategy = make_auto(400)
+    refine(strategy, model, optimizers, 10, torch.full((400,), 1e-3))
+    # Half an interval of statistics, then a checkpoint.
+    strategy.step_post_backward(11, model, fake_render(per_pixel(3e-4, model.num_gaussians)), WIDTH, HEIGHT)
+    state = strategy.state_dict()
+    twin = MCMCStrategy(MCMCConfig(**state["config"]), RADIUS, torch.Generator())
+    twin.load_state_dict(state)
+    torch.testing.assert_close(twin.gradients.means(), strategy.gradients.means())
+    n = model.num_gaussians
+    demand_a = growth_demand(strategy.gradients, model.opacities.detach(), 2e-4, 0.005)
+    demand_b = growth_demand(twin.gradients, model.opacities.detach(), 2e-4, 0.005)
+    assert demand_a == demand_b == n
+    strategy.chosen_cap = 999
+    twin.load_state_dict(strategy.state_dict())
+    assert twin.chosen_cap == 999
+
+
+def test_cap_max_auto_in_the_configuration(tmp_path):
+    config = TrainConfig(data=tmp_path, cap_max="auto")
+    assert config.mcmc.auto_cap and config.mcmc.cap_max == MCMCConfig().cap_max  # the default ceiling
+    again = from_jsonable(to_jsonable(config))
+    assert again.cap_max == "auto" and again.mcmc.auto_cap
+    assert not TrainConfig(data=tmp_path, cap_max=5000).mcmc.auto_cap
+    with pytest.raises(MCSplatError, match="--cap-max auto is for the MCMC strategy"):
+        TrainConfig(data=tmp_path, cap_max="auto", strategy="adc")
