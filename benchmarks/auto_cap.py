@@ -90,6 +90,8 @@ def verdicts(records: list[dict]) -> list[dict]:
 
 
 def report(records: list[dict], out: Path) -> str:
+    failed = [r for r in records if "error" in r]
+    records = [r for r in records if "error" not in r]
     table = C.markdown_table(records, [
         ("scene", "scene", ""), ("cap", "cap", lambda r: "auto" if r["cap"] == "auto" else C.human(int(r["cap"]))),
         ("steps", "steps", ""), ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"),
@@ -100,14 +102,15 @@ def report(records: list[dict], out: Path) -> str:
         ("its PSNR", "best_psnr", ".2f"), ("auto PSNR", "auto_psnr", ".2f"), ("PSNR gap", "gap", "+.2f"),
         ("auto count", "auto_count", ","), ("count / best cap's", "count_ratio", ".2f"),
         ("meets the target", "passes", lambda r: "yes" if r["passes"] else "**no**")])
+    stopped = "".join(f"- {r['scene']} at cap {r['cap']}: did not finish ({r['error']})\n" for r in failed)
     text = (f"# --cap-max auto against fixed caps\n\n{table}\n\nTarget: PSNR within {PSNR_MARGIN} dB of the best fixed "
-            f"cap, at most {COUNT_FACTOR}x its count.\n\n{checks}\n")
+            f"cap, at most {COUNT_FACTOR}x its count.\n\n{checks}\n" + (f"\n{stopped}" if stopped else ""))
     C.write_text(out / "results.md", text)
     return text
 
 
 def latest(records: list[dict]) -> list[dict]:
-    by_key = {(r["scene"], r["cap"], r["steps"]): r for r in records}
+    by_key = {(r["scene"], r["cap"], r.get("steps")): r for r in records}
     return list(by_key.values())
 
 
