@@ -47,8 +47,9 @@ def pixel_of_thread(t: int, first_tile: int, tiles_x: int):
     return tile, px, py, block_bit
 
 
-# Warp-level helpers for the float32 CUDA backward. In CPU code (and for float64, which Warp's CUDA headers have no
-# shuffles for) they reduce to a single lane: the sum and maximum of one value, and every thread leads.
+# Warp-level helpers of the float32 backward (`_lanes`): shuffles across the 32 lanes on CUDA, a single lane in CPU
+# code. The float64 kernels use the single-lane versions (`_one`) everywhere: Warp's CUDA headers have no float64
+# shuffles. With one lane, the sum and maximum are the value itself and every thread leads.
 _ON_CUDA = "#if defined(__CUDA_ARCH__)\n{cuda}\n#else\n{cpu}\n#endif\n"
 _FULL_WARP = "0xffffffffu"
 
@@ -56,41 +57,41 @@ _FULL_WARP = "0xffffffffu"
 @wp.func_native(_ON_CUDA.format(
     cuda=f"float v = value;\nfor (int o = 16; o > 0; o >>= 1) v += __shfl_xor_sync({_FULL_WARP}, v, o);\nreturn v;",
     cpu="return value;"))
-def _warp_sum_f32(value: wp.float32) -> wp.float32: ...
+def _warp_sum_lanes(value: wp.float32) -> wp.float32: ...
 
 
 @wp.func_native(_ON_CUDA.format(
     cuda=f"int v = value;\nfor (int o = 16; o > 0; o >>= 1) {{ int w = __shfl_xor_sync({_FULL_WARP}, v, o); "
          f"v = w > v ? w : v; }}\nreturn v;",
     cpu="return value;"))
-def _warp_max_f32(value: int) -> int: ...
+def _warp_max_lanes(value: int) -> int: ...
 
 
 @wp.func_native(_ON_CUDA.format(cuda=f"return __ballot_sync({_FULL_WARP}, flag) != 0 ? 1 : 0;", cpu="return flag;"))
-def _warp_any_f32(flag: int) -> int: ...
+def _warp_any_lanes(flag: int) -> int: ...
 
 
 @wp.func_native(_ON_CUDA.format(cuda="return (threadIdx.x & 31) == 0 ? 1 : 0;", cpu="return 1;"))
-def _leads_warp_f32() -> int: ...
+def _leads_warp_lanes() -> int: ...
 
 
 @wp.func
-def _warp_sum_f64(value: wp.float64):
+def _warp_sum_one(value: wp.float64):
     return value
 
 
 @wp.func
-def _warp_max_f64(value: int):
+def _warp_max_one(value: int):
     return value
 
 
 @wp.func
-def _warp_any_f64(flag: int):
+def _warp_any_one(flag: int):
     return flag
 
 
 @wp.func
-def _leads_warp_f64():
+def _leads_warp_one():
     return 1
 
 
@@ -99,10 +100,10 @@ def composite_kernels(dtype):
     """(forward, backward) kernels for scalar type wp.float32 or wp.float64."""
     vec3 = wp.types.vector(3, dtype)
     single = dtype == wp.float32
-    warp_sum = _warp_sum_f32 if single else _warp_sum_f64
-    warp_max = _warp_max_f32 if single else _warp_max_f64
-    warp_any = _warp_any_f32 if single else _warp_any_f64
-    leads_warp = _leads_warp_f32 if single else _leads_warp_f64
+    warp_sum = _warp_sum_lanes if single else _warp_sum_one
+    warp_max = _warp_max_lanes if single else _warp_max_one
+    warp_any = _warp_any_lanes if single else _warp_any_one
+    leads_warp = _leads_warp_lanes if single else _leads_warp_one
 
     @wp.kernel(module="unique")
     def composite_forward(
