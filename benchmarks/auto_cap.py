@@ -1,13 +1,16 @@
 """`--cap-max auto` against fixed caps on the shared scenes: is the automatic cap as good as the best cap tried?
 
-    .venv/bin/python benchmarks/auto_cap.py                     # 4 scenes x (10k, 30k, 100k, auto), 3,000 steps
+    .venv/bin/python benchmarks/auto_cap.py                     # 5 scenes x (100k, 30k, 10k, auto), 3,000 steps
+    .venv/bin/python benchmarks/auto_cap.py --scenes cup --caps 300000 auto-demand
     .venv/bin/python benchmarks/auto_cap.py --report            # only rebuild results.md from results.jsonl
 
-Every scene trains with MCMC at each fixed cap and once with `--cap-max auto`, from the same init (lego and DTU:
+Every scene trains with MCMC at each fixed cap and with each automatic rule (auto: `--cap-max auto`; auto-demand:
+the same without its per-pixel ceiling), from the same init (lego and DTU:
 5,000 random points; the other captures: their SfM points), with the same steps and schedules (the paper's, multiplied by
 --schedule-scale, like budget.py). The target (issue 15): the automatic cap's test PSNR within 0.3 dB of the best
 fixed cap's, with at most 1.5x that cap's count. Two runs at a time, one thread each; a finished run is reused, an
-interrupted one resumed. Runs live in results/auto_cap/runs/ (git-ignored).
+interrupted one resumed. Runs live in results/auto_cap/runs/ (git-ignored); an automatic run's record keeps its
+demand trajectory.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import _common as C
+from mcsplat.subscribers import LOG_EVERY
 
 # name -> (folder under the shared data, init, downscale, random init points)
 SCENES = {"lego": (C.LEGO, "random", 2, 5000), "bird": ("colmap_bird", "sfm", 4, 0),
@@ -31,8 +35,15 @@ PSNR_MARGIN = 0.3
 COUNT_FACTOR = 1.5
 
 
+AUTO_RULES = ("auto", "auto-demand")  # the automatic cap now, and before its per-pixel ceiling (records kept)
+
+
+def cap_label(cap) -> str:
+    return cap if cap in AUTO_RULES else C.human(int(cap))
+
+
 def run_name(scene: str, cap, steps: int) -> str:
-    return f"{scene}-{'auto' if cap == 'auto' else C.human(int(cap))}-{steps}steps"
+    return f"{scene}-{cap_label(cap)}-{steps}steps"
 
 
 def train_one(job: dict) -> dict:
@@ -48,7 +59,8 @@ def train_one(job: dict) -> dict:
     else:
         sched = Schedule(job["schedule_scale"]).values()
         folder, init, downscale, points = SCENES[job["scene"]]
-        cap = job["cap"] if job["cap"] == "auto" else int(job["cap"])
+        cap = "auto" if job["cap"] in AUTO_RULES else int(job["cap"])
+        per_pixel = {"auto-demand": 0.0}.get(job["cap"], MCMCConfig.gaussians_per_pixel)  # no per-pixel ceiling
         config = TrainConfig(
             data=Path(job["data_root"]) / folder, out=run_dir, cap_max=cap, steps=job["steps"], downscale=downscale,
             threads=job["threads"], seed=0, quiet=True, lpips_net="alex", save_renders=False,
@@ -56,12 +68,15 @@ def train_one(job: dict) -> dict:
             sh_increase_every=sched["sh_increase_every"],
             model=ModelConfig(init=init, num_init_points=points or 100_000),
             mcmc=MCMCConfig(refine_start=sched["refine_start"], refine_stop=sched["refine_stop"],
-                            refine_every=sched["refine_every"]))
+                            refine_every=sched["refine_every"], gaussians_per_pixel=per_pixel))
         metrics = train(config)
-    return {"scene": job["scene"], "cap": job["cap"], "steps": metrics["steps"], "psnr": round(metrics["psnr"], 3),
-            "ssim": round(metrics["ssim"], 4), "num_gaussians": metrics["num_gaussians"],
-            "train_seconds": metrics["train_seconds"], "schedule_scale": job["schedule_scale"],
-            "test_views": metrics["test_views"], "benchmark": "auto_cap"}
+    record = {"scene": job["scene"], "cap": job["cap"], "steps": metrics["steps"], "psnr": round(metrics["psnr"], 3),
+              "ssim": round(metrics["ssim"], 4), "num_gaussians": metrics["num_gaussians"],
+              "train_seconds": metrics["train_seconds"], "schedule_scale": job["schedule_scale"],
+              "test_views": metrics["test_views"], "benchmark": "auto_cap"}
+    if job["cap"] in AUTO_RULES:  # kept in the record: the run folders are git-ignored
+        record["demand"] = [[step, n, round(share, 4)] for step, n, share in demand_trajectory(run_dir)]
+    return record
 
 
 def run_in_subprocess(job: dict) -> dict:
@@ -72,41 +87,65 @@ def run_in_subprocess(job: dict) -> dict:
 
 
 def verdicts(records: list[dict]) -> list[dict]:
-    """Per scene: the best fixed cap, the automatic cap's run, and whether it meets the target."""
+    """Per scene and automatic rule: the best fixed cap, the automatic cap's run, and whether it meets the target."""
     out = []
     for scene in dict.fromkeys(r["scene"] for r in records):
         rows = [r for r in records if r["scene"] == scene and "error" not in r]
-        fixed = [r for r in rows if r["cap"] != "auto"]
-        auto = next((r for r in rows if r["cap"] == "auto"), None)
-        if not fixed or auto is None:
-            continue
-        best = max(fixed, key=lambda r: r["psnr"])
-        gap = auto["psnr"] - best["psnr"]
-        ratio = auto["num_gaussians"] / best["num_gaussians"]
-        out.append({"scene": scene, "best_cap": best["cap"], "best_psnr": best["psnr"],
-                    "best_count": best["num_gaussians"], "auto_psnr": auto["psnr"], "auto_count": auto["num_gaussians"],
-                    "gap": gap, "count_ratio": ratio, "passes": gap >= -PSNR_MARGIN and ratio <= COUNT_FACTOR})
+        fixed = [r for r in rows if r["cap"] not in AUTO_RULES]
+        for auto in (r for r in rows if r["cap"] in AUTO_RULES):
+            if fixed:
+                out.append(verdict(scene, fixed, auto))
     return out
+
+
+def verdict(scene: str, fixed: list[dict], auto: dict) -> dict:
+    best = max(fixed, key=lambda r: r["psnr"])
+    gap = auto["psnr"] - best["psnr"]
+    ratio = auto["num_gaussians"] / best["num_gaussians"]
+    return {"scene": scene, "rule": auto["cap"], "best_cap": best["cap"], "best_psnr": best["psnr"],
+            "best_count": best["num_gaussians"], "auto_psnr": auto["psnr"], "auto_count": auto["num_gaussians"],
+            "gap": gap, "count_ratio": ratio, "passes": gap >= -PSNR_MARGIN and ratio <= COUNT_FACTOR}
 
 
 def report(records: list[dict], out: Path) -> str:
     failed = [r for r in records if "error" in r]
     records = [r for r in records if "error" not in r]
     table = C.markdown_table(records, [
-        ("scene", "scene", ""), ("cap", "cap", lambda r: "auto" if r["cap"] == "auto" else C.human(int(r["cap"]))),
+        ("scene", "scene", ""), ("cap", "cap", lambda r: cap_label(r["cap"])),
         ("steps", "steps", ""), ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"),
         ("final #G", "num_gaussians", ","), ("train min", "train_seconds", lambda r: f"{r['train_seconds'] / 60:.1f}"),
         ("test views", "test_views", "")])
     checks = C.markdown_table(verdicts(records), [
-        ("scene", "scene", ""), ("best fixed cap", "best_cap", lambda r: C.human(int(r["best_cap"]))),
+        ("scene", "scene", ""), ("rule", "rule", ""), ("best fixed cap", "best_cap", lambda r: C.human(int(r["best_cap"]))),
         ("its PSNR", "best_psnr", ".2f"), ("auto PSNR", "auto_psnr", ".2f"), ("PSNR gap", "gap", "+.2f"),
         ("auto count", "auto_count", ","), ("count / best cap's", "count_ratio", ".2f"),
         ("meets the target", "passes", lambda r: "yes" if r["passes"] else "**no**")])
-    stopped = "".join(f"- {r['scene']} at cap {r['cap']}: did not finish ({r['error']})\n" for r in failed)
+    stopped = "".join(f"- {r['scene']} at cap {r['cap']}: did not finish ({r['error'].split(';')[0]})\n" for r in failed)
+    demand = trajectories(records)
     text = (f"# --cap-max auto against fixed caps\n\n{table}\n\nTarget: PSNR within {PSNR_MARGIN} dB of the best fixed "
-            f"cap, at most {COUNT_FACTOR}x its count.\n\n{checks}\n" + (f"\n{stopped}" if stopped else ""))
+            f"cap, at most {COUNT_FACTOR}x its count. Rule auto: `--cap-max auto` (demand, ceiling 3 Gaussians per training "
+            f"pixel); auto-demand: the same before the per-pixel ceiling (1M ceiling).\n\n{checks}\n" + (f"\n{stopped}" if stopped else "") +
+            (f"\nDemand D/N of one refine step as the automatic cap grew (log.jsonl, every {LOG_EVERY} steps):\n\n"
+             f"{demand}\n" if demand else ""))
     C.write_text(out / "results.md", text)
     return text
+
+
+def demand_trajectory(run_dir: Path) -> list[tuple[int, int, float]]:
+    """(step, N, D/N of the last refine step) of an automatic-cap run, from its log.jsonl."""
+    points = []
+    for record in C.read_jsonl(run_dir / "log.jsonl") if (run_dir / "log.jsonl").is_file() else []:
+        if record.get("demand"):
+            points.append((record["step"], record["num_gaussians"], record["demand"] / record["num_gaussians"]))
+    return points
+
+
+def trajectories(records: list[dict]) -> str:
+    """One line per automatic-cap run: its demand share as the count grew (where growth stopped, if it did)."""
+    return "\n".join(f"- {r['scene']} ({r['cap']}): " + ", ".join(
+        f"{share:.1%} at {round(n / 1000):,}k (step {step:,})" for step, n, share in r["demand"])
+        + (f" ({r['demand_note']})" if r.get("demand_note") else "")
+        for r in sorted(records, key=lambda r: (list(SCENES).index(r["scene"]), r["cap"])) if r.get("demand"))
 
 
 def latest(records: list[dict]) -> list[dict]:

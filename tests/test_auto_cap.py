@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from types import SimpleNamespace
 
 import pytest
@@ -10,7 +11,7 @@ import torch
 from mcsplat.config import TrainConfig, from_jsonable, to_jsonable
 from mcsplat.errors import MCSplatError
 from mcsplat.optim import OptimConfig, make_optimizers
-from mcsplat.strategy.auto_cap import growth_demand
+from mcsplat.strategy.auto_cap import growth_demand, pixel_ceiling
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
 from mcsplat.strategy.screen_gradients import ScreenGradients
 
@@ -68,7 +69,7 @@ def test_growth_is_the_demand_capped_at_five_percent_then_the_cap_stays_where_de
     wanting = torch.zeros(400)
     wanting[:12] = 1e-3  # 12 ask for more (3% of 400): grow by 12, not by 5% (20)
     info = refine(strategy, model, optimizers, 10, wanting)
-    assert info["wanted"] == 12 and info["added"] == 12 and model.num_gaussians == 412
+    assert info["demand"] == 12 and info["added"] == 12 and model.num_gaussians == 412
     info = refine(strategy, model, optimizers, 20, torch.full((412,), 1e-3))  # all ask: MCMC's 5%
     assert info["added"] == int(1.05 * 412) - 412 and strategy.chosen_cap is None
     n = model.num_gaussians
@@ -77,7 +78,7 @@ def test_growth_is_the_demand_capped_at_five_percent_then_the_cap_stays_where_de
     info = refine(strategy, model, optimizers, 30, few)
     assert info["added"] == 0 and strategy.chosen_cap == n
     info = refine(strategy, model, optimizers, 40, torch.full((n,), 1e-3))  # demand again: the cap holds
-    assert info["added"] == 0 and "wanted" not in info and model.num_gaussians == n
+    assert info["added"] == 0 and "demand" not in info and model.num_gaussians == n
 
 
 def test_the_ceiling_still_holds():
@@ -113,3 +114,37 @@ def test_cap_max_auto_in_the_configuration(tmp_path):
     assert not TrainConfig(data=tmp_path, cap_max=5000).mcmc.auto_cap
     with pytest.raises(MCSplatError, match="--cap-max auto is for the MCMC strategy"):
         TrainConfig(data=tmp_path, cap_max="auto", strategy="adc")
+
+
+def test_the_log_keeps_the_last_demand_and_sums_the_counts(tmp_path):
+    """log.jsonl: relocated/added add up over the refine steps since the last record, the demand is the last one's
+    (summed, ten refine steps of 1.5% each would read as 15% of the count)."""
+    from mcsplat.events import StepDone
+    from mcsplat.subscribers import LOG_EVERY, LogWriter
+
+    log = LogWriter(tmp_path / "log.jsonl")
+    for step in range(1, LOG_EVERY + 1):
+        refine = step % 10 == 0
+        counts = {"relocated": 2 if refine else 0, "added": 3 if refine else 0, "pruned": 0}
+        if refine:
+            counts["demand"] = 100 + step
+        log.on_step_done(StepDone(step=step, total_steps=1000, loss=0.1, train_psnr=20.0, num_gaussians=1000,
+                                  sh_degree=0, train_seconds=1.0, counts=counts))
+    record = json.loads((tmp_path / "log.jsonl").read_text())
+    assert (record["relocated"], record["added"], record["demand"]) == (20, 30, 100 + LOG_EVERY)
+
+
+def test_the_per_pixel_ceiling_stops_growth_while_the_demand_lasts():
+    """3 Gaussians per pixel of a training image: 140 pixels make a ceiling of 420 under cap_max's 10,000."""
+    assert pixel_ceiling(10_000, 140, 3.0) == 420
+    assert pixel_ceiling(300, 140, 3.0) == 300, "cap_max stays the ceiling where it is lower"
+    assert pixel_ceiling(10_000, 140, 0.0) == pixel_ceiling(10_000, None, 3.0) == 10_000, "off, or no images"
+    model, optimizers, strategy = make_auto(400)
+    strategy.image_pixels = 140
+    info = refine(strategy, model, optimizers, 10, torch.full((400,), 1e-3))  # all ask: 5% would be 20
+    assert info["added"] == 20 and model.num_gaussians == 420 and strategy.ceiling == 420
+    info = refine(strategy, model, optimizers, 20, torch.full((420,), 1e-3))
+    assert info["added"] == 0 and model.num_gaussians == 420 and strategy.chosen_cap is None
+    with pytest.raises(ValueError, match="gaussians_per_pixel"):
+        MCMCConfig(gaussians_per_pixel=-1.0)
+    assert MCMCStrategy(MCMCConfig(cap_max=500), RADIUS, image_pixels=10).ceiling == 500, "only with auto_cap"

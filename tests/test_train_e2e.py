@@ -122,9 +122,12 @@ def test_resume_after_a_crash_and_after_ctrl_c_matches_an_uninterrupted_run(tmp_
     with pytest.raises(MCSplatError, match="stopped at step 78.*--resume"):
         train(small_config(tmp_path / "interrupted", steps=steps))
     monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", original)
-    # The saved configuration rules on resume: a different --steps on the command line is ignored.
-    train(small_config(tmp_path / "interrupted", steps=30_000, resume=True))
-    resumed = final_params(tmp_path / "interrupted")
+    # The saved configuration rules on resume: a different --steps on the command line is ignored. A run folder
+    # moved elsewhere continues where it now is.
+    (tmp_path / "interrupted").rename(tmp_path / "moved")
+    train(small_config(tmp_path / "moved", steps=30_000, resume=True))
+    assert not (tmp_path / "interrupted").exists()
+    resumed = final_params(tmp_path / "moved")
     for key in expected:
         assert torch.equal(resumed[key], expected[key]), key
 

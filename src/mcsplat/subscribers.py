@@ -16,6 +16,7 @@ from .metrics import LPIPS_HINT
 from .visibility import describe
 
 LOG_EVERY = 100  # steps between two log.jsonl records
+LEVELS = frozenset({"demand"})  # strategy values that log.jsonl reports as last seen, not summed (LogWriter)
 
 
 class ProgressBar(Subscriber):
@@ -82,7 +83,10 @@ class ConsoleLog(Subscriber):
 
 class LogWriter(Subscriber):
     """Appends to log.jsonl every LOG_EVERY steps (and at the last step) and at each periodic evaluation: step,
-    loss, train PSNR, number of Gaussians, training seconds, refine counts since the previous record, test PSNR/SSIM."""
+    loss, train PSNR, number of Gaussians, training seconds, refine counts since the previous record, test PSNR/SSIM.
+
+    The automatic cap's demand is a level, not a count: the record keeps its value at the last refine step (a sum
+    over the refine steps since the previous record would read as ten times the share with refine steps every 10)."""
 
     def __init__(self, path: Path):
         self.path = path
@@ -94,7 +98,7 @@ class LogWriter(Subscriber):
 
     def on_step_done(self, event: StepDone) -> None:
         for key, value in event.counts.items():
-            self.counts[key] = self.counts.get(key, 0) + int(value)
+            self.counts[key] = int(value) + (0 if key in LEVELS else self.counts.get(key, 0))
         record = None
         if event.step % LOG_EVERY == 0 or event.step == event.total_steps:
             record = {"step": event.step, "loss": round(event.loss, 6), "train_psnr": round(event.train_psnr, 3),

@@ -96,10 +96,18 @@ class ViewSampler:
         self.order = list(state["order"])
 
 
-def make_strategy(config: TrainConfig, scene_radius: float, generator: torch.Generator):
+def make_strategy(config: TrainConfig, scene_radius: float, generator: torch.Generator,
+                  image_pixels: int | None = None):
+    """image_pixels (a training image's, the median over them): the ceiling of MCMC's automatic cap."""
     if config.strategy == "mcmc":
-        return MCMCStrategy(config.mcmc, scene_radius, generator)
+        return MCMCStrategy(config.mcmc, scene_radius, generator, image_pixels)
     return ADCStrategy(config.adc, scene_radius, generator)
+
+
+def training_image_pixels(scene: Scene) -> int:
+    """The median pixel count of the scene's training images."""
+    pixels = sorted(v.camera.width * v.camera.height for v in scene.train)
+    return pixels[len(pixels) // 2] if pixels else 0
 
 
 def initial_model(config: TrainConfig, scene: Scene, device: torch.device, generator: torch.Generator
@@ -316,7 +324,7 @@ class TrainingRun:
             self.optimizers = make_optimizers(self.model, config.optim, radius)
             for name, opt in self.optimizers.items():
                 opt.load_state_dict(state["optimizers"][name])
-            self.strategy = make_strategy(config, radius, self.generator)
+            self.strategy = make_strategy(config, radius, self.generator, training_image_pixels(self.scene))
             self.strategy.load_state_dict((state.get("strategy_per_process") or [state["strategy"]])[team.rank])
             self.generator.set_state(state["generator"])
             self.sampler.load_state_dict(state["sampler"])
@@ -326,7 +334,7 @@ class TrainingRun:
             self.model, self.init_note = initial_model(config, self.scene, self.device, self.generator)
             team.share_parameters(self.model)
             self.optimizers = make_optimizers(self.model, config.optim, radius)
-            self.strategy = make_strategy(config, radius, self.generator)
+            self.strategy = make_strategy(config, radius, self.generator, training_image_pixels(self.scene))
             if team.is_main:
                 save_config(config, self.run_dir / "config.json")
         self.strategy.collective = team.collective
@@ -465,7 +473,8 @@ class TrainingRun:
                    "sh_degree": final_degree, "processes": self.team.world_size,
                    "invisible_gaussians": invisible.as_dict(),
                    # --cap-max auto: where growth stopped (None: the demand never fell, the ceiling decided)
-                   **({"auto_cap": self.strategy.chosen_cap} if config.cap_max == "auto" else {}),
+                   **({"auto_cap": self.strategy.chosen_cap, "auto_cap_ceiling": self.strategy.ceiling}
+                      if config.cap_max == "auto" else {}),
                    "per_view_psnr": evaluation.per_view_psnr}
         if self.team.is_main:
             atomic_write_text(run_dir / "metrics.json", json.dumps(metrics, indent=2) + "\n")
@@ -482,7 +491,7 @@ def _prepare_run(config: TrainConfig) -> TrainConfig:
     saved = load_config(run_dir)
     for key in PROCESS_OPTIONS:
         setattr(saved, key, getattr(config, key))
-    saved.resume = True
+    saved.out, saved.resume = run_dir, True  # where the run is now (the folder may have been moved)
     return saved
 
 

@@ -34,7 +34,8 @@ import torch
 
 from ..gaussians import PARAM_KEYS, GaussianModel
 from ..optim import append_rows, copy_rows, remove_rows, set_rows, zero_moments
-from .auto_cap import DEFAULT_DEMAND_SHARE, DEFAULT_DEMAND_THRESHOLD, growth_demand
+from .auto_cap import (DEFAULT_DEMAND_SHARE, DEFAULT_DEMAND_THRESHOLD, DEFAULT_GAUSSIANS_PER_PIXEL, growth_demand,
+                       pixel_ceiling)
 from .base import ALONE
 from .relocation import DEFAULT_MAX_COPIES, relocation_params, sample_by_weight
 from .screen_gradients import ScreenGradients
@@ -71,6 +72,7 @@ class MCMCConfig:
     auto_cap: bool = False          # grow only where the screen gradient asks for more (cap_max is then a ceiling)
     demand_threshold: float = DEFAULT_DEMAND_THRESHOLD  # the automatic cap's gradient threshold (3DGS's, NDC units)
     demand_share: float = DEFAULT_DEMAND_SHARE  # the automatic cap stops growth once D < demand_share N
+    gaussians_per_pixel: float = DEFAULT_GAUSSIANS_PER_PIXEL  # the automatic cap's ceiling per training pixel (0: off)
 
     def __post_init__(self) -> None:
         if int(self.cap_max) != self.cap_max or self.cap_max < 1:
@@ -91,6 +93,8 @@ class MCMCConfig:
             raise ValueError(f"demand_threshold must be a finite number > 0, got {self.demand_threshold}")
         if not 0.0 <= self.demand_share < 1.0:
             raise ValueError(f"demand_share must be in [0, 1), got {self.demand_share}")
+        if not (math.isfinite(self.gaussians_per_pixel) and self.gaussians_per_pixel >= 0):
+            raise ValueError(f"gaussians_per_pixel must be a finite number >= 0, got {self.gaussians_per_pixel}")
         if not 1 <= self.max_copies <= 1000:
             raise ValueError(f"max_copies must be in [1, 1000], got {self.max_copies}")
         self.cap_max = int(self.cap_max)
@@ -215,7 +219,8 @@ class MCMCStrategy:
     """The paper's method behind the Strategy protocol (mcsplat.strategy.base)."""
 
     def __init__(self, config: MCMCConfig | None = None, scene_radius: float = 1.0,
-                 generator: torch.Generator | None = None) -> None:
+                 generator: torch.Generator | None = None, image_pixels: int | None = None) -> None:
+        """image_pixels: the pixels of a training image, for the automatic cap's ceiling (None: cap_max alone)."""
         if not (scene_radius > 0 and math.isfinite(scene_radius)):
             raise ValueError(f"scene_radius must be a positive number, got {scene_radius}")
         self.config = config or MCMCConfig()
@@ -224,6 +229,13 @@ class MCMCStrategy:
         self.collective = ALONE
         self.gradients = ScreenGradients()  # kept only with auto_cap
         self.chosen_cap: int | None = None   # auto_cap: the count at which growth stopped
+        self.image_pixels = image_pixels
+
+    @property
+    def ceiling(self) -> int:
+        """The most Gaussians growth may reach: cap_max, and under auto_cap the per-pixel ceiling where lower."""
+        c = self.config
+        return pixel_ceiling(c.cap_max, self.image_pixels, c.gaussians_per_pixel) if c.auto_cap else c.cap_max
 
     def is_refine_step(self, step: int) -> bool:
         c = self.config
@@ -269,14 +281,14 @@ class MCMCStrategy:
 
     def _auto_cap(self, model: GaussianModel, info: dict) -> int:
         """This refine step's cap under auto_cap: N + D while D >= demand_share N; from the first step where it is
-        not, the count of that step for the rest of the run."""
+        not, the count of that step for the rest of the run; never above the ceiling."""
         n = model.num_gaussians
         if self.chosen_cap is None:
-            info["wanted"] = wanted = self._growth_demand(model)
-            if wanted >= self.config.demand_share * n:
-                return min(self.config.cap_max, n + wanted)
+            info["demand"] = demand = self._growth_demand(model)
+            if demand >= self.config.demand_share * n:
+                return min(self.ceiling, n + demand)
             self.chosen_cap = n
-        return min(self.config.cap_max, self.chosen_cap)
+        return min(self.ceiling, self.chosen_cap)
 
     def _growth_demand(self, model: GaussianModel) -> int:
         """The automatic cap's D, from every process's views when several train together."""

@@ -1,0 +1,80 @@
+"""The automatic cap's demand share D/N of trained runs, over windows of 10, 30 and 100 training views.
+
+    .venv/bin/python benchmarks/auto_cap_demand.py benchmarks/results/auto_cap/runs/lego-100k-3000steps ...
+
+The model is frozen (no optimizer step): each view is rendered, its loss back-propagated, and the screen-gradient
+statistic of `--cap-max auto` (strategy/screen_gradients.py) accumulated; every `window` views D/N is read and the
+statistic reset. It asks whether the demand depends on how many views the statistic averages over (10 at the
+squeezed schedules of auto_cap.py, 100 at the paper's) or is a level set by the scene. Results go to
+results/auto_cap/demand.{jsonl,md}.
+"""
+
+from __future__ import annotations
+
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
+import argparse
+from pathlib import Path
+
+import torch
+
+import _common as C
+
+WINDOWS = (10, 30, 100)
+
+
+def demand_shares(run_dir: Path, views: int, seed: int) -> dict:
+    from mcsplat.data import load_scene
+    from mcsplat.losses import photometric_loss
+    from mcsplat.render import render
+    from mcsplat.strategy.auto_cap import growth_demand
+    from mcsplat.strategy.screen_gradients import ScreenGradients
+    from mcsplat.trainer import background_of, final_sh_degree, load_trained
+
+    cpu = torch.device("cpu")
+    config, model, step = load_trained(run_dir, cpu)
+    scene = load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
+                       background=None if config.background == "auto" else config.background)
+    background, sh_degree, n = background_of(config, scene), final_sh_degree(config, step), model.num_gaussians
+    stats = {w: ScreenGradients() for w in WINDOWS}
+    shares: dict[int, list[float]] = {w: [] for w in WINDOWS}
+    order = torch.randint(len(scene.train), (views,), generator=torch.Generator().manual_seed(seed)).tolist()
+    for done, index in enumerate(order, 1):
+        view = scene.train[index]
+        result = render(model, view.camera, background, sh_degree)
+        photometric_loss(result.rgb, view.image_float(cpu), config.ssim_weight).backward()
+        for window, stat in stats.items():
+            stat.add(result, n, view.camera.width, view.camera.height)
+            if done % window == 0:
+                demand = growth_demand(stat, model.opacities.detach(), config.mcmc.demand_threshold,
+                                       config.mcmc.min_opacity)
+                shares[window].append(demand / n)
+                stat.reset(n, cpu)
+        model.zero_grad(set_to_none=True)
+    return {"run": run_dir.name, "num_gaussians": n, "step": step, "views": views,
+            **{f"share_{w}": round(C.median(s), 4) for w, s in shares.items() if s}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("runs", nargs="+", type=Path, help="run directories (with checkpoint.pt)")
+    parser.add_argument("--views", type=int, default=100, help="views rendered per run (a multiple of 100)")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+    C.set_threads(args.threads)
+    out = C.results_dir("auto_cap")
+    records = []
+    for run_dir in args.runs:
+        record = demand_shares(run_dir, args.views, args.seed)
+        C.emit(record)
+        records.append(record)
+    C.append_jsonl(out / "demand.jsonl", records)
+    table = C.markdown_table(C.read_jsonl(out / "demand.jsonl"), [
+        ("run", "run", ""), ("#G", "num_gaussians", ","), ("views", "views", "")] +
+        [(f"D/N, {w} views", f"share_{w}", ".4f") for w in WINDOWS])
+    C.write_text(out / "demand.md", "# Demand share of trained runs by window (median over windows)\n\n" + table + "\n")
+
+
+if __name__ == "__main__":
+    main()
