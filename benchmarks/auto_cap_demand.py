@@ -14,6 +14,7 @@ from __future__ import annotations
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
 import argparse
+import sys
 from pathlib import Path
 
 import torch
@@ -62,6 +63,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
+    missing = [str(run) for run in args.runs if not (run / "checkpoint.pt").is_file()]
+    if missing:
+        sys.exit(f"auto_cap_demand: no checkpoint.pt in {', '.join(missing)} (pass trained run folders)")
     C.set_threads(args.threads)
     out = C.results_dir("auto_cap")
     records = []
