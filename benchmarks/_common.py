@@ -4,7 +4,6 @@ timing and a description of the machine. Not part of the package; the scripts im
 
 from __future__ import annotations
 
-import contextlib
 import datetime
 import json
 import math
@@ -26,33 +25,6 @@ DATA_ROOT = REPO.parent / "shared" / "data"  # ../shared/data from the repositor
 LEGO = "nerf_synthetic_lego_400/lego"         # NeRF-Synthetic lego at 400x400 (Blender: white background)
 SFM_SCENES = {"bird": "colmap_bird", "cup": "colmap_cup"}  # real captures with a COLMAP sparse model
 MATPLOTLIB_HINT = "matplotlib is missing: `.venv/bin/pip install -c constraints.txt matplotlib` (the bench extra)"
-
-
-# ---------------------------------------------------------------------------------------------- baseline render
-@contextlib.contextmanager
-def baseline_render_path():
-    """Within the block, render() runs as it did before the CPU kernels: torch projection, SH and binning
-    (project.py, binning_torch.py) and the scalar Warp compositing kernels. The in-process baseline of the speed
-    benchmarks."""
-    import mcsplat.render as R
-    from mcsplat.render.binning_torch import torch_bin_gaussians
-    from mcsplat.render.launch import cpu_kernels, set_cpu_kernels
-    from mcsplat.render.project import project_gaussians, view_dependent_colors
-
-    def torch_project_and_shade(means, quats, scales, opacities, sh, camera, sh_degree, sh_rest=None, **options):
-        if sh_rest is not None:  # as render() passed them before: concatenated
-            sh = torch.cat([sh, sh_rest], dim=1)
-        return (project_gaussians(means, quats, scales, opacities, camera, **options),
-                view_dependent_colors(means, sh, camera, sh_degree))
-
-    saved = R.project_and_shade, R.bin_gaussians, cpu_kernels()
-    R.project_and_shade, R.bin_gaussians = torch_project_and_shade, torch_bin_gaussians
-    set_cpu_kernels("scalar")
-    try:
-        yield
-    finally:
-        R.project_and_shade, R.bin_gaussians = saved[:2]
-        set_cpu_kernels(saved[2])
 
 
 # ------------------------------------------------------------------------------------------------ paths and data

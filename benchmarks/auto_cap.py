@@ -51,7 +51,8 @@ def train_one(job: dict) -> dict:
     from budget import Schedule
     from mcsplat.config import ModelConfig, TrainConfig
     from mcsplat.strategy.mcmc import MCMCConfig
-    from mcsplat.trainer import CHECKPOINT, train
+    from mcsplat.run_dir import RunDir
+    from mcsplat.train import train
 
     run_dir = Path(job["run_dir"])
     if (run_dir / "metrics.json").is_file():
@@ -64,7 +65,7 @@ def train_one(job: dict) -> dict:
         config = TrainConfig(
             data=Path(job["data_root"]) / folder, out=run_dir, cap_max=cap, steps=job["steps"], downscale=downscale,
             threads=job["threads"], seed=0, quiet=True, lpips_net="alex", save_renders=False,
-            save_every=max(1, job["steps"] // 5), resume=(run_dir / CHECKPOINT).is_file(),
+            save_every=max(1, job["steps"] // 5), resume=RunDir(run_dir).checkpoint_file.is_file(),
             sh_increase_every=sched["sh_increase_every"],
             model=ModelConfig(init=init, num_init_points=points or 100_000),
             mcmc=MCMCConfig(refine_start=sched["refine_start"], refine_stop=sched["refine_stop"],

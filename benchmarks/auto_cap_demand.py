@@ -25,18 +25,16 @@ WINDOWS = (10, 30, 100)
 
 
 def demand_shares(run_dir: Path, views: int, seed: int) -> dict:
-    from mcsplat.data import load_scene
+    from mcsplat import run_dir as run_folders
     from mcsplat.losses import photometric_loss
     from mcsplat.render import render
     from mcsplat.strategy.auto_cap import growth_demand
     from mcsplat.strategy.screen_gradients import ScreenGradients
-    from mcsplat.trainer import background_of, final_sh_degree, load_trained
 
     cpu = torch.device("cpu")
-    config, model, step = load_trained(run_dir, cpu)
-    scene = load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
-                       background=None if config.background == "auto" else config.background)
-    background, sh_degree, n = background_of(config, scene), final_sh_degree(config, step), model.num_gaussians
+    run = run_folders.load(run_dir, cpu)
+    config, model, step, scene = run.config, run.model, run.step, run.scene
+    background, sh_degree, n = run.background, run.sh_degree, model.num_gaussians
     stats = {w: ScreenGradients() for w in WINDOWS}
     shares: dict[int, list[float]] = {w: [] for w in WINDOWS}
     order = torch.randint(len(scene.train), (views,), generator=torch.Generator().manual_seed(seed)).tolist()

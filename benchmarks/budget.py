@@ -6,7 +6,7 @@
     .venv/bin/python benchmarks/budget.py --caps --sfm-scene bird           # only the SfM run
     .venv/bin/python benchmarks/budget.py --report                          # rebuild table and plot, train nothing
 
-Each run is mcsplat.trainer.train() with a TrainConfig: same steps, seed, init and cap for both strategies (ADC stops
+Each run is mcsplat.train.train() with a TrainConfig: same steps, seed, init and cap for both strategies (ADC stops
 densifying at the cap: config.adc.cap_max). Lego (NeRF-Synthetic 400x400, white background) starts from the random
 init; the SfM scene from its COLMAP points. Prints one JSON line per run, appends it to
 benchmarks/results/budget/results.jsonl, and rewrites results.md (table and verdict) and budget.png (PSNR / SSIM /
@@ -42,7 +42,8 @@ from pathlib import Path
 import torch
 
 import _common as C
-import mcsplat.trainer as trainer
+import mcsplat.run_dir as run_folders
+from mcsplat.train import train
 from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.strategy.adc import ADCConfig
 from mcsplat.strategy.mcmc import MCMCConfig
@@ -84,8 +85,8 @@ class Job:
 @contextlib.contextmanager
 def test_subset(stride: int, max_views: int):
     """Evaluate train()'s final metrics on every `stride`-th test view (at most max_views; 0 = all): wraps the
-    scene loader the trainer calls. Training views are untouched."""
-    original = trainer.load_scene
+    scene loader the run calls. Training views are untouched."""
+    original = run_folders.load_scene
 
     def load_with_subset(*args, **kwargs):
         scene = original(*args, **kwargs)
@@ -93,11 +94,11 @@ def test_subset(stride: int, max_views: int):
         scene.test = views[:max_views] if max_views else views
         return scene
 
-    trainer.load_scene = load_with_subset
+    run_folders.load_scene = load_with_subset
     try:
         yield
     finally:
-        trainer.load_scene = original
+        run_folders.load_scene = original
 
 
 def init_points(cap: int, fixed: int | None) -> int:
@@ -126,10 +127,10 @@ def run_job(job: Job, args, runs: Path, info: dict) -> tuple[dict, bool]:
     if finished and not args.rerun:
         metrics, fresh = json.loads((run_dir / "metrics.json").read_text()), False
     else:
-        resume = (run_dir / trainer.CHECKPOINT).is_file() and not args.rerun
+        resume = run_folders.RunDir(run_dir).checkpoint_file.is_file() and not args.rerun
         config = make_config(job, args, run_dir, resume=resume, overwrite=args.rerun or finished)
         with test_subset(job.test_stride, job.max_test_views):
-            metrics, fresh = trainer.train(config), True
+            metrics, fresh = train(config), True
     record = {
         "strategy": job.strategy, "cap": job.cap, "steps": metrics["steps"], "psnr": round(metrics["psnr"], 3),
         "ssim": round(metrics["ssim"], 4),

@@ -48,10 +48,12 @@ def worker(rank: int, world_size: int, store: str, size: int, steps: int, out: s
     from mcsplat.distributed import join, scaled_for_processes
     from mcsplat.gaussians import PARAM_KEYS
     from mcsplat.optim import make_optimizers
+    from mcsplat.compute.compile import compile_kernels
     from mcsplat.render import set_cpu_threads
-    from mcsplat.render.compile import compile_kernels
+    from mcsplat.run_dir import background_of
+    from mcsplat.state import ViewSampler
     from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
-    from mcsplat.trainer import ViewSampler, background_of, train_step
+    from mcsplat.trainer import step_kernels, train_step
 
     os.environ["GLOO_SOCKET_IFNAME"] = "lo"
     if world_size > 1:
@@ -61,7 +63,7 @@ def worker(rank: int, world_size: int, store: str, size: int, steps: int, out: s
     torch.set_num_threads(1)
     set_cpu_threads(1)
     device = torch.device("cpu")
-    compile_kernels(device)
+    compile_kernels(step_kernels(device), device)
     scene = C.load(C.scene_path("lego"))
     config = scaled_for_processes(TrainConfig(data=scene.root, steps=30_000), world_size)
     model = realistic_model(size)

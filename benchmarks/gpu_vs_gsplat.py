@@ -21,7 +21,6 @@ from __future__ import annotations
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -34,7 +33,11 @@ from mcsplat.losses import photometric_loss
 from mcsplat.metrics import psnr, ssim_metric
 from mcsplat.optim import make_optimizers, means_lr_at, set_means_lr
 from mcsplat.render import render
-from mcsplat.trainer import ViewSampler, background_of, initial_model, make_strategy, sh_degree_at, train_step
+from mcsplat.initialization import initial_model
+from mcsplat.run_dir import background_of
+from mcsplat.schedule import sh_degree_at
+from mcsplat.state import ViewSampler, make_strategy
+from mcsplat.trainer import train_step
 
 
 class Setup:

@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/image_loading.py --scene bird --steps 500
     PYTHONPATH=/tmp/head/src .venv/bin/python benchmarks/image_loading.py --modes resident   # an older checkout
 
-Each mode runs `mcsplat.trainer.train` in a fresh subprocess (so that its peak memory is its own) and prints one JSON
+Each mode runs `mcsplat.train.train` in a fresh subprocess (so that its peak memory is its own) and prints one JSON
 line: seconds per step (train_seconds / steps, load excluded), load seconds, peak RSS. Modes: `resident` (default
 cache: all images decoded at load), `lazy` (MCSPLAT_IMAGE_CACHE_MB=--cache-mb: decoded on demand, 2 views
 prefetched in the background).
@@ -26,7 +26,7 @@ import json, resource, sys, time
 from pathlib import Path
 from mcsplat.config import TrainConfig
 from mcsplat.data import load_scene
-from mcsplat.trainer import train
+from mcsplat.train import train
 scene_dir, out, steps = sys.argv[1], Path(sys.argv[2]), int(sys.argv[3])
 start = time.perf_counter()
 load_scene(scene_dir)

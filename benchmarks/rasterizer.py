@@ -24,12 +24,13 @@ import time
 
 import torch
 
-import _common as C
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import Splats, render, set_cpu_threads
 from mcsplat.render.binning import bin_gaussians
 from mcsplat.render.launch import CompositeFunction, set_cpu_kernels
-from mcsplat.render.project import TILE_SIZE, project_gaussians, view_dependent_colors
+from mcsplat.render.paths import TORCH_BASELINE_PATH, use_render_path
+from mcsplat.render.constants import BLOCK_SIZE, TILE_SIZE
+from mcsplat.render.project import project_gaussians, view_dependent_colors
 
 
 def make_scene(n: int, size: int, device: str, seed: int = 0):
@@ -113,7 +114,7 @@ def bench(n: int, size: int, threads: int, device: str, repeats: int, baseline: 
     record_baseline = baseline and device == "cpu"
     if record_baseline:  # the same scene through the kernels as they were, in this process
         base_fwd, base_bwd = composite_times("scalar")
-        with C.baseline_render_path():
+        with use_render_path(TORCH_BASELINE_PATH):
             full_step()
             base_full = timed(full_step, device, repeats)
 
@@ -153,7 +154,7 @@ def _per_pixel_counts(bins, inputs, size, samples: int = 400) -> tuple[float, fl
     walked = composited = 0
     for px, py in torch.randint(0, size, (samples, 2), generator=g).tolist():
         start, end = ranges[(py // TILE_SIZE) * bins.tiles_x + px // TILE_SIZE].tolist()
-        bit = 1 << (((py % TILE_SIZE) // 4) * 4 + (px % TILE_SIZE) // 4)
+        bit = 1 << (((py % TILE_SIZE) // BLOCK_SIZE) * BLOCK_SIZE + (px % TILE_SIZE) // BLOCK_SIZE)
         k = ids[start:end][(masks[start:end] & bit) != 0]
         d = means2d[k] - torch.tensor([px + 0.5, py + 0.5])
         q = conics[k]

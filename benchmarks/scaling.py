@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/scaling.py --sizes 10000 100000 --resolutions 200 400 --repeats 3
     .venv/bin/python benchmarks/scaling.py --device cuda          # skips cleanly without CUDA
 
-The step is train_speed.py's `train_step` (the trainer's step: render, loss, backward, Adam, MCMC noise; refine steps
+The step is train_speed.py's `bench_step` (the trainer's own step: render, loss, backward, Adam, MCMC noise; refine steps
 left out, see train_speed.py for their amortised cost) on train_speed.py's calibrated stand-in for a trained model.
 Sweep 1: N Gaussians at 400x400. Sweep 2: fixed N, square images of 100..800 px: the lego views' K scaled with
 Camera.scaled and the images resized (800 px is an upsampled 400 px image: only the timing matters). One JSON line
@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 import _common as C
-from train_speed import Bench, realistic_model, step_numbers, train_step, training_views
+from train_speed import Bench, bench_step, realistic_model, step_numbers, training_views
 
 LINEAR_TOLERANCE = 0.15
 
@@ -37,11 +37,11 @@ def time_steps(b: Bench, warmup: int, repeats: int) -> tuple[float, int]:
     """(median seconds per step, median tile pairs)."""
     steps = step_numbers()
     for i in range(warmup):
-        train_step(b, next(steps), i)
+        bench_step(b, next(steps), i)
     times, pairs = [], []
     for i in range(repeats):
         t0 = C.now(b.device)
-        pairs.append(train_step(b, next(steps), warmup + i))
+        pairs.append(bench_step(b, next(steps), warmup + i))
         times.append(C.now(b.device) - t0)
     return C.median(times), int(C.median(pairs))
 

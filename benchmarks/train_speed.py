@@ -4,10 +4,11 @@
     .venv/bin/python benchmarks/train_speed.py --sizes 100000 --threads 2 --repeats 5
     .venv/bin/python benchmarks/train_speed.py --device cuda                    # skips cleanly without CUDA
 
-A step is the trainer's (mcsplat.trainer.train): render a lego 400x400 training view, 0.8 L1 + 0.2 D-SSIM + the MCMC
-regularizers, backward, one Adam step per parameter, strategy.step_post_optimizer (SGLD noise; relocation every 100
-steps). The same step (`train_step`) is also run with a PhaseClock, which reads the clock after a device sync between
-phases and wraps the pieces that the real render() calls, so render() itself runs unchanged:
+A step is the trainer's own (mcsplat.trainer.train_step): render a lego 400x400 training view, 0.8 L1 + 0.2 D-SSIM +
+the MCMC regularizers, backward, one Adam step per parameter, strategy.step_post_optimizer (SGLD noise; relocation
+every 100 steps). The same step is also run with a PhaseClock, which the step tells where it is (StepPhases) and
+which reads the clock after a device sync between phases; render() runs a render path (mcsplat.render.paths) whose
+three stages are the kernel path's, wrapped with timers:
 
     projection           activations, EWA projection, culling, tile rectangles, SH colours (project_and_shade)
     binning              (tile, depth) keys, sort, tile ranges (bin_gaussians)
@@ -18,11 +19,12 @@ phases and wraps the pieces that the real render() calls, so render() itself run
     backward_projection  the rest of the backward: projection, SH and activations (torch autograd)
     optimizer            the six Adam steps and zero_grad
     strategy             step_post_backward + step_post_optimizer (noise), plus one refine step / 100 (amortised)
-    other                the rest (learning-rate update, image to float, render()'s glue, instrumentation)
+    other                the rest (learning-rate update, image to float, render()'s glue, the train PSNR,
+                         instrumentation)
 
 With --baseline the same process also times plain steps through the render path as it was before the CPU kernels
-(torch projection, SH and binning, scalar Warp compositing: `_common.baseline_render_path`), on the same model and
-views, and reports the ratio.
+(torch projection, SH and binning, scalar Warp compositing: `mcsplat.render.paths.TORCH_BASELINE_PATH`), on the
+same model and views, and reports the ratio.
 
 Each configuration runs in a fresh subprocess so that its peak memory (ru_maxrss) is its own. The Gaussians are not
 the random initialisation (tiny splats: an unrealistically cheap step) but a calibrated stand-in for a trained model,
@@ -39,20 +41,23 @@ import math
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 import torch
 import torch.nn.functional as F
 
 import _common as C
 from mcsplat.camera import Camera
+from mcsplat.config import TrainConfig
+from mcsplat.data import View
 from mcsplat.gaussians import GaussianModel
-from mcsplat.losses import photometric_loss
-from mcsplat.optim import OptimConfig, make_optimizers, means_lr_at, set_means_lr
-import mcsplat.render as R
-from mcsplat.render import render
+from mcsplat.optim import make_optimizers, means_lr_at
+from mcsplat.render import RenderResult
+from mcsplat.render.launch import CompositeFunction
+from mcsplat.render.paths import TORCH_BASELINE_PATH, RenderPath, current_render_path, use_render_path
 from mcsplat.strategy.adc import ADCConfig, ADCStrategy
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
+from mcsplat.trainer import train_step
 
 PHASES = ("projection", "binning", "composite_forward", "loss", "backward_loss", "backward_composite",
           "backward_projection", "optimizer", "strategy", "other")
@@ -62,7 +67,6 @@ NUM_VIEWS = 16           # training views cycled through (evenly spaced over the
 TOTAL_STEPS = 30_000     # the learning-rate schedule the steps are taken from
 REFINE_EVERY = 100
 DEAD_FRACTION = 0.01     # Gaussians made dead before each timed refine step (so relocation has work)
-SSIM_WEIGHT = 0.2
 
 
 # --------------------------------------------------------------------------------------------------- the scene
@@ -115,38 +119,33 @@ class Bench:
     model: GaussianModel
     optimizers: dict
     strategy: object
-    cameras: list
-    images: list
-    background: torch.Tensor
+    views: list[View]
+    background: tuple
     radius: float
     device: torch.device
-    optim: OptimConfig = field(default_factory=OptimConfig)
-    sh_degree: int = 3
+    config: TrainConfig
 
     @classmethod
     def make(cls, model: GaussianModel, scene, cameras, images, device: str, strategy: str = "mcmc") -> "Bench":
         device = torch.device(device)
         model = model.to(device)
-        optim = OptimConfig()
-        optimizers = make_optimizers(model, optim, scene.radius)
+        # SH degree 3 from the first step timed (sh_increase_every 1), the learning rates of a 30,000-step run.
+        config = TrainConfig(data=scene.root, steps=TOTAL_STEPS, sh_increase_every=1, strategy=strategy)
+        optimizers = make_optimizers(model, config.optim, scene.radius)
         generator = torch.Generator(device=device).manual_seed(0)
         n = model.num_gaussians
         if strategy == "mcmc":  # at the cap, as in a run that has grown to its budget: refine steps only relocate
             strat = MCMCStrategy(MCMCConfig(cap_max=n), scene.radius, generator)
         else:
             strat = ADCStrategy(ADCConfig(cap_max=n), scene.radius, generator)
-        background = torch.tensor(scene.background, dtype=torch.float32, device=device)
-        return cls(model, optimizers, strat, [c.to(device) for c in cameras], images, background, scene.radius,
-                   device, optim, model.sh_degree)
-
-    def target(self, i: int) -> torch.Tensor:
-        return self.images[i % len(self.images)].to(self.device, non_blocking=True).to(torch.float32).div_(255.0)
+        views = [View(camera, image, f"view{i}") for i, (camera, image) in enumerate(zip(cameras, images))]
+        return cls(model, optimizers, strat, views, tuple(scene.background), scene.radius, device, config)
 
     def camera(self, i: int) -> Camera:
-        return self.cameras[i % len(self.cameras)]
+        return self.views[i % len(self.views)].camera
 
     def lr(self, step: int) -> float:
-        return means_lr_at(step, TOTAL_STEPS, self.optim, self.radius)
+        return means_lr_at(step, TOTAL_STEPS, self.config.optim, self.radius)
 
 
 def step_numbers(start: int = 1001):
@@ -159,36 +158,55 @@ def step_numbers(start: int = 1001):
 
 
 # ------------------------------------------------------------------------------------------------------- the step
-class PhaseClock:
-    """Times the phases of train_step. While active it replaces, in mcsplat.render's namespace, the pieces render()
-    calls (project_and_shade, bin_gaussians, CompositeFunction) by timed wrappers, so the
-    real render() runs unchanged; every reading of the clock is preceded by a device synchronisation."""
+class StepMarks:
+    """The trainer's StepPhases that only keeps the last render's tile pairs."""
+
+    def __init__(self) -> None:
+        self.pairs = 0
+
+    def rendered(self, result: RenderResult) -> None:
+        self.pairs = result.num_pairs
+
+    def lap(self, phase: str) -> None:
+        pass
+
+
+class PhaseClock(StepMarks):
+    """Times the phases of the trainer's train_step: the step marks its phases (lap), the render path's three
+    stages are wrapped with timers (`timed_path`), and every reading of the clock follows a device synchronisation."""
 
     def __init__(self, device: torch.device):
+        super().__init__()
         self.device = device
         self.seconds: dict[str, float] = {}
         self.last = 0.0
         self.captured: dict = {}  # the last render's bins and compositing inputs (for the per-pixel statistics)
 
     def start(self) -> None:
-        self.seconds = dict.fromkeys(("other", "render", "loss", "backward", "optimizer", "strategy",
+        self.seconds = dict.fromkeys(("other", "render", "loss", "backward", "reduce", "optimizer", "strategy",
                                       "projection", "binning", "composite_forward", "backward_composite"), 0.0)
         self.image_grad_at = None
+        self.backward_start = None
         self.last = C.now(self.device)
 
     def lap(self, phase: str) -> None:
         t = C.now(self.device)
         self.seconds[phase] += t - self.last
         self.last = t
+        if phase == "backward":
+            self.backward_loss = (self.image_grad_at or self.backward_start) - self.backward_start
+
+    def rendered(self, result: RenderResult) -> None:
+        """Mark when d loss / d image is complete: the end of the loss backward, the start of the composite's."""
+        super().rendered(result)
+
+        def hook(grad):
+            self.image_grad_at = C.now(self.device)
+        result.rgb.register_hook(hook)
+        self.backward_start = self.last
 
     def add(self, phase: str, seconds: float) -> None:
         self.seconds[phase] += seconds
-
-    def watch_image_grad(self, image: torch.Tensor) -> None:
-        """Mark when d loss / d image is complete: the end of the loss backward, the start of the composite's."""
-        def hook(grad):
-            self.image_grad_at = C.now(self.device)
-        image.register_hook(hook)
 
     def phases(self) -> dict[str, float]:
         """Seconds per entry of PHASES, plus 'total'. The backward splits at the image-gradient mark; whatever
@@ -198,14 +216,14 @@ class PhaseClock:
                                  "optimizer", "strategy")}
         out["backward_loss"] = self.backward_loss
         out["backward_projection"] = s["backward"] - self.backward_loss - s["backward_composite"]
-        out["other"] = s["other"] + s["render"] - s["projection"] - s["binning"] - s["composite_forward"]
-        out["total"] = sum(s[p] for p in ("other", "render", "loss", "backward", "optimizer", "strategy"))
+        out["other"] = (s["other"] + s["reduce"] + s["render"] - s["projection"] - s["binning"]
+                        - s["composite_forward"])
+        out["total"] = sum(s[p] for p in ("other", "reduce", "render", "loss", "backward", "optimizer", "strategy"))
         return out
 
-    def __enter__(self) -> "PhaseClock":
+    def timed_path(self, path: RenderPath) -> RenderPath:
+        """`path` with each stage timed (the composite's forward and backward apart)."""
         clock = self
-        self._saved = {name: getattr(R, name) for name in
-                       ("project_and_shade", "bin_gaussians", "CompositeFunction")}
 
         def timed(phase, fn, keep=None):
             def wrapper(*args, **kwargs):
@@ -217,64 +235,34 @@ class PhaseClock:
                 return out
             return wrapper
 
-        class TimedComposite(self._saved["CompositeFunction"]):
-            @classmethod
-            def apply(cls, *args, **kwargs):
-                t0 = C.now(clock.device)
-                out = super().apply(*args, **kwargs)
-                clock.add("composite_forward", C.now(clock.device) - t0)
-                clock.captured["composite_inputs"] = args
-                return out
-
+        class TimedComposite(CompositeFunction):
             @staticmethod
             def backward(ctx, *grads):
                 t0 = C.now(clock.device)
-                out = clock._saved["CompositeFunction"].backward(ctx, *grads)
+                out = CompositeFunction.backward(ctx, *grads)
                 clock.add("backward_composite", C.now(clock.device) - t0)
                 return out
 
-        R.project_and_shade = timed("projection", self._saved["project_and_shade"])
-        R.bin_gaussians = timed("binning", self._saved["bin_gaussians"], keep="bins")
-        R.CompositeFunction = TimedComposite
-        return self
+        def composite(*args):
+            t0 = C.now(clock.device)
+            out = TimedComposite.apply(*args)
+            clock.add("composite_forward", C.now(clock.device) - t0)
+            clock.captured["composite_inputs"] = args
+            return out
 
-    def __exit__(self, *exc) -> None:
-        for name, value in self._saved.items():
-            setattr(R, name, value)
+        return RenderPath(project=timed("projection", path.project), bin=timed("binning", path.bin, keep="bins"),
+                          composite=composite)
 
 
-def train_step(b: Bench, step: int, i: int, clock: PhaseClock | None = None) -> int:
-    """One training step exactly as mcsplat.trainer.train runs it (without its logging); returns the tile pairs.
-    With a clock (see PhaseClock) the phases are timed."""
-    lap = clock.lap if clock is not None else (lambda phase: None)
-    if clock is not None:
-        clock.start()
-    set_means_lr(b.optimizers, b.lr(step))
-    target = b.target(i)
-    camera = b.camera(i)
-    lap("other")
-    result = render(b.model, camera, b.background, b.sh_degree)
-    lap("render")
-    loss = photometric_loss(result.rgb, target, SSIM_WEIGHT) + b.strategy.regularization(b.model)
-    if not torch.isfinite(loss):
-        raise RuntimeError(f"step {step}: the loss is {loss.item()}")
-    lap("loss")
-    if clock is not None:
-        clock.watch_image_grad(result.rgb)
-        backward_start = clock.last
-    loss.backward()
-    if clock is not None:
-        clock.backward_loss = (clock.image_grad_at or backward_start) - backward_start
-    lap("backward")
-    b.strategy.step_post_backward(step, b.model, result, camera.width, camera.height)
-    lap("strategy")
-    for opt in b.optimizers.values():
-        opt.step()
-        opt.zero_grad(set_to_none=True)
-    lap("optimizer")
-    b.strategy.step_post_optimizer(step, b.model, b.optimizers, b.lr(step + 1))
-    lap("strategy")
-    return result.num_pairs
+def bench_step(b: Bench, step: int, i: int, marks: StepMarks | None = None) -> int:
+    """One training step through the trainer's own train_step on view i; returns its tile pairs. With a
+    PhaseClock (and its timed render path in force) the phases are timed."""
+    marks = marks or StepMarks()
+    if isinstance(marks, PhaseClock):
+        marks.start()
+    train_step(step, b.model, b.optimizers, b.strategy, b.views[i % len(b.views)], config=b.config,
+               scene_radius=b.radius, background=b.background, device=b.device, phases=marks)
+    return marks.pairs
 
 
 def refine_seconds(b: Bench, repeats: int, seed: int = 0) -> list[float]:
@@ -323,13 +311,14 @@ def run_one(cfg: dict) -> dict:
     steps = step_numbers()
     view = 0
     for _ in range(cfg["warmup"]):
-        train_step(b, next(steps), view)
+        bench_step(b, next(steps), view)
         view += 1
     phases: dict[str, list[float]] = {p: [] for p in PHASES + ("total",)}
     pairs = []
-    with PhaseClock(b.device) as clock:
+    clock = PhaseClock(b.device)
+    with use_render_path(clock.timed_path(current_render_path())):
         for _ in range(cfg["repeats"]):
-            pairs.append(train_step(b, next(steps), view, clock))
+            pairs.append(bench_step(b, next(steps), view, clock))
             view += 1
             for key, seconds in clock.phases().items():
                 phases[key].append(seconds)
@@ -337,16 +326,16 @@ def run_one(cfg: dict) -> dict:
     plain = []
     for _ in range(cfg["plain"]):
         t0 = C.now(device)
-        train_step(b, next(steps), view)
+        bench_step(b, next(steps), view)
         plain.append(C.now(device) - t0)
         view += 1
     peak_rss = C.peak_rss_mb()  # before the baseline's steps, which need more memory
     baseline = []
     if cfg.get("baseline"):
-        with C.baseline_render_path():
+        with use_render_path(TORCH_BASELINE_PATH):
             for _ in range(cfg["plain"]):
                 t0 = C.now(device)
-                train_step(b, next(steps), view)
+                bench_step(b, next(steps), view)
                 baseline.append(C.now(device) - t0)
                 view += 1
     refine = refine_seconds(b, cfg["refines"], cfg["seed"]) if cfg["refines"] else []

@@ -22,7 +22,7 @@ from browser import Browser  # noqa: E402
 from mcsplat.config import ModelConfig, TrainConfig  # noqa: E402
 from mcsplat.events import Control  # noqa: E402
 from mcsplat.strategy.mcmc import MCMCConfig  # noqa: E402
-from mcsplat.trainer import train  # noqa: E402
+from mcsplat.train import train  # noqa: E402
 from mcsplat.viewer import TrainingViewer  # noqa: E402
 
 DISMISS_NOTICE = """[...document.querySelectorAll('button')].filter(b => b.closest('.mantine-Notification-root'))

@@ -46,7 +46,7 @@ def tiny_run(tmp_path_factory) -> Path:
     of export, report and viewer."""
     from mcsplat.config import ModelConfig, TrainConfig
     from mcsplat.strategy.mcmc import MCMCConfig
-    from mcsplat.trainer import train
+    from mcsplat.train import train
 
     run = tmp_path_factory.mktemp("tiny") / "run"
     train(TrainConfig(data=REPO / "data" / "lego_demo", out=run, steps=60, quiet=True, lpips_net="alex",

@@ -20,7 +20,7 @@ from mcsplat.distributed import parameter_checksum
 from mcsplat.errors import MCSplatError
 from mcsplat.strategy.adc import ADCStrategy
 from mcsplat.strategy.mcmc import MCMCStrategy
-from mcsplat import trainer
+from mcsplat import train, trainer
 
 
 def run(rank: int, world_size: int, init_file: str, results: str, configs: list[TrainConfig],
@@ -41,7 +41,7 @@ def run(rank: int, world_size: int, init_file: str, results: str, configs: list[
 
     trainer.TrainingRun._finish = finish
     try:
-        metrics = trainer.train(configs[rank])
+        metrics = train.train(configs[rank])
         outcome = {"metrics": {k: v for k, v in metrics.items() if k != "per_view_psnr"}, **final}
     except MCSplatError as error:
         outcome = {"error": str(error)}

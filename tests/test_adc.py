@@ -84,18 +84,18 @@ def prepared(config: ADCConfig | None = None):
 def test_statistics_use_ndc_units_visible_gaussians_and_max_radii():
     model, _, strategy = prepared()
     feed_two_views(strategy, model)
-    mean_grad = strategy.grad_accum / strategy.grad_count.clamp(min=1)
+    mean_grad = strategy.gradients.total / strategy.gradients.views.clamp(min=1)
     expected = torch.tensor([g * W / 2 / 2 for _, _, g, _ in LAYOUT])
     expected[7] = 0.0
     torch.testing.assert_close(mean_grad, expected)
-    assert strategy.grad_count.tolist() == [2] * 7 + [0]
+    assert strategy.gradients.views.tolist() == [2] * 7 + [0]
     assert strategy.max_radii.tolist() == [5.0] * 7 + [0.0]
     # width and height scale x and y separately
     wide = ADCStrategy(ADCConfig(), RADIUS, torch.Generator())
     two = GaussianModel.empty(2)
     wide.step_post_backward(0, two, fake_result(torch.tensor([[5e-6, 0.0], [0.0, 5e-6]]), torch.tensor([3, 7])),
                             20, 100)
-    torch.testing.assert_close(wide.grad_accum, torch.tensor([5e-6 * 10, 5e-6 * 50]))
+    torch.testing.assert_close(wide.gradients.total, torch.tensor([5e-6 * 10, 5e-6 * 50]))
     assert wide.max_radii.tolist() == [3.0, 7.0]
 
 
@@ -104,9 +104,9 @@ def test_clone_split_prune_counts_on_the_hand_made_configuration():
     before = {k: model.params[k].detach().clone() for k in PARAM_KEYS}
     feed_two_views(strategy, model)
     info = strategy.step_post_optimizer(600, model, optimizers, means_lr=1e-4)
-    assert (info["cloned"], info["split"], info["pruned"]) == (2, 1, 1)
+    assert (info.cloned, info.split, info.pruned) == (2, 1, 1)
     # 8 + 2 clones + 2 children - 1 split parent - 1 pruned
-    assert info["num_gaussians"] == model.num_gaussians == 10
+    assert info.num_gaussians == model.num_gaussians == 10
     # survivors in order: 0 1 3 4 6 7, then the clones of 0 and 1, then the two children of 2
     survivors = [0, 1, 3, 4, 6, 7]
     for key in PARAM_KEYS:
@@ -126,15 +126,15 @@ def test_clone_split_prune_counts_on_the_hand_made_configuration():
     assert offset.norm(dim=1).max() < 5 * 0.05 and offset.norm(dim=1).min() > 0
     assert not torch.equal(model.means[8], model.means[9])
     # accumulators are reset for the new set
-    assert strategy.grad_accum.shape[0] == 10 and strategy.grad_accum.abs().sum() == 0
-    assert strategy.grad_count.sum() == 0 and strategy.max_radii.sum() == 0
+    assert strategy.gradients.total.shape[0] == 10 and strategy.gradients.total.abs().sum() == 0
+    assert strategy.gradients.views.sum() == 0 and strategy.max_radii.sum() == 0
 
 
 def test_world_size_prune_starts_after_the_first_reset():
     model, optimizers, strategy = prepared()
     feed_two_views(strategy, model)
     info = strategy.step_post_optimizer(3100, model, optimizers, means_lr=1e-4)
-    assert (info["cloned"], info["split"], info["pruned"]) == (2, 1, 2)
+    assert (info.cloned, info.split, info.pruned) == (2, 1, 2)
     assert model.num_gaussians == 9
     assert model.scales.detach().max() < 0.1 * RADIUS
 
@@ -150,7 +150,7 @@ def test_screen_size_prune_is_off_by_default_and_available():
         radii = torch.tensor([5, 5, 5, 5, 5, 5, 25, 0])
         strategy.step_post_backward(10, model, fake_result(torch.zeros(8, 2), radii), W, H)
         info = strategy.step_post_optimizer(3100, model, optimizers, means_lr=1e-4)
-        assert info["pruned"] == expected_pruned
+        assert info.pruned == expected_pruned
 
 
 def test_opacity_reset():
@@ -160,7 +160,7 @@ def test_opacity_reset():
     before_o = model.opacities.detach().clone()
     means_state = optimizers["means"].state[model.params["means"]]["exp_avg"].clone()
     info = strategy.step_post_optimizer(3000, model, optimizers, means_lr=1e-4)
-    assert info["reset"] is True and model.num_gaussians == 8
+    assert info.reset is True and model.num_gaussians == 8
     o = model.opacities.detach()
     torch.testing.assert_close(o, torch.clamp(before_o, max=0.01))
     state = optimizers["opacity_logits"].state[model.params["opacity_logits"]]
@@ -178,7 +178,7 @@ def test_schedule_is_0_based_like_gsplat():
     # no statistics after densify_stop
     model = hand_made_model()
     strategy.step_post_backward(15_000, model, fake_result(torch.ones(8, 2), torch.ones(8)), W, H)
-    assert strategy.grad_accum is None
+    assert strategy.gradients.total is None
 
 
 def test_budget_keeps_the_largest_gradients_and_is_never_exceeded():
@@ -186,7 +186,7 @@ def test_budget_keeps_the_largest_gradients_and_is_never_exceeded():
     feed_two_views(strategy, model)
     info = strategy.step_post_optimizer(600, model, optimizers, means_lr=1e-4)
     # budget 2: the split of 2 (5e-4) and the clone of 1 (4e-4), not the clone of 0 (3e-4)
-    assert (info["cloned"], info["split"]) == (1, 1)
+    assert (info.cloned, info.split) == (1, 1)
     assert model.num_gaussians == 8 + 1 + 2 - 1 - 1
     # at the cap, nothing is added any more; repeated rounds never exceed it
     for step in range(700, 2000, 100):
@@ -203,7 +203,7 @@ def test_state_round_trip_gives_the_same_densification():
     feed_two_views(strategy_a, model_a)
     strategy_b = ADCStrategy(ADCConfig(), RADIUS, torch.Generator().manual_seed(2))
     strategy_b.load_state_dict(strategy_a.state_dict())
-    assert torch.equal(strategy_b.grad_accum, strategy_a.grad_accum)
+    assert torch.equal(strategy_b.gradients.total, strategy_a.gradients.total)
     strategy_a.step_post_optimizer(600, model_a, opt_a, means_lr=1e-4)
     strategy_b.step_post_optimizer(600, model_b, opt_b, means_lr=1e-4)
     for key in PARAM_KEYS:
@@ -234,15 +234,15 @@ def test_with_the_real_renderer():
         if step == 1:
             visible = result.visible
             assert visible[:-5].any() and not visible[-5:].any()
-            assert (strategy.grad_count[visible] == 1).all() and (strategy.grad_count[~visible] == 0).all()
-            assert (strategy.grad_accum[visible] > 0).any() and (strategy.grad_accum[~visible] == 0).all()
+            assert (strategy.gradients.views[visible] == 1).all() and (strategy.gradients.views[~visible] == 0).all()
+            assert (strategy.gradients.total[visible] > 0).any() and (strategy.gradients.total[~visible] == 0).all()
             torch.testing.assert_close(strategy.max_radii[visible], result.radii[visible].float())
         for opt in optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
         info = strategy.step_post_optimizer(step, model, optimizers, means_lr=1e-4)
-    assert info["cloned"] + info["split"] > 0
-    assert info["num_gaussians"] == model.num_gaussians == 40 + info["cloned"] + info["split"] - info["pruned"]
+    assert info.cloned + info.split > 0
+    assert info.num_gaussians == model.num_gaussians == 40 + info.cloned + info.split - info.pruned
     for key in PARAM_KEYS:
         assert optimizers[key].param_groups[0]["params"][0] is model.params[key]
     result = render(model, camera)

@@ -12,7 +12,7 @@ from mcsplat.config import TrainConfig, from_jsonable, to_jsonable
 from mcsplat.errors import MCSplatError
 from mcsplat.optim import OptimConfig, make_optimizers
 from mcsplat.strategy.auto_cap import growth_demand, pixel_ceiling
-from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
+from mcsplat.strategy.mcmc import MCMCConfig, MCMCReport, MCMCStrategy
 from mcsplat.strategy.screen_gradients import ScreenGradients
 
 from test_mcmc import RADIUS, make_model
@@ -57,7 +57,7 @@ def make_auto(n: int, **options) -> tuple:
     return model, optimizers, MCMCStrategy(config, RADIUS, torch.Generator().manual_seed(0))
 
 
-def refine(strategy, model, optimizers, step: int, ndc_norms: torch.Tensor) -> dict:
+def refine(strategy, model, optimizers, step: int, ndc_norms: torch.Tensor) -> MCMCReport:
     """One step whose view gave these NDC gradient norms, then the strategy's refine step."""
     strategy.step_post_backward(step, model, fake_render(ndc_norms[:, None] * torch.tensor([[2.0 / WIDTH, 0.0]])),
                                 WIDTH, HEIGHT)
@@ -69,23 +69,23 @@ def test_growth_is_the_demand_capped_at_five_percent_then_the_cap_stays_where_de
     wanting = torch.zeros(400)
     wanting[:12] = 1e-3  # 12 ask for more (3% of 400): grow by 12, not by 5% (20)
     info = refine(strategy, model, optimizers, 10, wanting)
-    assert info["demand"] == 12 and info["added"] == 12 and model.num_gaussians == 412
+    assert info.demand == 12 and info.added == 12 and model.num_gaussians == 412
     info = refine(strategy, model, optimizers, 20, torch.full((412,), 1e-3))  # all ask: MCMC's 5%
-    assert info["added"] == int(1.05 * 412) - 412 and strategy.chosen_cap is None
+    assert info.added == int(1.05 * 412) - 412 and strategy.chosen_cap is None
     n = model.num_gaussians
     few = torch.zeros(n)
     few[:3] = 1e-3  # under 1% of N: the count is fixed here
     info = refine(strategy, model, optimizers, 30, few)
-    assert info["added"] == 0 and strategy.chosen_cap == n
+    assert info.added == 0 and strategy.chosen_cap == n
     info = refine(strategy, model, optimizers, 40, torch.full((n,), 1e-3))  # demand again: the cap holds
-    assert info["added"] == 0 and "demand" not in info and model.num_gaussians == n
+    assert info.added == 0 and info.demand is None and model.num_gaussians == n
 
 
 def test_the_ceiling_still_holds():
     model, optimizers, strategy = make_auto(400)
     strategy.config.cap_max = 405
     info = refine(strategy, model, optimizers, 10, torch.full((400,), 1e-3))
-    assert info["added"] == 5 and model.num_gaussians == 405
+    assert info.added == 5 and model.num_gaussians == 405
 
 
 def test_a_restored_strategy_takes_the_same_decisions():
@@ -125,11 +125,10 @@ def test_the_log_keeps_the_last_demand_and_sums_the_counts(tmp_path):
     log = LogWriter(tmp_path / "log.jsonl")
     for step in range(1, LOG_EVERY + 1):
         refine = step % 10 == 0
-        counts = {"relocated": 2 if refine else 0, "added": 3 if refine else 0, "pruned": 0}
-        if refine:
-            counts["demand"] = 100 + step
+        report = MCMCReport(num_gaussians=1000, relocated=2 if refine else 0, added=3 if refine else 0,
+                            demand=100 + step if refine else None)
         log.on_step_done(StepDone(step=step, total_steps=1000, loss=0.1, train_psnr=20.0, num_gaussians=1000,
-                                  sh_degree=0, train_seconds=1.0, counts=counts))
+                                  sh_degree=0, train_seconds=1.0, refine=report))
     record = json.loads((tmp_path / "log.jsonl").read_text())
     assert (record["relocated"], record["added"], record["demand"]) == (20, 30, 100 + LOG_EVERY)
 
@@ -142,9 +141,9 @@ def test_the_per_pixel_ceiling_stops_growth_while_the_demand_lasts():
     model, optimizers, strategy = make_auto(400)
     strategy.image_pixels = 140
     info = refine(strategy, model, optimizers, 10, torch.full((400,), 1e-3))  # all ask: 5% would be 20
-    assert info["added"] == 20 and model.num_gaussians == 420 and strategy.ceiling == 420
+    assert info.added == 20 and model.num_gaussians == 420 and strategy.ceiling == 420
     info = refine(strategy, model, optimizers, 20, torch.full((420,), 1e-3))
-    assert info["added"] == 0 and model.num_gaussians == 420 and strategy.chosen_cap is None
+    assert info.added == 0 and model.num_gaussians == 420 and strategy.chosen_cap is None
     with pytest.raises(ValueError, match="gaussians_per_pixel"):
         MCMCConfig(gaussians_per_pixel=-1.0)
     assert MCMCStrategy(MCMCConfig(cap_max=500), RADIUS, image_pixels=10).ceiling == 500, "only with auto_cap"

@@ -50,9 +50,8 @@ import numpy as np
 import torch, pycolmap, PIL.Image
 from mcsplat.config import TrainConfig
 from mcsplat.gaussians import GaussianModel
-from mcsplat.trainer import train
+from mcsplat.train import train
 from mcsplat.data import load_scene
-import mcsplat.trainer
 before = status("VmRSS")
 scene = load_scene(sys.argv[1], test_every=100)
 for view in scene.train + scene.test:  # every image decoded once: the cache must evict

@@ -244,7 +244,10 @@ def test_train_runs_on_a_simple_radial_capture(shared_data, tmp_path):
     """`mcsplat train` on a COLMAP SIMPLE_RADIAL capture as it comes, at 1/4 size (undistorted, then resized),
     fits its views as well as it fits the same photos taken by the original pinhole camera."""
     from mcsplat.config import TrainConfig
-    from mcsplat.trainer import evaluate, initial_model, load_trained, train
+    from mcsplat.evaluation import evaluate
+    from mcsplat.initialization import initial_model
+    from mcsplat.run_dir import load
+    from mcsplat.train import train
 
     scores = {}
     for model in ("SIMPLE_RADIAL", "SIMPLE_PINHOLE"):
@@ -255,7 +258,8 @@ def test_train_runs_on_a_simple_radial_capture(shared_data, tmp_path):
         assert metrics["steps"] == STEPS
         scene = load_scene(scene_dir, downscale=4, test_every=6)
         assert scene.train[0].camera.width == (200 if model == "SIMPLE_PINHOLE" else 212)  # 849 / 4, rounded
-        config, trained, _ = load_trained(run, torch.device("cpu"))
+        trained_run = load(run, torch.device("cpu"))
+        trained, config = trained_run.model, trained_run.config
         initial, _ = initial_model(config, scene, torch.device("cpu"), torch.Generator().manual_seed(0))
         scores[model] = [evaluate(m, scene.train, scene.background, 0, torch.device("cpu")).psnr
                          for m in (initial, trained)]

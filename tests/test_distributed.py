@@ -17,7 +17,7 @@ from mcsplat.distributed import scaled_for_processes
 from mcsplat.errors import MCSplatError
 from mcsplat.strategy.adc import ADCConfig
 from mcsplat.strategy.mcmc import MCMCConfig
-from mcsplat.trainer import train
+from mcsplat.train import train
 
 DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
 # Views seen by the runs compared here: 2,400 steps alone, 1,200 steps of 2 views together. Fewer do not do: early in

@@ -1,4 +1,4 @@
-"""GaussianModel: parameter layout, activations, random / SfM initialization (SPEC section 1), state round trip."""
+"""GaussianModel: parameter layout, activations, random / SfM initialization, state round trip."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from mcsplat.gaussians import PARAM_KEYS, GaussianModel, knn_init_scales
-from mcsplat.render.project import quaternion_to_rotation
-from mcsplat.render.sh import SH_C0
+from mcsplat.geometry.rotation import quaternion_to_rotation
+from mcsplat.geometry.sh import SH_C0
 
 
 def brute_force_scales(points: np.ndarray, k: int = 3) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The MCMC strategy: Eq. 9, SGLD noise, relocation, growth, the failure cases of SPEC section 15, the schedule."""
+"""The MCMC strategy: Eq. 9, SGLD noise, relocation, growth, the failure cases (all dead, 2^24 and more), the schedule."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from mcsplat.camera import Camera, intrinsics
 from mcsplat.gaussians import PARAM_KEYS, GaussianModel
 from mcsplat.optim import OptimConfig, make_optimizers
 from mcsplat.render import Splats, render
-from mcsplat.render.sh import SH_C0
+from mcsplat.geometry.sh import SH_C0
 from mcsplat.strategy import MCMCConfig, MCMCStrategy, Strategy
 from mcsplat.strategy import mcmc as mcmc_module
 from mcsplat.strategy.mcmc import grow, inject_noise, noise_gate, prune_to_cap, relocate_dead
@@ -290,7 +290,7 @@ def test_all_dead_skips_relocation_with_a_warning():
     strategy = MCMCStrategy(MCMCConfig(cap_max=100), RADIUS, torch.Generator().manual_seed(0))
     with pytest.warns(RuntimeWarning, match="nothing to copy from"):
         info = strategy.step_post_optimizer(600, model, optimizers, means_lr=1e-4)
-    assert info["relocated"] == 0 and info["added"] == 0 and model.num_gaussians == 30
+    assert info.relocated == 0 and info.added == 0 and model.num_gaussians == 30
     for key in ("opacity_logits", "log_scales", "sh0", "quats"):
         assert torch.equal(model.params[key].detach(), before[key])
 
@@ -341,7 +341,7 @@ def test_growth_reaches_and_never_exceeds_cap_max():
     counts = []
     for step in range(600, 1800, 100):
         info = strategy.step_post_optimizer(step, model, optimizers, means_lr=1e-5)
-        counts.append(info["num_gaussians"])
+        counts.append(info.num_gaussians)
         assert model.num_gaussians <= 130
     assert counts[:6] == [105, 110, 115, 120, 126, 130] and set(counts[6:]) == {130}
     for key in PARAM_KEYS:
@@ -355,9 +355,9 @@ def test_a_model_larger_than_cap_max_is_cut_to_its_most_opaque():
     params, state = snapshot(model, optimizers)
     strategy = MCMCStrategy(MCMCConfig(cap_max=200), RADIUS, torch.Generator().manual_seed(17))
     info = strategy.step_post_optimizer(650, model, optimizers, means_lr=0.0)  # not a refine step: untouched
-    assert info["num_gaussians"] == 300
+    assert info.num_gaussians == 300
     info = strategy.step_post_optimizer(700, model, optimizers, means_lr=0.0)
-    assert info["pruned"] == 100 and info["added"] == 0 and info["num_gaussians"] == 200
+    assert info.pruned == 100 and info.added == 0 and info.num_gaussians == 200
     kept = torch.sort(torch.topk(model_opacities(params), 200).indices).values
     for key in PARAM_KEYS:
         assert torch.equal(model.params[key].detach(), params[key][kept])
@@ -375,7 +375,7 @@ def test_sfm_init_larger_than_cap_max():
     strategy = MCMCStrategy(MCMCConfig(cap_max=120), RADIUS, torch.Generator().manual_seed(19))
     for step in range(0, 601):
         info = strategy.step_post_optimizer(step, model, optimizers, means_lr=1e-6)
-    assert info["pruned"] == 380 and model.num_gaussians == 120
+    assert info.pruned == 380 and model.num_gaussians == 120
     assert prune_to_cap(model, optimizers, 120) == 0
 
 
@@ -471,7 +471,7 @@ def test_empty_model_does_not_crash():
     strategy = MCMCStrategy(MCMCConfig(), RADIUS, torch.Generator())
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert strategy.step_post_optimizer(600, model, optimizers, means_lr=1e-4)["num_gaussians"] == 0
+        assert strategy.step_post_optimizer(600, model, optimizers, means_lr=1e-4).num_gaussians == 0
 
 
 def test_short_training_run_with_the_real_renderer():
@@ -498,9 +498,9 @@ def test_short_training_run_with_the_real_renderer():
             opt.step()
             opt.zero_grad(set_to_none=True)
         info = strategy.step_post_optimizer(step, model, optimizers, means_lr=1.6e-4 * 0.4)
-        relocated += info["relocated"]
+        relocated += info.relocated
         losses.append(float(loss.detach()))
-        assert info["num_gaussians"] == model.num_gaussians <= 120
+        assert info.num_gaussians == model.num_gaussians <= 120
         for key in PARAM_KEYS:
             assert optimizers[key].param_groups[0]["params"][0] is model.params[key]
     assert model.num_gaussians == 120 and relocated >= 10

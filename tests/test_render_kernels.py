@@ -100,14 +100,16 @@ def test_binning_with_nothing_visible(device):
 def test_compile_kernels_leaves_nothing_to_compile(tmp_path, device):
     import warp as wp
 
-    from mcsplat.render.compile import compile_kernels, modules_to_compile
+    from mcsplat.compute.compile import compile_kernels, modules_to_compile
+    from mcsplat.trainer import step_kernels
 
-    compile_kernels(device)
-    assert modules_to_compile(device) == 0
+    kernels = step_kernels(device)
+    compile_kernels(kernels, device)
+    assert modules_to_compile(kernels, device) == 0
     cache = wp.config.kernel_cache_dir
     wp.config.kernel_cache_dir = str(tmp_path)  # an empty cache: every module would need a compile
     try:
-        assert modules_to_compile(device) >= 3  # projection, binning and compositing at least
+        assert modules_to_compile(kernels, device) >= 3  # projection, binning and compositing at least
     finally:
         wp.config.kernel_cache_dir = cache
 
@@ -137,8 +139,8 @@ def test_split_sh_of_a_model_renders_like_the_concatenated_coefficients(device):
 
 
 def test_covariance_times_matches_the_batched_matrix_product(device):
-    from mcsplat.render.covariance import covariance_times
-    from mcsplat.render.project import covariance_3d
+    from mcsplat.geometry.covariance import covariance_times
+    from mcsplat.geometry.rotation import covariance_3d
 
     g = torch.Generator().manual_seed(5)
     n = 10_000  # several ranges of the CPU thread pool

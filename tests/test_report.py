@@ -13,7 +13,7 @@ from PIL import Image
 
 from mcsplat.cli import main
 from mcsplat.config import ModelConfig, TrainConfig
-from mcsplat.trainer import train
+from mcsplat.train import train
 
 DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
 PLOTS = {"quality", "loss", "gaussians", "refinement", "distributions", "step_time"}

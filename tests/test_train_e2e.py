@@ -18,7 +18,10 @@ from mcsplat.gaussians import GaussianModel
 from mcsplat.io.ply import read_ply
 from mcsplat.render import render
 from mcsplat.strategy.mcmc import MCMCConfig
-from mcsplat.trainer import evaluate, initial_model, load_trained, train
+from mcsplat.evaluation import evaluate
+from mcsplat.initialization import initial_model
+from mcsplat.run_dir import load
+from mcsplat.train import train
 
 DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
 
@@ -64,7 +67,7 @@ def test_training_improves_test_psnr_and_writes_a_run(tmp_path, demo_scene, stra
 def test_ply_round_trip_renders_the_same_image(tmp_path, demo_scene):
     config = small_config(tmp_path / "run", steps=120)
     train(config)
-    _, model, _ = load_trained(tmp_path / "run", torch.device("cpu"))
+    model = load(tmp_path / "run", torch.device("cpu")).model
     alive = model.opacities.detach() > 0.005
     kept = GaussianModel(*(model.params[k].detach()[alive] for k in
                            ("means", "log_scales", "quats", "opacity_logits", "sh0", "shN")))

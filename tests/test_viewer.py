@@ -22,7 +22,7 @@ from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.errors import MCSplatError
 from mcsplat.events import Control
 from mcsplat.strategy.mcmc import MCMCConfig
-from mcsplat.trainer import standard_subscribers, train
+from mcsplat.train import standard_subscribers, train
 
 DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
 SCREENSHOTS = os.environ.get("MCSPLAT_SCREENSHOTS")  # a folder: also save screenshots there (docs/ is made so)
@@ -175,12 +175,12 @@ def test_live_viewer_in_a_browser_and_the_report(browser, tiny_run, tmp_path):
 
 
 def test_render_modes_of_the_viewer(tiny_run):
-    from mcsplat.trainer import load_trained
+    from mcsplat.run_dir import load
     from mcsplat.viewer.modes import MODES, render_mode
 
     from mcsplat.data import load_scene
 
-    _, model, _ = load_trained(tiny_run, torch.device("cpu"))
+    model = load(tiny_run, torch.device("cpu")).model
     camera = load_scene(DEMO).test[0].camera
     images = {mode: render_mode(model, camera, mode, (1.0, 1.0, 1.0), 3, 1.0) for mode in MODES}
     assert all(image.shape == (camera.height, camera.width, 3) and image.dtype == np.uint8

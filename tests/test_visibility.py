@@ -15,7 +15,7 @@ from mcsplat.data import load_scene
 from mcsplat.gaussians import PARAM_KEYS, GaussianModel
 from mcsplat.io.ply import read_ply
 from mcsplat.render import render
-from mcsplat.trainer import load_trained
+from mcsplat.run_dir import load
 from mcsplat.visibility import count_invisible, seen_in
 
 DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
@@ -35,7 +35,7 @@ def with_hidden_extras(model: GaussianModel) -> GaussianModel:
 
 
 def test_unseen_gaussians_are_found_and_leaving_them_out_changes_no_training_view(tiny_run):
-    _, trained, _ = load_trained(tiny_run, torch.device("cpu"))
+    trained = load(tiny_run, torch.device("cpu")).model
     model = with_hidden_extras(trained)
     scene = load_scene(DEMO)
     seen = seen_in(model, scene.train, scene.background, torch.device("cpu"))
@@ -67,7 +67,7 @@ def test_training_counts_them_and_export_prune_leaves_them_out(tiny_run, tmp_pat
                                       printed).groups())
     assert abs(kept - full) <= 0.05, printed
 
-    _, model, _ = load_trained(tiny_run, torch.device("cpu"))
+    model = load(tiny_run, torch.device("cpu")).model
     scene = load_scene(DEMO)
     expected = seen_in(model, scene.train, scene.background, torch.device("cpu")) & (model.opacities > 0.005)
     written = read_ply(out)

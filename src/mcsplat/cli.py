@@ -67,27 +67,20 @@ class Eval:
     """Also write the test renders as PNG under RUN/renders/test/."""
 
     def run_command(self) -> int:
-        import json
+        from mcsplat import run_dir
+        from mcsplat.compute.device import resolve_device
+        from mcsplat.evaluation import evaluate
 
-        from mcsplat.data import load_scene
-        from mcsplat.io.atomic import atomic_write_text
-        from mcsplat.trainer import background_of, evaluate, final_sh_degree, load_trained, resolve_device
-
-        device = resolve_device(self.device)
-        config, model, step = load_trained(self.run, device)
-        scene = _scene_of(config)
-        net = self.lpips_net or config.lpips_net
-        result = evaluate(model, scene.test, background_of(config, scene), final_sh_degree(config, step), device,
-                          lpips_net=net, render_dir=self.run / "renders" / "test" if self.save_renders else None,
-                          progress=True)
-        metrics_path = self.run / "metrics.json"
-        metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
-        metrics.update(psnr=result.psnr, ssim=result.ssim, lpips=result.lpips, lpips_net=net, steps=step,
-                       num_gaussians=model.num_gaussians, test_views=result.views)
-        atomic_write_text(metrics_path, json.dumps(metrics, indent=2) + "\n")
+        run = run_dir.load(self.run, resolve_device(self.device))
+        net = self.lpips_net or run.config.lpips_net
+        render_file = (lambda name: run.folder.render_file("test", name)) if self.save_renders else None
+        result = evaluate(run.model, run.scene.test, run.background, run.sh_degree, run.device, lpips_net=net,
+                          render_file=render_file, progress=True)
+        run.folder.update_metrics(psnr=result.psnr, ssim=result.ssim, lpips=result.lpips, lpips_net=net,
+                                  steps=run.step, num_gaussians=run.model.num_gaussians, test_views=result.views)
         lpips = "n/a (weights not installed)" if result.lpips is None else f"{result.lpips:.4f}"
         print(f"PSNR {result.psnr:.3f} dB  SSIM {result.ssim:.4f}  LPIPS-{net} {lpips}  "
-              f"({result.views} test views, {model.num_gaussians:,} Gaussians, step {step:,})")
+              f"({result.views} test views, {run.model.num_gaussians:,} Gaussians, step {run.step:,})")
         return 0
 
 
@@ -119,30 +112,31 @@ class Render:
     def run_command(self) -> int:
         from tqdm import tqdm
 
+        from mcsplat import run_dir
         from mcsplat.camera_path import loop_path
-        from mcsplat.trainer import background_of, final_sh_degree, load_trained, resolve_device, save_png
+        from mcsplat.compute.device import resolve_device
+        from mcsplat.evaluation import save_png
 
         if self.frames < 2 or self.fps < 1:
             raise MCSplatError("--frames must be at least 2 and --fps at least 1")
-        device = resolve_device(self.device)
-        config, model, step = load_trained(self.run, device)
-        scene = _scene_of(config)
+        run = run_dir.load(self.run, resolve_device(self.device))
+        model, device, scene = run.model, run.device, run.scene
         views = scene.test if self.split == "test" else scene.train
         if not views:
             raise MCSplatError(f"the scene has no {self.split} views to render")
-        background, degree = background_of(config, scene), final_sh_degree(config, step)
+        background, degree = run.background, run.sh_degree
         if not self.video:
-            folder = self.out or self.run / "renders" / self.split
+            folder = self.out or run.folder.renders_folder(self.split)
             for view in tqdm(views, desc="rendering", unit="view"):
                 image = self._frame(model, view.camera.to(device), background, degree)
-                save_png(folder / f"{Path(view.name).stem}.png", image)
+                save_png(run_dir.render_file(folder, view.name), image)
             print(f"wrote {len(views)} renders to {folder}")
             return 0
         import imageio.v2 as imageio
 
         from mcsplat.io.atomic import atomic_path
 
-        path = self.out or self.run / "renders" / f"{self.split}.mp4"
+        path = self.out or run.folder.video_file(self.split)
         if path.suffix.lower() != ".mp4":
             raise MCSplatError(f"--out {path}: a video must be an .mp4 file")
         cameras = loop_path([v.camera for v in views], self.frames)
@@ -180,17 +174,17 @@ class Export:
         import numpy as np
         import torch
 
+        from mcsplat import run_dir
+        from mcsplat.compute.device import resolve_device
         from mcsplat.io.formats import EXTENSIONS, select_gaussians, write_gaussians
         from mcsplat.io.ply import write_ply
-        from mcsplat.trainer import load_trained, resolve_device
 
-        device = resolve_device(self.device)
-        config, model, step = load_trained(self.run, device)
+        run = run_dir.load(self.run, resolve_device(self.device))
+        model = run.model
         params = {k: v.detach().cpu().numpy() for k, v in model.params.items()}
         candidates = np.arange(model.num_gaussians)
         if self.prune:
-            scene, seen = self._seen(config, model, device)
-            candidates = np.flatnonzero(seen.cpu().numpy())
+            candidates = np.flatnonzero(self._seen(run).cpu().numpy())
         chosen = candidates[select_gaussians({k: v[candidates] for k, v in params.items()}, self.min_opacity,
                                              self.max_gaussians)]
         if chosen.size == 0:
@@ -199,9 +193,9 @@ class Export:
         keep = torch.zeros(model.num_gaussians, dtype=torch.bool)
         keep[torch.from_numpy(chosen)] = True
         if self.prune:
-            self._compare_on_test_views(config, model, step, keep.to(device), scene, device)
+            self._compare_on_test_views(run, keep.to(run.device))
         ending = ".ply" if self.format == "ply" else EXTENSIONS[self.format]
-        path = self.out or self.run / f"point_cloud{ending}"
+        path = self.out or run.folder.export_file(ending)
         if self.format == "ply":
             write_ply(path, dict(model.params.items()), keep=keep)
         else:
@@ -210,24 +204,22 @@ class Export:
         return 0
 
     @staticmethod
-    def _seen(config, model, device):
-        """The run's scene and which Gaussians its training views show (printing how many show nowhere)."""
-        from mcsplat.trainer import background_of
+    def _seen(run):
+        """Which Gaussians the run's training views show (printing how many show nowhere)."""
         from mcsplat.visibility import count_invisible, describe, seen_in
 
-        scene = _scene_of(config)
-        seen = seen_in(model, scene.train, background_of(config, scene), device, progress=True)
-        print(f"{describe(count_invisible(model, seen).as_dict())}: left out")
-        return scene, seen
+        seen = seen_in(run.model, run.scene.train, run.background, run.device, progress=True)
+        print(f"{describe(count_invisible(run.model, seen).as_dict())}: left out")
+        return seen
 
     @staticmethod
-    def _compare_on_test_views(config, model, step: int, keep, scene, device) -> None:
-        from mcsplat.trainer import background_of, evaluate, final_sh_degree
+    def _compare_on_test_views(run, keep) -> None:
+        from mcsplat.evaluation import evaluate
 
-        background, degree = background_of(config, scene), final_sh_degree(config, step)
-        full = evaluate(model, scene.test, background, degree, device, progress=True).psnr
-        kept = evaluate(model.subset(keep), scene.test, background, degree, device, progress=True).psnr
-        print(f"test PSNR on {len(scene.test)} views: {full:.3f} dB with every Gaussian, {kept:.3f} dB with the "
+        test = run.scene.test
+        full = evaluate(run.model, test, run.background, run.sh_degree, run.device, progress=True).psnr
+        kept = evaluate(run.model.subset(keep), test, run.background, run.sh_degree, run.device, progress=True).psnr
+        print(f"test PSNR on {len(test)} views: {full:.3f} dB with every Gaussian, {kept:.3f} dB with the "
               f"{int(keep.sum()):,} exported ({kept - full:+.3f} dB)")
 
 
@@ -269,7 +261,7 @@ class ViewSaved:
         from mcsplat.viewer import require_viser
 
         require_viser()
-        from mcsplat.trainer import resolve_device
+        from mcsplat.compute.device import resolve_device
         from mcsplat.viewer.saved import view_saved
 
         if not self.path.exists():
@@ -281,35 +273,27 @@ class ViewSaved:
         return 0
 
 
-def _test_views_and_renderer(run: Path, device_name: str):
+def _test_views_and_renderer(path: Path, device_name: str):
     """The run's test views and a function rendering one, for the report's grid (none when the scene is gone)."""
     import torch
 
+    from mcsplat import run_dir
+    from mcsplat.compute.device import resolve_device
+    from mcsplat.evaluation import png_pixels
     from mcsplat.render import render
-    from mcsplat.trainer import background_of, final_sh_degree, load_trained, resolve_device
 
-    device = resolve_device(device_name)
-    config, model, step = load_trained(run, device)
+    run = run_dir.load(path, resolve_device(device_name))
     try:
-        scene = _scene_of(config)
+        scene, background = run.scene, run.background
     except MCSplatError as error:
         warnings.warn(f"the report has no test-view grid: the scene cannot be loaded ({error})")
         return (), None
-    background, degree = background_of(config, scene), final_sh_degree(config, step)
 
     @torch.no_grad()
     def render_view(view):
-        image = render(model, view.camera.to(device), background, degree).rgb.clamp(0, 1)
-        return (image * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+        return png_pixels(render(run.model, view.camera.to(run.device), background, run.sh_degree).rgb)
 
     return scene.test, render_view
-
-
-def _scene_of(config):
-    from mcsplat.data import load_scene
-
-    return load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
-                      background=None if config.background == "auto" else config.background)
 
 
 @dataclass
@@ -354,7 +338,7 @@ COMMANDS: dict[str, type] = {"train": TrainConfig, "eval": Eval, "render": Rende
 
 def _run(command) -> int:
     if isinstance(command, TrainConfig):
-        from mcsplat.trainer import train  # the trainer pulls in Warp: only when training
+        from mcsplat.train import train  # the trainer pulls in Warp: only when training
 
         train(command)
         return 0

@@ -15,6 +15,10 @@ from .optim import OptimConfig
 from .strategy.adc import ADCConfig
 from .strategy.mcmc import MCMCConfig
 
+# Options that only affect how this process runs: on --resume they come from the command line, the rest from
+# the run's saved configuration (steps included: the learning-rate schedule depends on it).
+PROCESS_OPTIONS = ("eval_every", "save_every", "quiet", "threads", "device", "viewer", "port", "host", "dist_timeout")
+
 
 @dataclass
 class ModelConfig:
@@ -159,10 +163,8 @@ def save_config(config: TrainConfig, path: Path) -> None:
     atomic_write_text(path, json.dumps(to_jsonable(config), indent=2) + "\n")
 
 
-def load_config(run_dir: Path) -> TrainConfig:
-    path = Path(run_dir) / "config.json"
-    if not path.is_file():
-        raise MCSplatError(f"{run_dir}: not a run directory (no config.json); train one with `mcsplat train DATA`")
+def load_config(path: Path) -> TrainConfig:
+    """The configuration saved in a JSON file by save_config."""
     try:
         data = json.loads(path.read_text())
     except json.JSONDecodeError as error:

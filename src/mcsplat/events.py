@@ -1,5 +1,5 @@
-"""What a training run tells its consumers, and the one interface through which they steer it (DESIGN.md, "The
-training loop as a stream of events").
+"""What a training run tells its consumers, and the one interface through which they steer it (docs/architecture.md,
+"The training loop as a stream of events").
 
 The run (trainer.TrainingRun) emits, in this order:
 
@@ -13,7 +13,9 @@ The run (trainer.TrainingRun) emits, in this order:
 
 Consumers (the progress bar, the log.jsonl writer, the checkpointer, the report, the viewer) are Subscribers: any
 callable taking an event. A Subscriber subclass gets `on_<kind>(event)` called for the kinds it defines. They run in
-the training thread, between steps; anything slow (the viewer's rendering) belongs in its own thread.
+the training thread, between steps; anything slow (the viewer's rendering) belongs in its own thread. What they may
+see of the run itself is RunView: the model, the scene and the configuration, and the two ways to act on it (its
+Control, and writing a checkpoint now).
 """
 
 from __future__ import annotations
@@ -21,13 +23,46 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ClassVar
+from typing import Any, Callable, ClassVar, Protocol
+
+import torch
+
+from .config import TrainConfig
+from .data import Scene
+from .evaluation import Evaluation
+from .gaussians import GaussianModel
+from .strategy.base import RefineReport
+
+
+class RunView(Protocol):
+    """The part of a training run its consumers may see (trainer.TrainingRun provides it)."""
+
+    config: TrainConfig
+    scene: Scene
+    device: torch.device
+    background: tuple[float, float, float]
+    run_dir: Path
+    control: "Control"
+
+    @property
+    def model(self) -> GaussianModel:
+        """The model as it is now (read it between steps, or under control.lock from another thread)."""
+        ...
+
+    @property
+    def world_size(self) -> int:
+        """How many processes train the model together (each step takes that many views)."""
+        ...
+
+    def save_checkpoint(self) -> None:
+        """Write the checkpoint now (every process of a multi-process run must call it at the same step)."""
+        ...
 
 
 @dataclass(frozen=True)
 class RunStarted:
     kind: ClassVar[str] = "run_started"
-    run: Any  # the TrainingRun: model, scene, config, control, for consumers that show or save the state
+    run: RunView
     start_step: int
     init_note: str
 
@@ -42,8 +77,7 @@ class KernelsCompiling:
 class RefineDone:
     kind: ClassVar[str] = "refine_done"
     step: int  # the step index as the strategy saw it (counted from 0)
-    counts: dict[str, int]  # relocated / added / pruned (MCMC), cloned / split / pruned (ADC)
-    num_gaussians: int
+    report: RefineReport  # relocated / added / pruned (MCMC), cloned / split / pruned / reset (ADC)
 
 
 @dataclass(frozen=True)
@@ -65,7 +99,7 @@ class StepDone:
     num_gaussians: int
     sh_degree: int
     train_seconds: float  # training time so far, pauses and consumers not counted
-    counts: dict[str, int] = field(default_factory=dict)  # the strategy's counts of this step (zeros included)
+    refine: RefineReport | None = None  # what the strategy did after this step's optimizer step
 
 
 @dataclass(frozen=True)
@@ -78,13 +112,13 @@ class CheckpointWritten:
 @dataclass(frozen=True)
 class RunFinished:
     kind: ClassVar[str] = "run_finished"
-    run: Any
-    metrics: dict[str, Any]
-    evaluation: Any  # trainer.Evaluation of the final model, per-view scores included
+    run: RunView
+    metrics: dict[str, Any]  # what metrics.json holds
+    evaluation: Evaluation  # of the final model, per-view scores included
 
 
-Event = RunStarted | RefineDone | EvalDone | StepDone | CheckpointWritten | RunFinished
-Listener = Callable[[Any], None]
+Event = RunStarted | KernelsCompiling | RefineDone | EvalDone | StepDone | CheckpointWritten | RunFinished
+Listener = Callable[[Event], None]
 
 
 class Subscriber:

@@ -1,6 +1,7 @@
-"""The Gaussian model: raw parameters, their activations, and the random / SfM initializations (SPEC section 1).
+"""The Gaussian model: raw parameters, their activations, and the random / SfM initializations (docs/method.md,
+"Representation and initialisation").
 
-Raw parameters (DESIGN.md "Conventions") live in `model.params`, a ParameterDict:
+Raw parameters (docs/architecture.md, "Conventions") live in `model.params`, a ParameterDict:
 
     means           [N, 3]       world positions
     log_scales      [N, 3]       log of the per-axis standard deviations
@@ -22,15 +23,17 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from .render.covariance import covariance_times
-from .render.project import covariance_3d
-from .render.sh import SH_C0, num_sh_bases
+from .geometry.covariance import covariance_times
+from .geometry.rotation import covariance_3d
+from .geometry.sh import SH_C0, num_sh_bases
 
-__all__ = ["GaussianModel", "PARAM_KEYS", "knn_init_scales"]
+__all__ = ["GaussianModel", "PARAM_KEYS", "DEAD_OPACITY", "knn_init_scales"]
 
 PARAM_KEYS = ("means", "log_scales", "quats", "opacity_logits", "sh0", "shN")
+# Gaussians at or below this opacity are dead: MCMC relocates them (its min_opacity), exports leave them out.
+DEAD_OPACITY = 0.005
 
-# SPEC section 1: the official random init cube half-sizes.
+# The official random init cube half-sizes.
 RANDOM_CUBE_FACTOR = 3.0       # real scenes: [-3R, 3R]^3 around the world origin
 BLENDER_CUBE_HALF_SIZE = 1.3   # Blender / NeRF-Synthetic: [-1.3, 1.3]^3
 
@@ -45,7 +48,7 @@ def _check_options(init_scale: float, init_opacity: float, sh_degree: int) -> No
 
 
 def knn_init_scales(points: np.ndarray, k: int = 3) -> np.ndarray:
-    """sqrt(mean squared distance to the k nearest other points) per point (SPEC section 1), float64 [P].
+    """sqrt(mean squared distance to the k nearest other points) per point, float64 [P].
 
     As in 3DGS's simple-knn, coincident points count as neighbours at distance 0, and the mean squared distance is
     floored at 1e-7 so that duplicates still get a finite log-scale. A single point gets 1.0 (there is no neighbour
@@ -102,11 +105,12 @@ class GaussianModel(torch.nn.Module):
                     extent: float = RANDOM_CUBE_FACTOR, init_scale: float = 0.1, init_opacity: float = 0.5,
                     sh_degree: int = 3, generator: torch.Generator | None = None,
                     device: torch.device | str = "cpu") -> "GaussianModel":
-        """The official random initialization (SPEC section 1).
+        """The official random initialization.
 
         Positions uniform in [-extent R, extent R]^3 around the world origin (R = `scene_radius`, extent 3 by
-        default; the paper's Table 2 also tries 1), or [-1.3, 1.3]^3 for Blender scenes (R and extent unused). The SH DC values are uniform in [0, 1/255], i.e. an almost uniform mid-grey, as in the
-        official code. Scale, opacity and rotation follow the same rules as `from_points`.
+        default; the paper's Table 2 also tries 1), or [-1.3, 1.3]^3 for Blender scenes (R and extent unused). The
+        SH DC values are uniform in [0, 1/255], i.e. an almost uniform mid-grey, as in the official code. Scale,
+        opacity and rotation follow the same rules as `from_points`.
         """
         if num_points < 1:
             raise ValueError(f"num_points must be at least 1, got {num_points}")
@@ -229,7 +233,7 @@ class GaussianModel(torch.nn.Module):
         return self.num_gaussians
 
     def covariances(self) -> torch.Tensor:
-        """The full 3D covariance Sigma = R S S^T R^T, [N, 3, 3] (SPEC section 4)."""
+        """The full 3D covariance Sigma = R S S^T R^T, [N, 3, 3]."""
         return covariance_3d(self.params["quats"], self.scales)
 
     @torch.no_grad()

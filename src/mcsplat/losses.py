@@ -1,4 +1,4 @@
-"""Photometric losses of 3DGS: L1 and SSIM with an 11x11 Gaussian window (sigma 1.5), "same" padding (SPEC 3)."""
+"""Photometric losses of 3DGS: L1 and SSIM with an 11x11 Gaussian window (sigma 1.5), "same" padding."""
 
 from __future__ import annotations
 
@@ -52,6 +52,14 @@ def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     if fused_ssim_applies(image, target):
         return fused_ssim(image, target)
     return ssim_map(image, target).mean()
+
+
+def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -> list:
+    """The Warp kernels the loss and its backward launch on `device` (the fused SSIM: float32 on the CPU)."""
+    if device.type == "cpu" and dtype == torch.float32:
+        from . import ssim_cpu
+        return [ssim_cpu._pass1, ssim_cpu._pass2, ssim_cpu._pass3, ssim_cpu._pass4]
+    return []
 
 
 def l1(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

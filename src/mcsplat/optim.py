@@ -1,8 +1,9 @@
 """One Adam per parameter, the position learning-rate schedule, and row surgery that keeps them in step.
 
-SPEC section 8: Adam with eps 1e-15 and betas (0.9, 0.999); learning rates per attribute; the position learning rate
-decays log-linearly from 1.6e-4 R to 1.6e-6 R (R the scene radius). The official code uses one Adam with one param
-group per attribute; one Adam per attribute (as gsplat does) is the same update and lets each be rebuilt on its own.
+Adam with eps 1e-15 and betas (0.9, 0.999); learning rates per attribute; the position learning rate decays
+log-linearly from 1.6e-4 R to 1.6e-6 R (R the scene radius): docs/method.md, "Optimizer and schedules". The official
+code uses one Adam with one param group per attribute; one Adam per attribute (as gsplat does) is the same update and
+lets each be rebuilt on its own.
 
 Row surgery: densification and relocation add, copy and remove Gaussians. The helpers below change every parameter
 of the model and the matching Adam state together:
@@ -36,7 +37,8 @@ Optimizers = Mapping[str, torch.optim.Optimizer]
 
 @dataclass
 class OptimConfig:
-    """Learning rates of SPEC section 8 (3DGS defaults); the two position rates are multiplied by the scene radius."""
+    """Learning rates of 3DGS (docs/method.md, "Optimizer and schedules"); the two position rates are multiplied by
+    the scene radius."""
 
     means_lr: float = 1.6e-4
     means_lr_final: float = 1.6e-6
@@ -74,7 +76,7 @@ def _check_radius(scene_radius: float) -> None:
 
 
 def make_optimizers(model: GaussianModel, config: OptimConfig, scene_radius: float) -> dict[str, torch.optim.Adam]:
-    """One Adam per parameter key of `model.params`, with the learning rates of `config` (SPEC section 8).
+    """One Adam per parameter key of `model.params`, with the learning rates of `config`.
 
     torch's fused Adam (one kernel per parameter, the same update) takes a third of the time of the default
     for-loop implementation on the CPU."""
@@ -87,7 +89,7 @@ def make_optimizers(model: GaussianModel, config: OptimConfig, scene_radius: flo
 def means_lr_at(step: int, max_steps: int, config: OptimConfig, scene_radius: float) -> float:
     """Position learning rate at `step`: log-linear from means_lr R (step 0) to means_lr_final R (step >= max_steps).
 
-    This is 3DGS's get_expon_lr_func without delay (SPEC 2.1 / 8) and gsplat's ExponentialLR with
+    This is 3DGS's get_expon_lr_func without delay and gsplat's ExponentialLR with
     gamma = 0.01^(1/max_steps). The official loop evaluates it at its 1-based iteration number before the step;
     gsplat's noise reads the rate after its scheduler step, i.e. at 0-based step + 1. The caller picks the step.
     """

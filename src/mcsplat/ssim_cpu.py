@@ -23,7 +23,7 @@ import math
 import torch
 import warp as wp
 
-from .render.runtime import ensure_warp, run_ranges
+from .compute.runtime import ensure_warp, run_ranges
 
 _WINDOW = 11
 _SIGMA = 1.5

@@ -1,6 +1,6 @@
 """The run's standard consumers (see events.py): progress bar, console messages, log.jsonl and periodic checkpoints.
 
-Each is small and knows only the events it listens to; trainer.train() subscribes them to every run.
+Each is small and knows only the events it listens to; train.train() subscribes them to every run.
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ from tqdm import tqdm
 
 from .events import EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
 from .metrics import LPIPS_HINT
+from .run_dir import RunDir
 from .visibility import describe
 
 LOG_EVERY = 100  # steps between two log.jsonl records
-LEVELS = frozenset({"demand"})  # strategy values that log.jsonl reports as last seen, not summed (LogWriter)
 
 
 class ProgressBar(Subscriber):
@@ -53,7 +53,7 @@ class ConsoleLog(Subscriber):
     def on_run_started(self, event: RunStarted) -> None:
         run = event.run
         scene, config = run.scene, run.config
-        processes = run.team.world_size
+        processes = run.world_size
         steps = f"{config.steps:,} steps" + (f" of {processes} views ({processes} processes)" if processes > 1 else "")
         self.write(f"mcsplat: {scene.kind} scene {scene.root.name}: {len(scene.train)} train / {len(scene.test)} "
                    f"test views, {config.strategy} strategy, init {event.init_note}, {steps} on {run.device}")
@@ -74,19 +74,20 @@ class ConsoleLog(Subscriber):
                    f"{m['train_seconds']:.0f} s of training")
         if evaluation.lpips is None:
             self.write(f"hint: {LPIPS_HINT}")
-        run_dir = event.run.run_dir
-        self.write(f"wrote {run_dir / 'point_cloud.ply'} ({m['exported_gaussians']:,} Gaussians) and "
-                   f"{run_dir / 'metrics.json'}")
+        run_dir = RunDir(event.run.run_dir)
+        self.write(f"wrote {run_dir.splats_file} ({m['exported_gaussians']:,} Gaussians) and {run_dir.metrics_file}")
         if m["invisible_gaussians"]["never_composited"]:
-            self.write(f"{describe(m['invisible_gaussians'])}: `mcsplat export {run_dir} --prune` leaves them out")
+            self.write(f"{describe(m['invisible_gaussians'])}: `mcsplat export {run_dir.path} --prune` leaves them "
+                       "out")
 
 
 class LogWriter(Subscriber):
     """Appends to log.jsonl every LOG_EVERY steps (and at the last step) and at each periodic evaluation: step,
     loss, train PSNR, number of Gaussians, training seconds, refine counts since the previous record, test PSNR/SSIM.
 
-    The automatic cap's demand is a level, not a count: the record keeps its value at the last refine step (a sum
-    over the refine steps since the previous record would read as ten times the share with refine steps every 10)."""
+    Counts are summed over the steps since the previous record; levels (the automatic cap's demand) keep their
+    value at the last refine step (a sum over the refine steps since the previous record would read as ten times
+    the share with refine steps every 10)."""
 
     def __init__(self, path: Path):
         self.path = path
@@ -97,8 +98,10 @@ class LogWriter(Subscriber):
         self.evaluation = event  # StepDone of the same step follows and writes it
 
     def on_step_done(self, event: StepDone) -> None:
-        for key, value in event.counts.items():
-            self.counts[key] = int(value) + (0 if key in LEVELS else self.counts.get(key, 0))
+        if event.refine is not None:
+            for key, value in event.refine.counts().items():
+                self.counts[key] = self.counts.get(key, 0) + int(value)
+            self.counts.update(event.refine.levels())
         record = None
         if event.step % LOG_EVERY == 0 or event.step == event.total_steps:
             record = {"step": event.step, "loss": round(event.loss, 6), "train_psnr": round(event.train_psnr, 3),

@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 
 from mcsplat.data import images, undistort
-from mcsplat.data.image_store import ImageStore, store_note
-from mcsplat.data.poses import intrinsic_matrix, make_camera, opengl_c2w_to_opencv_w2c, scale_intrinsics
-from mcsplat.data.scene import Background, Scene, View, make_scene, split_every
+from mcsplat.data.assemble import Frame, assemble
+from mcsplat.data.poses import intrinsic_matrix, opengl_c2w_to_opencv_w2c, scale_intrinsics
+from mcsplat.data.scene import Background, Scene, split_every
 from mcsplat.errors import DataError
 
 SPLIT_FILES = ("transforms_train.json", "transforms_test.json", "transforms_val.json")
@@ -43,7 +43,7 @@ def read_json(path: Path) -> dict[str, Any]:
     return data
 
 
-class _Frame:
+class _ListedFrame:
     """One frame of a transforms file, resolved: image path, pose, intrinsics (possibly partly unknown)."""
 
     def __init__(self, path: Path, name: str, w2c: np.ndarray, meta: dict[str, Any]):
@@ -56,7 +56,7 @@ def _number(value: Any, key: str, where: str) -> float:
     return float(value)
 
 
-def _frames(path: Path, data: dict[str, Any], root: Path, skip_missing: bool) -> list[_Frame]:
+def _frames(path: Path, data: dict[str, Any], root: Path, skip_missing: bool) -> list[_ListedFrame]:
     keys = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y", "camera_model",
             *_DISTORTION_KEYS)
     top = {k: data[k] for k in keys if k in data}
@@ -79,7 +79,7 @@ def _frames(path: Path, data: dict[str, Any], root: Path, skip_missing: bool) ->
         meta = dict(top)
         meta.update({k: frame[k] for k in keys if k in frame})
         name = image.relative_to(root).with_suffix("") if image.is_relative_to(root) else Path(image.stem)
-        frames.append(_Frame(image, str(PurePosixPath(name)), w2c, meta))
+        frames.append(_ListedFrame(image, str(PurePosixPath(name)), w2c, meta))
     if missing and not skip_missing:
         raise DataError(f"image '{missing[0]}' listed in {path} is missing ({path.parent / missing[0]}[.png] does "
                         f"not exist)" + (f", and {len(missing) - 1} more" if len(missing) > 1 else ""))
@@ -94,7 +94,7 @@ def _frames(path: Path, data: dict[str, Any], root: Path, skip_missing: bool) ->
     return frames
 
 
-def _distortion(frame: _Frame, source: Path) -> tuple[str, list[float]] | None:
+def _distortion(frame: _ListedFrame, source: Path) -> tuple[str, list[float]] | None:
     """(COLMAP model name, its distortion parameters) of a frame, or None for a pinhole camera.
 
     nerfstudio's convention: k1..k4 radial, p1, p2 tangential; OPENCV (k1, k2, p1, p2), FULL_OPENCV when k3 is set
@@ -126,7 +126,7 @@ def _distortion(frame: _Frame, source: Path) -> tuple[str, list[float]] | None:
     return "OPENCV", [d["k1"], d["k2"], d["p1"], d["p2"]]
 
 
-def _intrinsics(frame: _Frame, size: tuple[int, int], source: Path) -> np.ndarray:
+def _intrinsics(frame: _ListedFrame, size: tuple[int, int], source: Path) -> np.ndarray:
     """K for the image at its file size, from fl_x/fl_y/cx/cy (or camera_angle_x/_y); checks w/h."""
     meta, where = frame.meta, f"{source} ('{frame.path.name}')"
     width, height = size
@@ -151,12 +151,13 @@ def _intrinsics(frame: _Frame, size: tuple[int, int], source: Path) -> np.ndarra
     return intrinsic_matrix(fx, fy, cx, cy)
 
 
-def _views(frames: list[_Frame], sources: list[Path], downscale: int, background: Background
-           ) -> tuple[list[View], list[str]]:
+def _resolved(frames: list[_ListedFrame], sources: list[Path], downscale: int) -> list[Frame]:
+    """Each frame's image file, intrinsics at its loaded size, pose, and undistortion where its camera has lens
+    distortion (one pinhole camera per distinct distorted camera)."""
     sizes = images.probe_sizes([f.path for f in frames])
     first_size, first = sizes[0], frames[0]
-    intrinsics, targets, jobs = [], [], []
-    pinholes: dict[tuple, Any] = {}  # one undistorted camera per distinct distorted camera
+    resolved = []
+    pinholes: dict[tuple, Any] = {}
     for frame, size, source in zip(frames, sizes, sources):
         explicit = "w" in frame.meta or "h" in frame.meta
         if not explicit and size != first_size:
@@ -164,6 +165,7 @@ def _views(frames: list[_Frame], sources: list[Path], downscale: int, background
                             f"{first_size[0]}x{first_size[1]}; all images of a Blender scene must have one size")
         K = _intrinsics(frame, size, source)
         distortion = _distortion(frame, source)
+        job = None
         if distortion is not None:
             import pycolmap
 
@@ -177,23 +179,10 @@ def _views(frames: list[_Frame], sources: list[Path], downscale: int, background
             size = (pinhole.width, pinhole.height)
             K = intrinsic_matrix(*pinhole.params[:4])
         target = images.downscaled_size(*size, downscale)
-        jobs.append(undistort.Job(frame.path, camera, pinhole, target) if distortion is not None else None)
-        intrinsics.append(scale_intrinsics(K, size, target))
-        targets.append(target)
-    paths = [f.path for f in frames]
-    distorted_jobs = [job for job in jobs if job is not None]
-    if distorted_jobs:
-        cached = iter(undistort.undistort_to_cache(distorted_jobs, background))
-        paths = [next(cached) if job is not None else path for path, job in zip(paths, jobs)]
-    store = ImageStore(paths, targets, background)
-    views = [View(camera=make_camera(K, f.w2c, *t), image=store.handle(i), name=f.name)
-             for i, (f, K, t) in enumerate(zip(frames, intrinsics, targets))]
-    notes = store_note(store)
-    if distorted_jobs:
-        models = sorted({job.camera.model.name for job in distorted_jobs})
-        notes.insert(0, f"{len(distorted_jobs)} images with {'/'.join(models)} cameras undistorted to PINHOLE "
-                        f"(cached in {undistort.cache_root()})")
-    return views, notes
+        if distortion is not None:
+            job = undistort.Job(frame.path, camera, pinhole, target)
+        resolved.append(Frame(frame.path, frame.name, scale_intrinsics(K, size, target), frame.w2c, target, job))
+    return resolved
 
 
 def load_blender(root: Path, downscale: int, background: Background, test_every: int) -> Scene:
@@ -219,9 +208,7 @@ def load_blender(root: Path, downscale: int, background: Background, test_every:
         frames = train_frames + test_frames
         notes.append(f"frames from {single.name}; " + (f"every {test_every}th is a test view" if test_every
                                                          else "no test split"))
-    views, image_notes = _views(frames, sources, downscale, background)
-    notes += image_notes
     if downscale > 1:
         notes.append(f"images resized to 1/{downscale}")
-    return make_scene(views[:len(train_frames)], views[len(train_frames):], None, None, background, "blender", root,
-                      notes=notes)
+    return assemble(_resolved(frames, sources, downscale), kind="blender", root=root, background=background,
+                    train_count=len(train_frames), notes=notes)

@@ -6,12 +6,11 @@ import warnings
 from pathlib import Path, PurePosixPath
 
 import numpy as np
-import torch
 
 from mcsplat.data import colmap_files, images, undistort
-from mcsplat.data.image_store import ImageStore, store_note
-from mcsplat.data.poses import check_translation, intrinsic_matrix, make_camera, rigid_rotation, scale_intrinsics
-from mcsplat.data.scene import Background, Scene, View, make_scene, split_every
+from mcsplat.data.assemble import Frame, Points, assemble
+from mcsplat.data.poses import check_translation, intrinsic_matrix, rigid_rotation, scale_intrinsics
+from mcsplat.data.scene import Background, Scene
 from mcsplat.errors import DataError
 
 MODEL_FILES = ("cameras", "images", "points3D")
@@ -132,8 +131,8 @@ def load_colmap(root: Path, downscale: int, background: Background, test_every: 
     sizes = images.probe_sizes(paths)
 
     size_of_camera: dict[int, tuple[tuple[int, int], Path]] = {}
-    targets, intrinsics, jobs = [], [], []
-    for path, size, (name, camera_id, K, camera_size, _) in zip(paths, sizes, records):
+    frames = []
+    for path, size, (name, camera_id, K, camera_size, w2c) in zip(paths, sizes, records):
         if not _fits(size, camera_size, factor):
             expected = f"{camera_size[0]}x{camera_size[1]}" + (f" / {factor}" if factor > 1 else "")
             raise DataError(f"image {path} is {size[0]}x{size[1]} but its camera {camera_id} in {cameras_file} is "
@@ -142,6 +141,7 @@ def load_colmap(root: Path, downscale: int, background: Background, test_every: 
         if first[0] != size:
             raise DataError(f"image {path} is {size[0]}x{size[1]} but {first[1]} of the same camera {camera_id} is "
                             f"{first[0][0]}x{first[0][1]}; all images of one camera must have the same size")
+        view_name = str(PurePosixPath(name).with_suffix(""))
         if camera_id in pinholes:
             # Undistort at the file's size (an images_N/ copy has the camera shrunk by N), then resize like the rest.
             distorted = _rescaled(reconstruction.cameras[camera_id], size)
@@ -150,42 +150,19 @@ def load_colmap(root: Path, downscale: int, background: Background, test_every: 
             K = _intrinsics(pinhole, cameras_file)
             target = images.downscaled_size(*undistorted_size, downscale / factor) if downscale > factor \
                 else undistorted_size
-            jobs.append(undistort.Job(path, distorted, pinhole, target))
-            targets.append(target)
-            intrinsics.append(scale_intrinsics(K, undistorted_size, target))
+            frames.append(Frame(path, view_name, scale_intrinsics(K, undistorted_size, target), w2c, target,
+                                undistort.Job(path, distorted, pinhole, target)))
             continue
-        jobs.append(None)
         target = images.downscaled_size(*camera_size, downscale) if downscale > factor else size
-        targets.append(target)
-        intrinsics.append(scale_intrinsics(K, camera_size, target))
+        frames.append(Frame(path, view_name, scale_intrinsics(K, camera_size, target), w2c, target))
 
-    distorted_jobs = [job for job in jobs if job is not None]
-    if distorted_jobs:
-        cached = iter(undistort.undistort_to_cache(distorted_jobs, background))
-        paths = [next(cached) if job is not None else path for path, job in zip(paths, jobs)]
-    store = ImageStore(paths, targets, background)
-    views = [View(camera=make_camera(K, w2c, *target), image=store.handle(i),
-                  name=str(PurePosixPath(name).with_suffix("")))
-             for i, ((name, _, _, _, w2c), K, target) in enumerate(zip(records, intrinsics, targets))]
-    train, test = split_every(views, test_every)
-
-    finite = np.isfinite(xyz).all(axis=1)
-    if not finite.all():
-        warnings.warn(f"{folder / f'points3D.{ext}'}: dropping {int((~finite).sum())} points with NaN/inf "
-                      "coordinates", stacklevel=3)
-    points = torch.from_numpy(xyz[finite].astype(np.float32))
-    colors = torch.from_numpy(rgb[finite].astype(np.float32) / 255.0)
     resized = downscale > factor
     note = f"images from {image_dir.name}/" + (f", resized to 1/{downscale} of the camera size" if resized else "")
     if downscale < factor:
         note += f" (no folder for downscale {downscale}; using the smaller images as they are)"
-    notes = [f"model: {folder.relative_to(root)}/*.{ext}", note]
-    if pinholes:
-        models = sorted({reconstruction.cameras[i].model.name for i in pinholes})
-        notes.append(f"{len(distorted_jobs)} images with {'/'.join(models)} cameras undistorted to PINHOLE (cached "
-                     f"in {undistort.cache_root()})")
-    notes += store_note(store)
-    return make_scene(train, test, points, colors, background, "colmap", root, notes=notes)
+    return assemble(frames, kind="colmap", root=root, background=background, test_every=test_every,
+                    points=Points(xyz, rgb, str(folder / f"points3D.{ext}")),
+                    notes=[f"model: {folder.relative_to(root)}/*.{ext}", note])
 
 
 def _rescaled(camera, size: tuple[int, int]):

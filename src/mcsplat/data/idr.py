@@ -18,9 +18,9 @@ import numpy as np
 import scipy.linalg
 
 from mcsplat.data import images
-from mcsplat.data.image_store import ImageStore, store_note
-from mcsplat.data.poses import make_camera, scale_intrinsics
-from mcsplat.data.scene import Background, Scene, View, make_scene, split_every
+from mcsplat.data.assemble import Frame, assemble
+from mcsplat.data.poses import scale_intrinsics
+from mcsplat.data.scene import Background, Scene
 from mcsplat.errors import DataError
 
 CAMERAS_FILE = "cameras.npz"
@@ -112,19 +112,15 @@ def load_idr(root: Path, downscale: int, background: Background, test_every: int
             raise DataError(f"image {path} is {size[0]}x{size[1]} but {paths[0]} is {sizes[0][0]}x{sizes[0][1]}; all "
                             "images of the scene must have one size")
     target = images.downscaled_size(*sizes[0], downscale)
-    views, notes = [], []
-    store = ImageStore(paths, [target] * len(paths), background)
+    frames, notes = [], []
     for index, (path, projection) in enumerate(zip(paths, read_projections(cameras_file, len(paths)))):
         where = f"{cameras_file} camera {index}"
         K, w2c = decompose(projection, where)
         K, note = intrinsics_for(K, sizes[0], where)
         if note and note not in notes:
             notes.append(note)
-        K = scale_intrinsics(K, sizes[0], target)
-        views.append(View(camera=make_camera(K, w2c, *target), image=store.handle(index), name=path.stem))
-    train, test = split_every(views, test_every)
+        frames.append(Frame(path, path.stem, scale_intrinsics(K, sizes[0], target), w2c, target))
     if target != sizes[0]:
         notes.append(f"images resized to {target[0]}x{target[1]}")
-    notes += store_note(store)
     notes.append("no SfM points (the object fills the unit sphere: random init)")
-    return make_scene(train, test, None, None, background, "idr", root, notes=notes)
+    return assemble(frames, kind="idr", root=root, background=background, test_every=test_every, notes=notes)

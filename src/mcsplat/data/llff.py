@@ -7,16 +7,14 @@ are the camera-to-world pose with rotation columns [down, right, backwards] (in 
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from mcsplat.data import colmap_files, images
-from mcsplat.data.image_store import ImageStore, store_note
-from mcsplat.data.poses import intrinsic_matrix, llff_to_opencv_w2c, make_camera
-from mcsplat.data.scene import Background, Scene, View, make_scene, split_every
+from mcsplat.data.assemble import Frame, Points, assemble
+from mcsplat.data.poses import intrinsic_matrix, llff_to_opencv_w2c
+from mcsplat.data.scene import Background, Scene
 from mcsplat.errors import DataError
 
 POSES_FILE = "poses_bounds.npy"
@@ -39,12 +37,12 @@ def read_poses_bounds(path: Path) -> np.ndarray:
     return array.astype(np.float64)
 
 
-def _points(root: Path) -> tuple[np.ndarray, np.ndarray] | None:
+def _points(root: Path) -> Points | None:
     for folder in (root / "sparse" / "0", root / "sparse"):
         if (folder / "points3D.bin").is_file():
-            return colmap_files.read_points3d_bin(folder / "points3D.bin")
+            return Points(*colmap_files.read_points3d_bin(folder / "points3D.bin"), str(folder / "points3D.bin"))
         if (folder / "points3D.txt").is_file():
-            return colmap_files.read_points3d_text(folder / "points3D.txt")
+            return Points(*colmap_files.read_points3d_text(folder / "points3D.txt"), str(folder / "points3D.txt"))
     return None
 
 
@@ -77,30 +75,19 @@ def load_llff(root: Path, downscale: int, background: Background, test_every: in
                         f"{full_width:g}x{full_height:g} (a different aspect ratio); use the matching images")
 
     target = images.downscaled_size(width, height, downscale / factor) if downscale > factor else (width, height)
-    views = []
-    store = ImageStore(paths, [target] * len(paths), background)
-    for index, (path, row_hwf, w2c) in enumerate(zip(paths, hwf, world_to_camera)):
+    frames = []
+    for path, row_hwf, w2c in zip(paths, hwf, world_to_camera):
         focal = row_hwf[2] * target[1] / row_hwf[0]
-        K = intrinsic_matrix(focal, focal, target[0] / 2, target[1] / 2)
-        views.append(View(camera=make_camera(K, w2c, *target), image=store.handle(index), name=path.stem))
-    train, test = split_every(views, test_every)
+        frames.append(Frame(path, path.stem, intrinsic_matrix(focal, focal, target[0] / 2, target[1] / 2), w2c,
+                            target))
 
     notes = [f"images from {image_dir.name}/" + (f", resized to {target[0]}x{target[1]}" if target != (width, height)
                                                   else "")]
     if downscale < factor:
         asked = "images/" if downscale == 1 else f"images_{downscale}/ or images/"
         notes.append(f"no {asked} folder; using the smaller {image_dir.name}/ as it is")
-    notes += store_note(store)
-    found = _points(root)
-    points = colors = None
-    if found is not None:
-        xyz, rgb = found
-        finite = np.isfinite(xyz).all(axis=1)
-        if not finite.all():
-            warnings.warn(f"{root}: dropping {int((~finite).sum())} SfM points with NaN/inf coordinates",
-                          stacklevel=3)
-        points = torch.from_numpy(xyz[finite].astype(np.float32))
-        colors = torch.from_numpy(rgb[finite].astype(np.float32) / 255.0)
-    else:
+    points = _points(root)
+    if points is None:
         notes.append("no sparse/0/points3D.bin: no SfM points")
-    return make_scene(train, test, points, colors, background, "llff", root, notes=notes)
+    return assemble(frames, kind="llff", root=root, background=background, test_every=test_every, points=points,
+                    notes=notes)

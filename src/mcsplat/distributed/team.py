@@ -1,7 +1,7 @@
 """The processes that train one model together, and the few collectives a training run needs from them.
 
-Replicated data parallelism (DESIGN.md, "The training loop as a stream of events"): every process holds the whole
-model and renders its own training view each step. One all-reduce per step averages the gradients of all
+Replicated data parallelism (docs/architecture.md, "The training loop as a stream of events"): every process holds
+the whole model and renders its own training view each step. One all-reduce per step averages the gradients of all
 parameters (one flat buffer, the step's loss, PSNR and stop request packed at its end), so every process takes the
 same Adam step; MCMC then draws from a generator with the same seed and state, so the copies stay identical without
 sending the model. Guards: relocation and growth use rank 0's draw, and a checksum of the parameters is compared

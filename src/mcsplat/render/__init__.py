@@ -1,8 +1,9 @@
 """Differentiable Gaussian rasterizer: `render(gaussians, camera, background, sh_degree) -> RenderResult`.
 
-Projection and SH colour run in one Warp kernel (project_kernel.py), binning in torch, and alpha compositing in Warp
-kernels with a hand-written backward: SIMD kernels on the CPU (cpu/), scalar kernels on CUDA and for float64
-(kernels.py). Everything runs on every CPU core or on CUDA, wherever the tensors are.
+Projection and SH colour run in one Warp kernel (project_kernel.py), binning in Warp kernels and a radix sort
+(binning.py), and alpha compositing in Warp kernels with a hand-written backward: SIMD kernels on the CPU (cpu/),
+scalar kernels on CUDA and for float64 (kernels.py). Everything runs on every CPU core or on CUDA, wherever the
+tensors are. The three stages are one choosable value (paths.py); the fixed numbers are in constants.py.
 """
 
 from __future__ import annotations
@@ -13,13 +14,14 @@ from typing import Protocol, Sequence
 import torch
 
 from ..camera import Camera
-from .binning import TileBins, bin_gaussians
-from .launch import CompositeFunction, cpu_threads, ensure_warp, set_cpu_threads
-from .project import TILE_SIZE
-from .project_kernel import project_and_shade
-from .sh import degree_from_bases
+from ..compute.runtime import cpu_threads, ensure_warp, set_cpu_threads
+from ..geometry.sh import degree_from_bases
+from .binning import TileBins
+from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
+from .paths import RenderPath, current_render_path
 
-__all__ = ["render", "RenderResult", "Splats", "GaussiansLike", "set_cpu_threads", "cpu_threads", "ensure_warp"]
+__all__ = ["render", "RenderResult", "Splats", "GaussiansLike", "set_cpu_threads", "cpu_threads", "ensure_warp",
+           "training_kernels"]
 
 
 class GaussiansLike(Protocol):
@@ -61,9 +63,12 @@ class RenderResult:
 
 
 def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float] | torch.Tensor | None = None,
-           sh_degree: int | None = None, *, near: float = 0.01, far: float = 1e10, eps2d: float = 0.3,
-           opacity_aware_radius: bool = False) -> RenderResult:
-    """Render one view. `sh_degree` None uses every SH coefficient given; `background` defaults to black."""
+           sh_degree: int | None = None, *, near: float = NEAR_PLANE, far: float = FAR_PLANE,
+           eps2d: float = LOW_PASS, opacity_aware_radius: bool = False, path: RenderPath | None = None
+           ) -> RenderResult:
+    """Render one view. `sh_degree` None uses every SH coefficient given; `background` defaults to black; `path`
+    the stages to run (default: current_render_path(), the kernels unless a caller chose otherwise)."""
+    stages = path or current_render_path()
     means, quats, scales, opacities = gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities
     sh, sh_rest = _sh_arrays(gaussians)
     _check_inputs(means, quats, scales, opacities, sh, sh_rest)
@@ -75,17 +80,16 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
     bg = torch.zeros(3, dtype=dtype, device=device) if background is None else \
         torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
 
-    projection, colors = project_and_shade(means, quats, scales, opacities, sh, camera, degree, sh_rest=sh_rest,
-                                           near=near, far=far, eps2d=eps2d,
-                                           opacity_aware_radius=opacity_aware_radius)
+    projection, colors = stages.project(means, quats, scales, opacities, sh, camera, degree, sh_rest=sh_rest,
+                                        near=near, far=far, eps2d=eps2d, opacity_aware_radius=opacity_aware_radius)
     means2d = projection.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
     tiles_x = -(-camera.width // TILE_SIZE)
     tiles_y = -(-camera.height // TILE_SIZE)
-    bins: TileBins = bin_gaussians(projection.tile_min, projection.tile_max, projection.depths, projection.radii,
-                                   tiles_x, tiles_y, means2d=means2d, alpha_extent=projection.alpha_extent)
-    rgb, alpha, depth_sum, contributed = CompositeFunction.apply(
+    bins: TileBins = stages.bin(projection.tile_min, projection.tile_max, projection.depths, projection.radii,
+                                tiles_x, tiles_y, means2d=means2d, alpha_extent=projection.alpha_extent)
+    rgb, alpha, depth_sum, contributed = stages.composite(
         means2d, projection.conics, opacities, colors, projection.depths, bg, bins, camera.width, camera.height)
     depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))
     return RenderResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=projection.radii,
@@ -116,3 +120,16 @@ def _check_inputs(means, quats, scales, opacities, sh, sh_rest=None) -> None:
         if tensor.dtype != means.dtype or tensor.device != means.device:
             raise ValueError(f"render: {name} is {tensor.dtype} on {tensor.device}, but means are {means.dtype} "
                              f"on {means.device}; all parameters must share one dtype and device")
+
+
+def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -> list:
+    """The Warp kernels one render and its backward launch on `device` (compute.compile loads them ahead)."""
+    from ..compute.runtime import warp_scalar
+    from . import binning, kernels, project_kernel
+    from .cpu import composite
+
+    scalar = warp_scalar(dtype)
+    found = [*project_kernel.projection_kernels(scalar), binning._count_pairs, binning._write_pairs]
+    if device.type == "cpu" and dtype == torch.float32:
+        return found + [composite.composite_forward_simd, composite.composite_backward_simd]
+    return found + list(kernels.composite_kernels(scalar))

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from .runtime import ensure_warp, run_ranges
+from ..compute.runtime import ensure_warp, run_ranges
+from .constants import ALL_BLOCKS, BLOCK_SIZE, TILE_SIZE
 
 
 @dataclass
@@ -33,9 +34,6 @@ class TileBins:
         return int(self.gaussian_ids.shape[0])
 
 
-ALL_BLOCKS = 0xFFFF
-BLOCK = 4
-TILE = 16
 _PIXEL_LIMIT = 1.0e9  # pixel bounds are clamped here before the conversion to int (far-off splats)
 
 
@@ -50,20 +48,20 @@ def _pixel_span(mean: float, extent: float):
 @wp.func
 def _block_mask(first_x: int, last_x: int, first_y: int, last_y: int, tile_x: int, tile_y: int):
     """Mask of the tile's 4x4 blocks that hold a pixel of the span (0 when the span misses the tile)."""
-    fx = first_x - tile_x * TILE
-    lx = last_x - tile_x * TILE
-    fy = first_y - tile_y * TILE
-    ly = last_y - tile_y * TILE
-    if lx < 0 or fx > TILE - 1 or lx < fx or ly < 0 or fy > TILE - 1 or ly < fy:
+    fx = first_x - tile_x * TILE_SIZE
+    lx = last_x - tile_x * TILE_SIZE
+    fy = first_y - tile_y * TILE_SIZE
+    ly = last_y - tile_y * TILE_SIZE
+    if lx < 0 or fx > TILE_SIZE - 1 or lx < fx or ly < 0 or fy > TILE_SIZE - 1 or ly < fy:
         return 0
-    bfx = wp.clamp(fx, 0, TILE - 1) / BLOCK
-    blx = wp.clamp(lx, 0, TILE - 1) / BLOCK
-    bfy = wp.clamp(fy, 0, TILE - 1) / BLOCK
-    bly = wp.clamp(ly, 0, TILE - 1) / BLOCK
+    bfx = wp.clamp(fx, 0, TILE_SIZE - 1) / BLOCK_SIZE
+    blx = wp.clamp(lx, 0, TILE_SIZE - 1) / BLOCK_SIZE
+    bfy = wp.clamp(fy, 0, TILE_SIZE - 1) / BLOCK_SIZE
+    bly = wp.clamp(ly, 0, TILE_SIZE - 1) / BLOCK_SIZE
     row = (1 << (blx + 1)) - (1 << bfx)
     mask = int(0)
     for by in range(bfy, bly + 1):
-        mask = mask | (row << (BLOCK * by))
+        mask = mask | (row << (BLOCK_SIZE * by))
     return mask
 
 

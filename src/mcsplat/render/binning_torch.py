@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import torch
 
-from .binning import ALL_BLOCKS, BLOCK, TileBins
-from .project import TILE_SIZE
+from .binning import TileBins
+from .constants import ALL_BLOCKS, BLOCK_SIZE, TILE_SIZE
 
 
 def torch_bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.Tensor, radii: torch.Tensor,
@@ -69,11 +69,11 @@ def _block_masks(means2d: torch.Tensor, extent: torch.Tensor, tile_x: torch.Tens
     first = torch.ceil(means2d - extent - 0.5).clamp(-1e9, 1e9).long() - origin
     last = torch.floor(means2d + extent - 0.5).clamp(-1e9, 1e9).long() - origin
     empty = ((last < 0) | (first > TILE_SIZE - 1) | (last < first)).any(dim=-1)
-    block_first = first.clamp(0, TILE_SIZE - 1) // BLOCK
-    block_last = last.clamp(0, TILE_SIZE - 1) // BLOCK
+    block_first = first.clamp(0, TILE_SIZE - 1) // BLOCK_SIZE
+    block_last = last.clamp(0, TILE_SIZE - 1) // BLOCK_SIZE
     row = (1 << (block_last[:, 0] + 1)) - (1 << block_first[:, 0])  # bits block_first_x .. block_last_x
     masks = torch.zeros_like(row)
-    for by in range(TILE_SIZE // BLOCK):
+    for by in range(TILE_SIZE // BLOCK_SIZE):
         inside = (block_first[:, 1] <= by) & (by <= block_last[:, 1])
-        masks |= torch.where(inside, row << (BLOCK * by), torch.zeros_like(row))
+        masks |= torch.where(inside, row << (BLOCK_SIZE * by), torch.zeros_like(row))
     return torch.where(empty, torch.zeros_like(masks), masks)

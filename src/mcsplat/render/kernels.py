@@ -26,14 +26,8 @@ import functools
 
 import warp as wp
 
-TILE = 16
-PIXELS_PER_TILE = TILE * TILE
-ALPHA_MIN = 1.0 / 255.0
-ALPHA_MAX = 0.99
-TRANSMITTANCE_MIN = 1e-4
-# alpha = o exp(power) <= exp(power), so below ln(1/255) the alpha test fails for any opacity: skipping there saves
-# the exp for most of the list. The margin keeps the shortcut from deciding a case the exact test would not.
-POWER_SKIP = -5.5413 - 1e-3
+from .constants import (ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, PIXELS_PER_TILE, POWER_SKIP, TILE_SIZE,
+                        TRANSMITTANCE_MIN)
 
 
 @wp.func
@@ -41,9 +35,9 @@ def pixel_of_thread(t: int, first_tile: int, tiles_x: int):
     """(tile, pixel x, pixel y, bit of the pixel's 4x4 block) of thread t: 256 consecutive threads per tile."""
     tile = first_tile + t / PIXELS_PER_TILE
     local = t % PIXELS_PER_TILE
-    px = (tile % tiles_x) * TILE + local % TILE
-    py = (tile / tiles_x) * TILE + local / TILE
-    block_bit = 1 << ((local / TILE / 4) * 4 + (local % TILE) / 4)
+    px = (tile % tiles_x) * TILE_SIZE + local % TILE_SIZE
+    py = (tile / tiles_x) * TILE_SIZE + local / TILE_SIZE
+    block_bit = 1 << ((local / TILE_SIZE / BLOCK_SIZE) * BLOCK_SIZE + (local % TILE_SIZE) / BLOCK_SIZE)
     return tile, px, py, block_bit
 
 

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import torch
 
-from .binning import TileBins
-from .cpu import run as simd
-from .kernels import PIXELS_PER_TILE, composite_kernels
-from .runtime import (cpu_threads, ensure_warp, num_workers_for, run_bands, set_cpu_threads, warp_scalar,
+from ..compute.runtime import (cpu_threads, ensure_warp, num_workers_for, run_bands, set_cpu_threads, warp_scalar,
                       warp_view)
+from .binning import TileBins
+from .constants import PIXELS_PER_TILE
+from .cpu import run as simd
+from .kernels import composite_kernels
 
 __all__ = ["CompositeFunction", "set_cpu_kernels", "cpu_kernels", "ensure_warp", "set_cpu_threads", "cpu_threads"]
 
@@ -33,19 +34,20 @@ def cpu_kernels() -> str:
     return _cpu_kernels
 
 
-def _uses_simd(tensor: torch.Tensor) -> bool:
-    return tensor.device.type == "cpu" and tensor.dtype == torch.float32 and _cpu_kernels == "simd"
+def _uses_simd(tensor: torch.Tensor, kernels: str | None) -> bool:
+    return tensor.device.type == "cpu" and tensor.dtype == torch.float32 and (kernels or _cpu_kernels) == "simd"
 
 
 class CompositeFunction(torch.autograd.Function):
     """(means2d, conics, opacities, colors, depths) -> (rgb [H,W,3], alpha [H,W], accumulated depth [H,W],
-    contributed [N] bool). Gradients flow to the five per-Gaussian inputs."""
+    contributed [N] bool). Gradients flow to the five per-Gaussian inputs. `cpu_kernels` ('simd' or 'scalar')
+    overrides set_cpu_kernels() for this call."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, background, bins: TileBins, width: int,
-                height: int):
+                height: int, cpu_kernels: str | None = None):
         ensure_warp()
-        ctx.simd = _uses_simd(means2d)
+        ctx.simd = _uses_simd(means2d, cpu_kernels)
         inputs = [t.detach().contiguous() for t in (means2d, conics, opacities, colors, depths, background)]
         if ctx.simd:
             records = simd.pack_records(*inputs[:5])
@@ -76,7 +78,7 @@ class CompositeFunction(torch.autograd.Function):
                                    height)
         else:
             totals = _scalar_backward(saved, grads_in, bins, width, height)
-        return (*totals, None, None, None, None)
+        return (*totals, None, None, None, None, None)
 
 
 def _scalar_forward(inputs, bins: TileBins, width: int, height: int):

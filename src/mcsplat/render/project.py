@@ -13,10 +13,9 @@ from dataclasses import dataclass
 import torch
 
 from ..camera import Camera
-from .sh import eval_sh
-
-TILE_SIZE = 16
-ALPHA_THRESHOLD = 1.0 / 255.0
+from ..geometry.rotation import covariance_3d
+from ..geometry.sh import eval_sh
+from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
 
 
 @dataclass
@@ -32,24 +31,9 @@ class Projection:
     alpha_extent: torch.Tensor  # [N, 2] half-size in pixels of the box outside which alpha < 1/255 (0: never)
 
 
-def quaternion_to_rotation(quats: torch.Tensor) -> torch.Tensor:
-    """Unit-normalised (w, x, y, z) quaternions [N, 4] -> rotation matrices [N, 3, 3]."""
-    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(-1, 3, 3)
-
-
-def covariance_3d(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """Sigma = R S S^T R^T from quaternions [N, 4] and (activated) scales [N, 3] -> [N, 3, 3]."""
-    m = quaternion_to_rotation(quats) * scales[:, None, :]
-    return m @ m.transpose(1, 2)
-
-
 def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
-                      camera: Camera, *, near: float = 0.01, far: float = 1e10, eps2d: float = 0.3,
+                      camera: Camera, *, near: float = NEAR_PLANE, far: float = FAR_PLANE,
+                      eps2d: float = LOW_PASS,
                       opacity_aware_radius: bool = False) -> Projection:
     dtype, device = means.dtype, means.device
     w2c = camera.world_to_camera.to(device=device, dtype=dtype)
@@ -138,3 +122,13 @@ def view_dependent_colors(means: torch.Tensor, sh: torch.Tensor, camera: Camera,
     center = camera.center.to(device=means.device, dtype=means.dtype)
     dirs = torch.nn.functional.normalize(means - center, dim=-1)
     return torch.clamp_min(eval_sh(sh_degree, sh, dirs) + 0.5, 0.0)
+
+
+def project_and_shade_torch(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
+                            sh: torch.Tensor, camera: Camera, sh_degree: int, *, sh_rest: torch.Tensor | None = None,
+                            **options) -> tuple[Projection, torch.Tensor]:
+    """The projection stage in torch, with project_kernel.project_and_shade's signature (the baseline render path)."""
+    if sh_rest is not None:
+        sh = torch.cat([sh, sh_rest], dim=1)
+    return (project_gaussians(means, quats, scales, opacities, camera, **options),
+            view_dependent_colors(means, sh, camera, sh_degree))

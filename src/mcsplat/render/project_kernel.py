@@ -17,10 +17,11 @@ import torch
 import warp as wp
 
 from ..camera import Camera
-from .covariance import rotation_function
-from .project import TILE_SIZE, Projection
-from .runtime import ensure_warp, run_ranges, warp_scalar
-from .sh import SH_C0, SH_C1, SH_C2, SH_C3
+from ..compute.runtime import ensure_warp, run_ranges, warp_scalar
+from ..geometry.covariance import rotation_function
+from ..geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
+from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
+from .project import Projection
 
 # Warp kernels read module constants only as plain numbers.
 SH_C2_0, SH_C2_1, SH_C2_2, SH_C2_3, SH_C2_4 = SH_C2
@@ -435,7 +436,7 @@ def _camera_arguments(camera: Camera, near: float, far: float, eps2d: float, sca
 
 def project_and_shade(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                       sh: torch.Tensor, camera: Camera, sh_degree: int, *, sh_rest: torch.Tensor | None = None,
-                      near: float = 0.01, far: float = 1e10, eps2d: float = 0.3,
+                      near: float = NEAR_PLANE, far: float = FAR_PLANE, eps2d: float = LOW_PASS,
                       opacity_aware_radius: bool = False) -> tuple[Projection, torch.Tensor]:
     """project_gaussians + view_dependent_colors of project.py in one kernel -> (Projection, colors [N, 3]).
 

@@ -14,9 +14,8 @@ from dataclasses import dataclass
 import torch
 
 from ..camera import Camera
-from .sh import eval_sh
-
-TILE = 16
+from ..geometry.sh import eval_sh
+from .constants import ALPHA_MAX, ALPHA_MIN, LOW_PASS, NEAR_PLANE, TILE_SIZE, TRANSMITTANCE_MIN
 
 
 @dataclass
@@ -29,7 +28,8 @@ class ReferenceResult:
 
 
 def reference_render(gaussians, camera: Camera, background=None, sh_degree: int | None = None, *,
-                     near: float = 0.01, eps2d: float = 0.3, opacity_aware_radius: bool = False) -> ReferenceResult:
+                     near: float = NEAR_PLANE, eps2d: float = LOW_PASS, opacity_aware_radius: bool = False
+                     ) -> ReferenceResult:
     means, quats, scales = gaussians.means, gaussians.quats, gaussians.scales
     opacities, sh = gaussians.opacities, gaussians.sh
     dtype, device = means.dtype, means.device
@@ -49,7 +49,7 @@ def reference_render(gaussians, camera: Camera, background=None, sh_degree: int 
     return ReferenceResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=radii)
 
 
-def reference_project(means, quats, scales, opacities, camera: Camera, *, near=0.01, eps2d=0.3,
+def reference_project(means, quats, scales, opacities, camera: Camera, *, near=NEAR_PLANE, eps2d=LOW_PASS,
                       opacity_aware_radius=False):
     """Per-Gaussian 2D mean, conic, depth, pixel radius and tile rectangle, written out matrix by matrix."""
     dtype, device = means.dtype, means.device
@@ -95,9 +95,9 @@ def reference_project(means, quats, scales, opacities, camera: Camera, *, near=0
             lam = 0.5 * (a + c) + math.sqrt(max(0.1, 0.25 * (a - c) ** 2 + b * b))
             radius = math.ceil(k * math.sqrt(lam))
             mx, my = (float(v) for v in mean2d.detach())
-            tiles = (math.ceil(W / TILE), math.ceil(H / TILE))
-            lo = tuple(min(max(math.floor((m - radius) / TILE), 0), t) for m, t in zip((mx, my), tiles))
-            hi = tuple(min(max(math.floor((m + radius) / TILE) + 1, 0), t) for m, t in zip((mx, my), tiles))
+            tiles = (math.ceil(W / TILE_SIZE), math.ceil(H / TILE_SIZE))
+            lo = tuple(min(max(math.floor((m - radius) / TILE_SIZE), 0), t) for m, t in zip((mx, my), tiles))
+            hi = tuple(min(max(math.floor((m + radius) / TILE_SIZE) + 1, 0), t) for m, t in zip((mx, my), tiles))
             if radius == 0 or hi[0] <= lo[0] or hi[1] <= lo[1]:
                 radius, lo, hi = 0, (0, 0), (0, 0)
         out_means2d.append(mean2d)
@@ -133,17 +133,17 @@ def reference_composite(means2d, conics, opacities, colors, depths, radii, tile_
     dx = m[None, :, 0] - (px[:, None].to(dtype) + 0.5)   # [P, N]
     dy = m[None, :, 1] - (py[:, None].to(dtype) + 0.5)
     power = -0.5 * (q[None, :, 0] * dx ** 2 + q[None, :, 2] * dy ** 2) - q[None, :, 1] * dx * dy
-    alpha = torch.clamp(opacities[keep][None, :] * torch.exp(power), max=0.99)
-    tx, ty = (px // TILE)[:, None], (py // TILE)[:, None]
+    alpha = torch.clamp(opacities[keep][None, :] * torch.exp(power), max=ALPHA_MAX)
+    tx, ty = (px // TILE_SIZE)[:, None], (py // TILE_SIZE)[:, None]
     in_rect = ((tx >= tile_min[keep, 0][None]) & (tx < tile_max[keep, 0][None])
                & (ty >= tile_min[keep, 1][None]) & (ty < tile_max[keep, 1][None]))
-    used = in_rect & (power <= 0) & (alpha >= 1.0 / 255.0)
+    used = in_rect & (power <= 0) & (alpha >= ALPHA_MIN)
     alpha = torch.where(used, alpha, torch.zeros_like(alpha))
     # Early stop: a Gaussian counts only while the transmittance after it stays >= 1e-4. That test is monotone
     # along the list, so "included" is a prefix of the used Gaussians of each pixel.
     with torch.no_grad():
         t_after = torch.cumprod(1.0 - alpha, dim=1)
-        included = t_after >= 1e-4
+        included = t_after >= TRANSMITTANCE_MIN
     factors = torch.where(included, 1.0 - alpha, torch.ones_like(alpha))
     t_before = torch.cat([torch.ones_like(factors[:, :1]), torch.cumprod(factors, dim=1)[:, :-1]], dim=1)
     weights = torch.where(included, alpha * t_before, torch.zeros_like(alpha))

@@ -17,6 +17,7 @@ from tqdm import tqdm
 from ..errors import MCSplatError
 from ..events import RunFinished, Subscriber
 from ..io.atomic import atomic_write, atomic_write_text
+from ..run_dir import RunDir
 from . import plots
 from .runs import RunRecord, load_run
 
@@ -34,7 +35,7 @@ def grid_rows(run: RunRecord, test_views: Sequence, render_view: RenderView | No
         view = by_name.get(name)
         if view is None:
             continue
-        saved = run.path / "renders" / "test" / f"{Path(name).stem}.png"
+        saved = RunDir(run.path).render_file("test", name)
         if saved.is_file():
             rendered = np.asarray(Image.open(saved).convert("RGB"))
         elif render_view is not None:
@@ -68,12 +69,13 @@ def make_report(run_dirs: Sequence[Path], out: Path | None = None, test_views: S
             names = ", ".join(f"{name} {value:.2f} dB" for name, value, _, _ in rows)
             figures.append(("test_views", f"Test views, worst PSNR first ({names}): render (left) and ground truth "
                             f"(right)", plots.view_grid(rows)))
+    folder = RunDir(out)  # a run folder, or a comparison's folder laid out the same way
     for name, _, png in figures:
-        atomic_write(out / "plots" / f"{name}.png", lambda tmp, data=png: tmp.write_bytes(data))
+        atomic_write(folder.plots_folder / f"{name}.png", lambda tmp, data=png: tmp.write_bytes(data))
     title = f"mcsplat report: {runs[0].name}" if len(runs) == 1 else "mcsplat comparison: " + \
         " vs ".join(run.name for run in runs)
     from .page import render_page
-    page = out / "report.html"
+    page = folder.report_file
     atomic_write_text(page, render_page(title, runs, figures))
     return page
 
@@ -97,14 +99,14 @@ class ReportWriter(Subscriber):
     def _write(self, event: RunFinished) -> Path:
         import torch
 
+        from ..evaluation import png_pixels
         from ..render import render
 
         run = event.run
 
         @torch.no_grad()
         def render_view(view) -> np.ndarray:
-            image = render(run.model, view.camera.to(run.device), run.background,
-                           event.metrics["sh_degree"]).rgb.clamp(0, 1)
-            return (image * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+            return png_pixels(render(run.model, view.camera.to(run.device), run.background,
+                                     event.metrics["sh_degree"]).rgb)
 
         return make_report([run.run_dir], test_views=run.scene.test, render_view=render_view)

@@ -11,9 +11,8 @@ import numpy as np
 import torch
 
 from ..errors import MCSplatError
-from ..io.checkpoint import load_checkpoint
-
-DEAD_OPACITY = 0.005  # as trainer.DEAD_OPACITY: Gaussians at or below it are dead (relocated by MCMC)
+from ..gaussians import DEAD_OPACITY
+from ..run_dir import RunDir
 
 
 @dataclass
@@ -51,16 +50,14 @@ def read_log(path: Path) -> list[dict]:
 
 
 def load_run(path: Path) -> RunRecord:
-    path = Path(path)
-    config_path, checkpoint = path / "config.json", path / "checkpoint.pt"
-    if not config_path.is_file() or not checkpoint.is_file():
-        raise MCSplatError(f"{path}: not a run directory (needs config.json and checkpoint.pt); "
-                           f"train one with `mcsplat train DATA --out {path}`")
-    metrics_path = path / "metrics.json"
-    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
-    model = load_checkpoint(checkpoint)["model"]  # GaussianModel.state_dict(): "params.<name>"
+    run = RunDir(path)
+    if not run.config_file.is_file() or not run.checkpoint_file.is_file():
+        raise MCSplatError(f"{run.path}: not a run directory (needs {run.config_file.name} and "
+                           f"{run.checkpoint_file.name}); train one with `mcsplat train DATA --out {run.path}`")
+    metrics = run.read_metrics()
+    model = run.read_checkpoint()["model"]  # GaussianModel.state_dict(): "params.<name>"
     opacities = torch.sigmoid(model["params.opacity_logits"].float()).numpy()
     max_scales = torch.exp(model["params.log_scales"].float().max(dim=1).values).numpy()
-    return RunRecord(path=path, name=path.resolve().name, config=json.loads(config_path.read_text()),
-                     metrics=metrics, log=read_log(path / "log.jsonl"), opacities=opacities, max_scales=max_scales,
+    return RunRecord(path=run.path, name=run.path.resolve().name, config=json.loads(run.config_file.read_text()),
+                     metrics=metrics, log=read_log(run.log_file), opacities=opacities, max_scales=max_scales,
                      per_view_psnr=metrics.get("per_view_psnr", {}))

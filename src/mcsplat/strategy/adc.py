@@ -1,9 +1,8 @@
 """The adaptive density control of 3DGS (Kerbl et al. 2023): the baseline the MCMC paper compares against.
 
 - After every backward (`step_post_backward`, while step < densify_stop): for every visible Gaussian, accumulate the
-  norm of its screen-space position gradient, and track its largest screen radius. The gradient is taken in the
-  units of 3DGS's threshold: render_result.means2d.grad is per pixel, and 3DGS's rasterizer reports it per NDC unit,
-  i.e. x multiplied by width / 2 and y by height / 2.
+  norm of its screen-space position gradient in NDC units (strategy/screen_gradients.py, shared with MCMC's
+  automatic cap), and track its largest screen radius.
 - Every densify_every steps with densify_start < step < densify_stop (0-based; steps 600..14900 by default), with
   g the mean accumulated gradient since the last densification:
   * clone the Gaussians with g >= grad_threshold whose largest scale is <= percent_dense R (an identical copy);
@@ -35,12 +34,12 @@ from typing import Any, Mapping
 import torch
 
 from ..gaussians import PARAM_KEYS, GaussianModel
+from ..geometry.rotation import quaternion_to_rotation
 from ..optim import append_rows, remove_rows, set_rows, zero_moments
-from ..render.project import quaternion_to_rotation
-from .base import ALONE
-from .screen_gradients import ndc_gradient_norms
+from .base import ALONE, RefineReport
+from .screen_gradients import ScreenGradients
 
-__all__ = ["ADCConfig", "ADCStrategy"]
+__all__ = ["ADCConfig", "ADCStrategy", "ADCReport"]
 
 Optimizers = Mapping[str, torch.optim.Optimizer]
 
@@ -86,6 +85,16 @@ class ADCConfig:
             self.cap_max = int(self.cap_max)
 
 
+@dataclass(frozen=True)
+class ADCReport(RefineReport):
+    """What ADC did after one optimizer step."""
+
+    cloned: int = 0
+    split: int = 0
+    pruned: int = 0
+    reset: bool = False  # opacities were reset (counted as 1)
+
+
 class ADCStrategy:
     """3DGS adaptive density control behind the Strategy protocol (mcsplat.strategy.base)."""
 
@@ -96,24 +105,21 @@ class ADCStrategy:
         self.config = config or ADCConfig()
         self.scene_radius = scene_radius
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
-        self.grad_accum: torch.Tensor | None = None   # [N] sum of NDC gradient norms since the last densification
-        self.grad_count: torch.Tensor | None = None   # [N] number of views in which the Gaussian was visible
-        self.max_radii: torch.Tensor | None = None    # [N] largest screen radius (pixels) since then
+        self.gradients = ScreenGradients()          # NDC gradient norms and view counts since the last densification
+        self.max_radii: torch.Tensor | None = None  # [N] largest screen radius (pixels) since then
         self.collective = ALONE  # several processes: each gathers statistics from its own views
 
     # --------------------------------------------------------------------------------------------- statistics
     def _reset_stats(self, n: int, device: torch.device) -> None:
-        self.grad_accum = torch.zeros(n, dtype=torch.float32, device=device)
-        self.grad_count = torch.zeros(n, dtype=torch.int32, device=device)
+        self.gradients.reset(n, device)
         self.max_radii = torch.zeros(n, dtype=torch.float32, device=device)
 
     def _ensure_stats(self, model: GaussianModel) -> None:
         n, device = model.num_gaussians, model.means.device
-        if self.grad_accum is None or self.grad_accum.shape[0] != n:
+        if self.max_radii is None or self.max_radii.shape[0] != n:
             self._reset_stats(n, device)
-        elif self.grad_accum.device != device:
-            self.grad_accum = self.grad_accum.to(device)
-            self.grad_count = self.grad_count.to(device)
+        elif self.max_radii.device != device:
+            self.gradients.to(device)
             self.max_radii = self.max_radii.to(device)
 
     def is_densify_step(self, step: int) -> bool:
@@ -135,53 +141,50 @@ class ADCStrategy:
                            height: int) -> None:
         if step >= self.config.densify_stop or model.num_gaussians == 0:
             return
-        visible, norms = ndc_gradient_norms(render_result, model.num_gaussians, width, height)
         self._ensure_stats(model)
+        visible = self.gradients.add(render_result, model.num_gaussians, width, height)
         radii = render_result.radii
-        self.grad_accum[visible] += norms.to(self.grad_accum.dtype)
-        self.grad_count[visible] += 1
         self.max_radii[visible] = torch.maximum(self.max_radii[visible], radii[visible].to(self.max_radii.dtype))
 
     @torch.no_grad()
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Optimizers,
-                            means_lr: float) -> dict:
-        info: dict[str, Any] = {"cloned": 0, "split": 0, "pruned": 0, "reset": False}
+                            means_lr: float) -> ADCReport:
+        counts: dict[str, int] = {}
         if self.is_densify_step(step):
-            info.update(self._densify_and_prune(step, model, optimizers))
-        if self.is_reset_step(step):
+            counts = self._densify_and_prune(step, model, optimizers)
+        reset = self.is_reset_step(step)
+        if reset:
             self._reset_opacity(model, optimizers)
-            info["reset"] = True
-        info["num_gaussians"] = model.num_gaussians
-        return info
+        return ADCReport(num_gaussians=model.num_gaussians, reset=reset, **counts)
 
     def state_dict(self) -> dict:
-        return {"strategy": "adc", "config": asdict(self.config),
-                "grad_accum": None if self.grad_accum is None else self.grad_accum.clone(),
-                "grad_count": None if self.grad_count is None else self.grad_count.clone(),
+        return {"strategy": "adc", "config": asdict(self.config), "gradients": self.gradients.state_dict(),
                 "max_radii": None if self.max_radii is None else self.max_radii.clone()}
 
     def load_state_dict(self, state: dict) -> None:
         if state.get("strategy") != "adc":
             raise ValueError(f"this is not an ADC strategy state (strategy={state.get('strategy')!r})")
-        tensors = [state.get(name) for name in ("grad_accum", "grad_count", "max_radii")]
+        gradients, max_radii = state.get("gradients") or {}, state.get("max_radii")
+        tensors = [gradients.get("total"), gradients.get("views"), max_radii]
         if any(t is None for t in tensors):
-            self.grad_accum = self.grad_count = self.max_radii = None
+            self.gradients.load_state_dict({})
+            self.max_radii = None
             return
         if len({t.shape for t in tensors}) != 1:
             raise ValueError("ADC state: the accumulators have different lengths")
-        self.grad_accum, self.grad_count, self.max_radii = (t.clone() for t in tensors)
+        self.gradients.load_state_dict(gradients)
+        self.max_radii = max_radii.clone()
 
     # ----------------------------------------------------------------------------------------- densification
     def _densify_and_prune(self, step: int, model: GaussianModel, optimizers: Optimizers) -> dict:
         c = self.config
         self._ensure_stats(model)
-        self.collective.sum_(self.grad_accum)  # the statistics of every process's views, as one batch would give
-        self.collective.sum_(self.grad_count)
+        self.collective.sum_(self.gradients.total)  # the statistics of every process's views, as one batch gives
+        self.collective.sum_(self.gradients.views)
         self.collective.max_(self.max_radii)
         n = model.num_gaussians
         device = model.means.device
-        grads = torch.where(self.grad_count > 0, self.grad_accum / self.grad_count.clamp(min=1),
-                            torch.zeros_like(self.grad_accum))
+        grads = self.gradients.means()
         max_scale = model.scales.detach().max(dim=1).values
         candidates = grads >= c.grad_threshold
         if c.cap_max is not None:

@@ -6,22 +6,24 @@ Per training step the trainer calls, in this order:
     loss.backward()
     strategy.step_post_backward(step, model, render_result, width, height)
     for each optimizer: optimizer.step(); optimizer.zero_grad(set_to_none=True)
-    info = strategy.step_post_optimizer(step, model, optimizers, means_lr)
+    report = strategy.step_post_optimizer(step, model, optimizers, means_lr)
 
-Steps are 0-based. A strategy's `collective` attribute (ALONE by default) is how it agrees with the other processes
-when several train one model (mcsplat.distributed). Strategies may replace the model's Parameters (through mcsplat.optim), so the trainer must read
-parameters through the model after each step rather than keep references to them.
+Steps are 0-based; the report says what the strategy did (RefineReport). A strategy's `collective` attribute (ALONE
+by default) is how it agrees with the other processes when several train one model (mcsplat.distributed).
+Strategies may replace the model's Parameters (through mcsplat.optim), so the trainer must read parameters through
+the model after each step rather than keep references to them.
 """
 
 from __future__ import annotations
 
-from typing import Any, Mapping, Protocol, runtime_checkable
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar, Mapping, Protocol, runtime_checkable
 
 import torch
 
 from ..gaussians import GaussianModel
 
-__all__ = ["Strategy", "Collective", "ALONE"]
+__all__ = ["Strategy", "Collective", "ALONE", "RefineReport", "changed"]
 
 
 class Collective(Protocol):
@@ -57,6 +59,29 @@ class _Alone:
 ALONE: Collective = _Alone()
 
 
+@dataclass(frozen=True)
+class RefineReport:
+    """What a strategy did after one optimizer step. Each strategy subclasses it with its own named counts (int
+    fields); the fields named in LEVELS describe a state rather than count events."""
+
+    num_gaussians: int  # after the step
+    LEVELS: ClassVar[tuple[str, ...]] = ()
+
+    def counts(self) -> dict[str, int]:
+        """Gaussians changed this step, by what happened (a log record sums them over its steps)."""
+        return {f.name: int(getattr(self, f.name)) for f in fields(self)
+                if f.name != "num_gaussians" and f.name not in self.LEVELS}
+
+    def levels(self) -> dict[str, int]:
+        """The levels measured at this step (a log record keeps the last one)."""
+        return {name: getattr(self, name) for name in self.LEVELS if getattr(self, name) is not None}
+
+
+def changed(report: RefineReport) -> bool:
+    """Whether the step did anything worth an event: a non-zero count or a level measured."""
+    return any(report.counts().values()) or any(report.levels().values())
+
+
 @runtime_checkable
 class Strategy(Protocol):
     def regularization(self, model: GaussianModel) -> torch.Tensor:
@@ -69,8 +94,8 @@ class Strategy(Protocol):
         ...
 
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Mapping[str, torch.optim.Optimizer],
-                            means_lr: float) -> dict:
-        """After the Adam steps: densify / relocate / add noise as due; returns a small dict of counts."""
+                            means_lr: float) -> RefineReport:
+        """After the Adam steps: densify / relocate / add noise as due; says what it did."""
         ...
 
     def state_dict(self) -> dict:

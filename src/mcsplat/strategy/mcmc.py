@@ -6,12 +6,12 @@ Per step, after the Adam steps (`step_post_optimizer`), in gsplat's order (since
    600, 700, ..., 24900 with the defaults):
    a. if there are more than cap_max Gaussians, remove the least opaque ones down to cap_max (not in the official
       code nor in gsplat; gsplat #516 / PR #939 - an SfM init larger than the cap, or a smaller cap on resume);
-   b. relocate the dead Gaussians onto live ones (SPEC section 5);
-   c. grow by 5% up to cap_max (SPEC section 6); with auto_cap, by at most the number of Gaussians whose screen
+   b. relocate the dead Gaussians onto live ones (docs/method.md, "Relocation of dead Gaussians");
+   c. grow by 5% up to cap_max ("Growth"); with auto_cap, by at most the number of Gaussians whose screen
       gradient asks for more (strategy/auto_cap.py), so that the count stops where the scene needs no more;
-2. add the SGLD noise to the positions (SPEC section 4), on every step, with the learning rate the caller passes.
+2. add the SGLD noise to the positions ("SGLD position noise"), on every step, with the learning rate the caller passes.
 
-How the official code (ubc-vision/3dgs-mcmc, SPEC sections 2 and 13) differs:
+How the official code (ubc-vision/3dgs-mcmc) differs (docs/method.md, "One training step" and the table at its end):
 - its iterations are 1-based: it relocates at iterations 600..24900 (500 < it < 25000, it % 100 == 0) *before*
   that iteration's optimizer step, i.e. after 599 Adam updates; here (and in gsplat) the 0-based step 600 relocates
   after its own Adam step, i.e. after 601 updates;
@@ -20,7 +20,7 @@ How the official code (ubc-vision/3dgs-mcmc, SPEC sections 2 and 13) differs:
 - its noise uses the learning rate of the current iteration, set before the step; gsplat's uses the rate after the
   scheduler step. Here the caller chooses (`means_lr`);
 - it clamps the number of copies at 50 (gsplat: 51, the default here), and crashes when no Gaussian is alive
-  (gsplat #1027) or above 2^24 Gaussians (torch.multinomial, gsplat #338); neither happens here (SPEC section 15).
+  (gsplat #1027) or above 2^24 Gaussians (torch.multinomial, gsplat #338); neither happens here.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, ClassVar, Mapping
 
 import torch
 
@@ -36,14 +36,14 @@ from ..gaussians import PARAM_KEYS, GaussianModel
 from ..optim import append_rows, copy_rows, remove_rows, set_rows, zero_moments
 from .auto_cap import (DEFAULT_DEMAND_SHARE, DEFAULT_DEMAND_THRESHOLD, DEFAULT_GAUSSIANS_PER_PIXEL, growth_demand,
                        pixel_ceiling)
-from .base import ALONE
+from .base import ALONE, RefineReport
 from .relocation import DEFAULT_MAX_COPIES, relocation_params, sample_by_weight
 from .screen_gradients import ScreenGradients
 
-__all__ = ["MCMCConfig", "MCMCStrategy", "inject_noise", "noise_gate", "relocate_dead", "grow", "prune_to_cap",
-           "NOISE_GATE_K", "NOISE_GATE_CENTER"]
+__all__ = ["MCMCConfig", "MCMCStrategy", "MCMCReport", "inject_noise", "noise_gate", "relocate_dead", "grow",
+           "prune_to_cap", "NOISE_GATE_K", "NOISE_GATE_CENTER"]
 
-# SPEC section 4: gate(o) = sigmoid(-k (o - t)), k = 100, t = 0.005 (the code's version, not the paper's t = 0.995).
+# The noise gate sigmoid(-k (o - t)), k = 100, t = 0.005: the official code's, not the paper's printed t = 0.995.
 NOISE_GATE_K = 100.0
 NOISE_GATE_CENTER = 0.005
 
@@ -57,7 +57,7 @@ def _as_drawn(indices: torch.Tensor) -> torch.Tensor:
 
 @dataclass
 class MCMCConfig:
-    """The paper's defaults (SPEC sections 3-7, 11)."""
+    """The paper's defaults (docs/method.md)."""
 
     cap_max: int = 1_000_000        # the largest number of Gaussians (per scene in the official configs)
     noise_lr: float = 5e5           # lambda_noise
@@ -102,13 +102,13 @@ class MCMCConfig:
 
 # --------------------------------------------------------------------------------------------------- the pieces
 def noise_gate(opacities: torch.Tensor) -> torch.Tensor:
-    """sigmoid(-100 (o - 0.005)): about 0.5 at o = 0.005, 0.011 at 0.05, ~3e-22 at 0.5 (SPEC section 4)."""
+    """sigmoid(-100 (o - 0.005)): about 0.5 at o = 0.005, 0.011 at 0.05, ~3e-22 at 0.5."""
     return torch.sigmoid(-NOISE_GATE_K * (opacities - NOISE_GATE_CENTER))
 
 
 @torch.no_grad()
 def inject_noise(model: GaussianModel, factor: float, generator: torch.Generator) -> None:
-    """means += factor * gate(o) * Sigma @ eta, eta ~ N(0, I3) (SPEC section 4, Eqs. 7-8).
+    """means += factor * gate(o) * Sigma @ eta, eta ~ N(0, I3) (the paper's Eqs. 7-8).
 
     `factor` is lambda_noise x the current position learning rate. Sigma is the full covariance (not its square
     root). Only the positions change, in place, bypassing the optimizer: its state is untouched.
@@ -125,7 +125,7 @@ def inject_noise(model: GaussianModel, factor: float, generator: torch.Generator
 
 def _apply_eq9(model: GaussianModel, sources: torch.Tensor, min_opacity: float,
                max_copies: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """New opacity logits and log-scales for the sampled `sources` (SPEC 5.3-5.4): N = times sampled + 1."""
+    """New opacity logits and log-scales for the sampled `sources` (Eq. 9): N = times sampled + 1."""
     counts = torch.bincount(sources, minlength=model.num_gaussians)[sources] + 1
     opacities, scales = relocation_params(model.opacities.detach()[sources], model.scales.detach()[sources],
                                           counts, n_max=max_copies, min_opacity=min_opacity)
@@ -142,7 +142,7 @@ def _no_alive_warning(min_opacity: float, what: str) -> None:
 def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch.Generator, *,
                   min_opacity: float = 0.005,
                   max_copies: int = DEFAULT_MAX_COPIES, agree: Agree = _as_drawn) -> tuple[torch.Tensor, torch.Tensor]:
-    """Move the dead Gaussians (opacity <= min_opacity) onto live ones (SPEC section 5).
+    """Move the dead Gaussians (opacity <= min_opacity) onto live ones (docs/method.md, "Relocation of dead Gaussians").
 
     Sources are drawn from the live Gaussians with replacement, with probability proportional to opacity. Every dead
     slot takes its source's position, rotation and colour; the source and its copies all get the Eq. 9 opacity and
@@ -161,7 +161,7 @@ def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch
     if alive.numel() == 0:
         _no_alive_warning(min_opacity, "relocation")
         return empty, empty
-    # All sampling happens before Eq. 9 changes anything (SPEC section 5).
+    # All sampling happens before Eq. 9 changes anything.
     sources = agree(alive[sample_by_weight(opacities[alive], num_dead, generator)])
     slots = torch.nonzero(dead)[:, 0]
     logits, log_scales = _apply_eq9(model, sources, min_opacity, max_copies)
@@ -177,7 +177,7 @@ def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch
 def grow(model: GaussianModel, optimizers: Optimizers, generator: torch.Generator, *, cap_max: int,
          grow_rate: float = 1.05, min_opacity: float = 0.005, max_copies: int = DEFAULT_MAX_COPIES,
          agree: Agree = _as_drawn) -> torch.Tensor:
-    """Append min(cap_max, int(grow_rate N)) - N copies of Gaussians drawn by opacity (SPEC section 6).
+    """Append min(cap_max, int(grow_rate N)) - N copies of Gaussians drawn by opacity (docs/method.md, "Growth").
 
     The sources and the appended copies (the last rows, in the order of the returned source indices) get the Eq. 9
     opacity and scale; the copies have zero Adam moments and the sources' moments are zeroed. Note that
@@ -215,6 +215,17 @@ def prune_to_cap(model: GaussianModel, optimizers: Optimizers, cap_max: int) -> 
 
 
 # ------------------------------------------------------------------------------------------------- the strategy
+@dataclass(frozen=True)
+class MCMCReport(RefineReport):
+    """What MCMC did after one optimizer step."""
+
+    relocated: int = 0
+    added: int = 0
+    pruned: int = 0
+    demand: int | None = None  # --cap-max auto: D at this refine step (None: not measured at this step)
+    LEVELS: ClassVar[tuple[str, ...]] = ("demand",)
+
+
 class MCMCStrategy:
     """The paper's method behind the Strategy protocol (mcsplat.strategy.base)."""
 
@@ -242,7 +253,8 @@ class MCMCStrategy:
         return c.refine_start < step < c.refine_stop and step % c.refine_every == 0
 
     def regularization(self, model: GaussianModel) -> torch.Tensor:
-        """opacity_reg mean(sigmoid(o)) + scale_reg mean(exp(s)) (SPEC section 3: means of activated values)."""
+        """opacity_reg mean(sigmoid(o)) + scale_reg mean(exp(s)): means of the activated values, as the official
+        code (the paper's Eq. 10 writes sums)."""
         c = self.config
         if model.num_gaussians == 0:
             return model.means.new_zeros(())
@@ -256,39 +268,40 @@ class MCMCStrategy:
             self.gradients.add(render_result, model.num_gaussians, width, height)
 
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Optimizers,
-                            means_lr: float) -> dict:
+                            means_lr: float) -> MCMCReport:
         c = self.config
-        info: dict[str, Any] = {"relocated": 0, "added": 0, "pruned": 0}
+        counts: dict[str, Any] = {}
         if self.is_refine_step(step):
-            info["pruned"] = prune_to_cap(model, optimizers, c.cap_max)
+            counts["pruned"] = prune_to_cap(model, optimizers, c.cap_max)
             opacities = model.opacities.detach()
             if model.num_gaussians and not bool((opacities > c.min_opacity).any()):
                 warnings.warn(f"MCMC step {step}: every Gaussian has opacity <= {c.min_opacity}, so there is "
                               f"nothing to copy from; relocation and growth skipped (gsplat #1027)", RuntimeWarning,
                               stacklevel=2)
             else:
-                cap = self._auto_cap(model, info) if c.auto_cap else c.cap_max
+                cap, counts["demand"] = self._auto_cap(model) if c.auto_cap else (c.cap_max, None)
                 slots, _ = relocate_dead(model, optimizers, self.generator, min_opacity=c.min_opacity,
                                          max_copies=c.max_copies, agree=self.collective.agree)
                 added = grow(model, optimizers, self.generator, cap_max=cap, grow_rate=c.grow_rate,
                              min_opacity=c.min_opacity, max_copies=c.max_copies, agree=self.collective.agree)
-                info["relocated"], info["added"] = int(slots.numel()), int(added.numel())
+                counts["relocated"], counts["added"] = int(slots.numel()), int(added.numel())
             if c.auto_cap and self.chosen_cap is None:
                 self.gradients.reset(model.num_gaussians, model.means.device)
         inject_noise(model, c.noise_lr * means_lr, self.generator)
-        info["num_gaussians"] = model.num_gaussians
-        return info
+        return MCMCReport(num_gaussians=model.num_gaussians, **counts)
 
-    def _auto_cap(self, model: GaussianModel, info: dict) -> int:
-        """This refine step's cap under auto_cap: N + D while D >= demand_share N; from the first step where it is
-        not, the count of that step for the rest of the run; never above the ceiling."""
+    def _auto_cap(self, model: GaussianModel) -> tuple[int, int | None]:
+        """(this refine step's cap, the demand D measured, or None) under auto_cap: the cap is N + D while
+        D >= demand_share N; from the first step where it is not, the count of that step for the rest of the run;
+        never above the ceiling."""
         n = model.num_gaussians
-        if self.chosen_cap is None:
-            info["demand"] = demand = self._growth_demand(model)
-            if demand >= self.config.demand_share * n:
-                return min(self.ceiling, n + demand)
-            self.chosen_cap = n
-        return min(self.ceiling, self.chosen_cap)
+        if self.chosen_cap is not None:
+            return min(self.ceiling, self.chosen_cap), None
+        demand = self._growth_demand(model)
+        if demand >= self.config.demand_share * n:
+            return min(self.ceiling, n + demand), demand
+        self.chosen_cap = n
+        return min(self.ceiling, self.chosen_cap), demand
 
     def _growth_demand(self, model: GaussianModel) -> int:
         """The automatic cap's D, from every process's views when several train together."""

@@ -1,4 +1,4 @@
-"""Eq. 9 of the paper (SPEC section 7) and opacity-proportional sampling.
+"""Eq. 9 of the paper (docs/method.md, "The opacity and scale of N copies") and opacity-proportional sampling.
 
 N identical, co-located copies of a Gaussian with opacity o and scale s should look like the original:
 
@@ -28,7 +28,7 @@ import torch
 __all__ = ["DEFAULT_MAX_COPIES", "MAX_OPACITY", "binomial_table", "relocation_coefficients", "relocation_params",
            "sample_by_weight"]
 
-DEFAULT_MAX_COPIES = 51                                  # gsplat's n_max; the official code clamps at 50 (SPEC 7)
+DEFAULT_MAX_COPIES = 51                                  # gsplat's n_max; the official code clamps at 50
 MAX_OPACITY = 1.0 - float(torch.finfo(torch.float32).eps)  # the official upper clamp, 1 - 1.19e-7
 _CHUNK = 1 << 16                                         # rows per float64 evaluation (bounds the temporary memory)
 
@@ -69,7 +69,7 @@ def relocation_params(opacities: torch.Tensor, scales: torch.Tensor, counts: tor
 
     `counts` is the total number of Gaussians sharing the source after the move (the source plus its copies); it is
     clamped to [1, n_max]. As in the official kernel, the new scale is computed from the unclamped new opacity, and
-    the opacity is clamped to [min_opacity, 1 - 1.19e-7] afterwards (SPEC sections 5.4 and 14). The source opacity is
+    the opacity is clamped to [min_opacity, 1 - 1.19e-7] afterwards. The source opacity is
     capped at 1 - 1.19e-7 before the maths (a float32 sigmoid can round to exactly 1, where the series cancels worst).
     """
     if n_max < 1 or n_max > 1000:

@@ -41,12 +41,19 @@ class ScreenGradients:
         self.views = torch.zeros(n, dtype=torch.int32, device=device)
 
     @torch.no_grad()
-    def add(self, render_result: Any, num_gaussians: int, width: int, height: int) -> None:
+    def add(self, render_result: Any, num_gaussians: int, width: int, height: int) -> torch.Tensor:
+        """Add one render's norms; returns which Gaussians it saw ([N] bool)."""
         visible, norms = ndc_gradient_norms(render_result, num_gaussians, width, height)
         if self.total is None or self.total.shape[0] != num_gaussians:
             self.reset(num_gaussians, visible.device)
         self.total[visible] += norms.to(self.total.dtype)
         self.views[visible] += 1
+        return visible
+
+    def to(self, device: torch.device) -> None:
+        """Move the sums to `device` (a checkpoint loads on the CPU)."""
+        if self.total is not None and self.total.device != device:
+            self.total, self.views = self.total.to(device), self.views.to(device)
 
     def means(self) -> torch.Tensor | None:
         """[N] mean norm over the views each Gaussian was seen in (0 where never seen), or None before any add."""

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import torch
 
+from .. import run_dir
 from ..errors import MCSplatError
 from ..gaussians import GaussianModel
 from ..io.ply import read_ply
@@ -16,18 +17,14 @@ from .server import ViewerServer
 
 def load_for_viewing(path: Path, device: torch.device):
     """(model, training cameras, background, scene radius) of a run directory or a .ply file."""
-    from ..trainer import background_of, load_trained
-
     if path.is_dir():
-        config, model, _ = load_trained(path, device)
-        from ..data import load_scene
+        run = run_dir.load(path, device)
         try:
-            scene = load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
-                               background=None if config.background == "auto" else config.background)
+            scene = run.scene
         except MCSplatError as error:
             warnings.warn(f"no training cameras shown: the scene cannot be loaded ({error})")
-            return model, [], (0.0, 0.0, 0.0), _radius_of(model)
-        return model, [v.camera for v in scene.train], background_of(config, scene), scene.radius
+            return run.model, [], (0.0, 0.0, 0.0), _radius_of(run.model)
+        return run.model, [v.camera for v in scene.train], run.background, scene.radius
     if path.suffix.lower() != ".ply":
         raise MCSplatError(f"{path}: give a run directory or a 3DGS .ply file")
     model = GaussianModel(**read_ply(path)).to(device)

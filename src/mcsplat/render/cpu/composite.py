@@ -27,7 +27,10 @@ from __future__ import annotations
 
 import warp as wp
 
-from ..kernels import ALPHA_MAX, ALPHA_MIN, POWER_SKIP, TRANSMITTANCE_MIN
+from ..constants import ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, POWER_SKIP, TILE_SIZE, TRANSMITTANCE_MIN
+
+# The tile bodies hold a tile as 16 blocks of 16 lanes: they are written for 16x16 tiles of 4x4 blocks.
+assert TILE_SIZE == 16 and BLOCK_SIZE == 4, "the SIMD tile body needs 16x16 tiles of 4x4 pixel blocks"
 
 RECORD_WIDTH = 10
 
@@ -72,7 +75,7 @@ _PRELUDE = f"""
     const int* ids = (const int*)gaussian_ids.data;
     const int* pair_masks_ = (const int*)pair_masks.data;
     const float* rows = (const float*)records.data;
-    const int tile_x0 = (tile % tiles_x) * 16, tile_y0 = (tile / tiles_x) * 16;
+    const int tile_x0 = (tile % tiles_x) * {TILE_SIZE}, tile_y0 = (tile / tiles_x) * {TILE_SIZE};
     vf lane_dx, lane_dy;  // pixel-centre offsets of the 16 lanes inside a 4x4 block
     vi lane_x, lane_y;
     for (int l = 0; l < 16; ++l) {{

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from ..binning import TileBins
-from ..runtime import num_workers_for, run_bands, warp_view
+from ...compute.runtime import num_workers_for, run_bands, warp_view
 from .composite import RECORD_WIDTH, composite_backward_simd, composite_forward_simd
 
 

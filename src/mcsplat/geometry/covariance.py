@@ -10,7 +10,7 @@ import functools
 import torch
 import warp as wp
 
-from .runtime import ensure_warp, run_ranges, warp_scalar
+from ..compute.runtime import ensure_warp, run_ranges, warp_scalar
 
 
 @functools.lru_cache(maxsize=None)

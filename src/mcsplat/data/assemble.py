@@ -1,0 +1,77 @@
+"""The part every loader shares: from the images it found and the cameras it read to a Scene.
+
+A loader resolves each image to a Frame (file, name, intrinsics at the size it is loaded at, pose, and the
+undistortion it needs, if any); `assemble` undistorts what needs it into the cache, puts the images behind one
+ImageStore, makes the Views, splits train and test, keeps the finite SfM points and writes the notes.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from mcsplat.data import undistort
+from mcsplat.data.image_store import ImageStore, store_note
+from mcsplat.data.poses import make_camera
+from mcsplat.data.scene import Background, Scene, View, make_scene, split_every
+
+
+@dataclass
+class Frame:
+    """One image as a loader resolved it."""
+
+    path: Path                  # the image file
+    name: str                   # the view's name (unique in the scene)
+    K: np.ndarray               # 3x3 intrinsics for the image at `size`
+    world_to_camera: np.ndarray  # 4x4, OpenCV axes
+    size: tuple[int, int]       # (width, height) the image is loaded at
+    undistort: undistort.Job | None = None  # a distorted image: undistorted into the cache, then loaded
+
+
+@dataclass
+class Points:
+    """SfM points as read: float coordinates [P, 3] and uint8 RGB colours [P, 3], and where they came from."""
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    source: str  # the file (or folder) named when points are dropped
+
+
+def assemble(frames: Sequence[Frame], *, kind: str, root: Path, background: Background, test_every: int = 8,
+             train_count: int | None = None, points: Points | None = None, notes: Sequence[str] = ()) -> Scene:
+    """The Scene of `frames`: with `train_count`, the first train_count frames are the training views and the rest
+    the test views (a scene's own split); otherwise every `test_every`-th frame is a test view."""
+    paths = [frame.path for frame in frames]
+    jobs = [frame.undistort for frame in frames if frame.undistort is not None]
+    notes = list(notes)
+    if jobs:
+        cached = iter(undistort.undistort_to_cache(jobs, background))
+        paths = [next(cached) if frame.undistort is not None else path for frame, path in zip(frames, paths)]
+        models = sorted({job.camera.model.name for job in jobs})
+        notes.append(f"{len(jobs)} images with {'/'.join(models)} cameras undistorted to PINHOLE (cached in "
+                     f"{undistort.cache_root()})")
+    store = ImageStore(paths, [frame.size for frame in frames], background)
+    views = [View(camera=make_camera(frame.K, frame.world_to_camera, *frame.size), image=store.handle(i),
+                  name=frame.name) for i, frame in enumerate(frames)]
+    if train_count is None:
+        train, test = split_every(views, test_every)
+    else:
+        train, test = views[:train_count], views[train_count:]
+    notes += store_note(store)
+    xyz, rgb = _finite(points) if points is not None else (None, None)
+    return make_scene(train, test, xyz, rgb, background, kind, root, notes=notes)
+
+
+def _finite(points: Points) -> tuple[torch.Tensor, torch.Tensor]:
+    """The points without NaN/inf coordinates (warning when some are dropped), as float32 tensors in [0, 1]."""
+    finite = np.isfinite(points.xyz).all(axis=1)
+    if not finite.all():
+        warnings.warn(f"{points.source}: dropping {int((~finite).sum())} SfM points with NaN/inf coordinates",
+                      stacklevel=4)
+    return (torch.from_numpy(points.xyz[finite].astype(np.float32)),
+            torch.from_numpy(points.rgb[finite].astype(np.float32) / 255.0))

@@ -1,0 +1,209 @@
+"""A run folder: its layout, how a training run starts in it (new, resumed or refused), and how every other command
+reads a trained run back (`load`).
+
+    RUN/config.json          the resolved configuration (what --resume continues with)
+    RUN/checkpoint.pt        model, Adam state, strategy state, RNG states, step (written atomically)
+    RUN/log.jsonl            a record every 100 steps and at each periodic evaluation
+    RUN/metrics.json         the final (or last `mcsplat eval`) scores and counts
+    RUN/point_cloud.ply      the trained Gaussians, dead ones left out
+    RUN/renders/<split>/     the test renders as PNG (and `mcsplat render`'s output; <split>.mp4 its video)
+    RUN/report.html, plots/  the run report
+
+Only this module spells out these names; everything else asks a RunDir for them.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .config import PROCESS_OPTIONS, TrainConfig, load_config, save_config
+from .data import Scene, load_scene
+from .errors import MCSplatError
+from .gaussians import DEAD_OPACITY, GaussianModel
+from .io.atomic import atomic_write_text, remove_stale_temporaries
+from .io.checkpoint import load_checkpoint, save_checkpoint
+from .io.ply import write_ply
+from .schedule import final_sh_degree
+
+CONFIG = "config.json"
+CHECKPOINT = "checkpoint.pt"
+LOG = "log.jsonl"
+METRICS = "metrics.json"
+SPLATS = "point_cloud.ply"
+RENDERS = "renders"
+REPORT = "report.html"
+PLOTS = "plots"
+MARKERS = (CONFIG, CHECKPOINT, METRICS, SPLATS)  # any of them: the folder holds a run
+
+Background = tuple[float, float, float]
+
+
+class RunDir:
+    """The files of one run folder. Nothing here creates the folder but `prepare`."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self.config_file = self.path / CONFIG
+        self.checkpoint_file = self.path / CHECKPOINT
+        self.log_file = self.path / LOG
+        self.metrics_file = self.path / METRICS
+        self.splats_file = self.path / SPLATS
+        self.report_file = self.path / REPORT
+        self.plots_folder = self.path / PLOTS
+
+    def __repr__(self) -> str:
+        return f"RunDir({str(self.path)!r})"
+
+    def export_file(self, ending: str) -> Path:
+        """Where `mcsplat export` writes a format by default: point_cloud<ending> (".ply", ".spz", ...)."""
+        return self.path / (Path(SPLATS).stem + ending)
+
+    def renders_folder(self, split: str) -> Path:
+        return self.path / RENDERS / split
+
+    def video_file(self, split: str) -> Path:
+        """Where `mcsplat render --video` writes the loop through a split's cameras."""
+        return self.path / RENDERS / f"{split}.mp4"
+
+    def render_file(self, split: str, view_name: str) -> Path:
+        """Where a view's render is written: RUN/renders/<split>/<view's file stem>.png."""
+        return render_file(self.renders_folder(split), view_name)
+
+    def holds_run(self) -> bool:
+        return self.path.is_dir() and any((self.path / marker).exists() for marker in MARKERS)
+
+    # --------------------------------------------------------------------------------------------- reading
+    def read_config(self) -> TrainConfig:
+        if not self.config_file.is_file():
+            raise MCSplatError(f"{self.path}: not a run directory (no {CONFIG}); train one with `mcsplat train DATA`")
+        return load_config(self.config_file)
+
+    def read_checkpoint(self) -> dict[str, Any]:
+        return load_checkpoint(self.checkpoint_file)
+
+    def read_metrics(self) -> dict[str, Any]:
+        """metrics.json, or {} before the run has finished once."""
+        if not self.metrics_file.is_file():
+            return {}
+        try:
+            return json.loads(self.metrics_file.read_text())
+        except json.JSONDecodeError as error:
+            raise MCSplatError(f"{self.metrics_file}: not valid JSON ({error}); delete it and run `mcsplat eval "
+                               f"{self.path}` to write it again") from None
+
+    # --------------------------------------------------------------------------------------------- writing
+    def write_config(self, config: TrainConfig) -> None:
+        save_config(config, self.config_file)
+
+    def write_checkpoint(self, state: dict[str, Any]) -> None:
+        save_checkpoint(self.checkpoint_file, state)
+
+    def write_metrics(self, metrics: dict[str, Any]) -> None:
+        atomic_write_text(self.metrics_file, json.dumps(metrics, indent=2) + "\n")
+
+    def update_metrics(self, **values: Any) -> dict[str, Any]:
+        """metrics.json with `values` replaced (the other keys kept); returns what was written."""
+        metrics = {**self.read_metrics(), **values}
+        self.write_metrics(metrics)
+        return metrics
+
+    def export_splats(self, model: GaussianModel) -> int:
+        """point_cloud.ply: the standard 3DGS .ply without dead Gaussians; returns how many were written."""
+        return write_ply(self.splats_file, dict(model.params.items()), keep=alive(model))
+
+
+def render_file(folder: Path, view_name: str) -> Path:
+    """A view's render inside `folder`: the view's file stem as a PNG."""
+    return folder / f"{Path(view_name).stem}.png"
+
+
+def alive(model: GaussianModel) -> torch.Tensor:
+    """[N] bool: the Gaussians an export keeps (opacity above DEAD_OPACITY)."""
+    return model.opacities.detach() > DEAD_OPACITY
+
+
+# --------------------------------------------------------------------------------------------- starting a run
+def prepare(config: TrainConfig) -> TrainConfig:
+    """Make the run folder ready for `config` and return the configuration to train with: `config` itself for a
+    new run; on --resume the run's saved configuration with this command line's process options. A folder holding
+    a run is refused without --resume or --overwrite."""
+    run = RunDir(config.run_dir)
+    if run.path.exists() and not run.path.is_dir():
+        raise MCSplatError(f"--out {run.path}: exists and is not a directory")
+    if config.resume:
+        if not run.checkpoint_file.is_file():
+            raise MCSplatError(f"--resume: {run.path} has no {CHECKPOINT} to continue from")
+        # A run killed while writing its checkpoint leaves the half-written temporary beside it.
+        remove_stale_temporaries(run.checkpoint_file)
+    elif run.holds_run() and not config.overwrite:
+        raise MCSplatError(f"{run.path} already holds a run; pass --resume to continue it, --overwrite to replace "
+                           f"its files, or --out to choose another directory")
+    run.path.mkdir(parents=True, exist_ok=True)
+    if not config.resume:
+        return config
+    saved = run.read_config()
+    for key in PROCESS_OPTIONS:
+        setattr(saved, key, getattr(config, key))
+    saved.out, saved.resume = run.path, True  # where the run is now (the folder may have been moved)
+    return saved
+
+
+def check_resumable(config: TrainConfig, world_size: int) -> None:
+    if config.world_size != world_size:
+        raise MCSplatError(f"this run was trained with {config.world_size} process(es), its step schedules and "
+                           f"learning rates scaled for {config.world_size} views per step; resume it with the same "
+                           f"number of processes (torchrun --nproc-per-node ... x --nnodes ...)")
+
+
+# ------------------------------------------------------------------------------------------- the run's scene
+def scene_of(config: TrainConfig) -> Scene:
+    """The scene a run trains on, loaded as the run loads it."""
+    return load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
+                      background=None if config.background == "auto" else config.background)
+
+
+def background_of(config: TrainConfig, scene: Scene) -> Background:
+    if config.background == "auto":
+        return scene.background
+    return (1.0, 1.0, 1.0) if config.background == "white" else (0.0, 0.0, 0.0)
+
+
+# ------------------------------------------------------------------------------------------- a trained run
+@dataclass
+class TrainedRun:
+    """A finished (or stopped) run, read back from its folder: what eval, render, export, view and report need."""
+
+    folder: RunDir
+    config: TrainConfig
+    model: GaussianModel
+    step: int  # steps done
+    device: torch.device
+
+    @property
+    def sh_degree(self) -> int:
+        """The SH degree the model was last trained with."""
+        return final_sh_degree(self.config, self.step)
+
+    @functools.cached_property
+    def scene(self) -> Scene:
+        """The run's scene, loaded on first use (MCSplatError when its folder is gone or changed)."""
+        return scene_of(self.config)
+
+    @property
+    def background(self) -> Background:
+        return background_of(self.config, self.scene)
+
+
+def load(path: str | Path, device: torch.device) -> TrainedRun:
+    """The run in `path`: its configuration and the model of its checkpoint, on `device`."""
+    folder = RunDir(path)
+    config = folder.read_config()
+    state = folder.read_checkpoint()
+    model = GaussianModel.from_state_dict(state["model"]).to(device)
+    return TrainedRun(folder=folder, config=config, model=model, step=int(state["step"]), device=device)

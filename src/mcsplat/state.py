@@ -1,0 +1,114 @@
+"""What a training run carries from one step to the next, how it starts (fresh from the scene or restored from a
+checkpoint) and what a checkpoint holds of it.
+
+Restoring and continuing is exact on the CPU: the model, every Adam state, the strategy's statistics, the run's
+generator and the view order are all in the checkpoint, so a resumed run takes bit for bit the steps an
+uninterrupted one would have taken (same seed and thread count).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from .config import TrainConfig, to_jsonable
+from .data import Scene
+from .distributed import Team
+from .gaussians import GaussianModel
+from .initialization import initial_model
+from .optim import make_optimizers
+from .strategy import ADCStrategy, MCMCStrategy, Strategy
+
+
+class ViewSampler:
+    """Training views in random order, each once per pass (as 3DGS pops cameras from a shuffled copy)."""
+
+    def __init__(self, count: int, seed: int):
+        self.count = count
+        self.generator = torch.Generator().manual_seed(seed)
+        self.order: list[int] = []
+
+    def next(self) -> int:
+        if not self.order:
+            self.order = torch.randperm(self.count, generator=self.generator).tolist()
+        return self.order.pop()
+
+    def take(self, count: int) -> list[int]:
+        """The next `count` indices (one per process when several train together: each takes its own)."""
+        return [self.next() for _ in range(count)]
+
+    def upcoming(self, count: int) -> list[int]:
+        """The next `count` indices `next()` will return within this pass (fewer near its end), for prefetching."""
+        return self.order[-1:-count - 1:-1]
+
+    def state_dict(self) -> dict:
+        return {"generator": self.generator.get_state(), "order": list(self.order)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.generator.set_state(state["generator"])
+        self.order = list(state["order"])
+
+
+def make_strategy(config: TrainConfig, scene_radius: float, generator: torch.Generator,
+                  image_pixels: int | None = None) -> Strategy:
+    """image_pixels (a training image's, the median over them): the ceiling of MCMC's automatic cap."""
+    if config.strategy == "mcmc":
+        return MCMCStrategy(config.mcmc, scene_radius, generator, image_pixels)
+    return ADCStrategy(config.adc, scene_radius, generator)
+
+
+def training_image_pixels(scene: Scene) -> int:
+    """The median pixel count of the scene's training images."""
+    pixels = sorted(v.camera.width * v.camera.height for v in scene.train)
+    return pixels[len(pixels) // 2] if pixels else 0
+
+
+@dataclass
+class TrainingState:
+    model: GaussianModel
+    optimizers: dict[str, torch.optim.Optimizer]
+    strategy: Strategy
+    generator: torch.Generator  # relocation, growth and noise draw from it
+    sampler: ViewSampler
+    step: int = 0  # steps done
+    train_seconds: float = 0.0  # time spent in steps (pauses, evaluations and consumers not counted)
+
+    def checkpoint(self, config: TrainConfig, strategies: list[dict]) -> dict[str, Any]:
+        """What checkpoint.pt holds; `strategies` is every process's strategy state (rank 0's first)."""
+        return {"step": self.step, "train_seconds": self.train_seconds, "model": self.model.state_dict(),
+                "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
+                "strategy": strategies[0], "strategy_per_process": strategies if len(strategies) > 1 else None,
+                "generator": self.generator.get_state(), "sampler": self.sampler.state_dict(),
+                "config": to_jsonable(config)}
+
+
+def start(config: TrainConfig, scene: Scene, device: torch.device, team: Team,
+          checkpoint: dict[str, Any] | None = None) -> tuple[TrainingState, str]:
+    """(the state of step 0, or the one `checkpoint` holds; a note on where it came from). Every process calls it;
+    a fresh model is rank 0's on all of them."""
+    torch.manual_seed(config.seed)
+    generator = torch.Generator(device=device).manual_seed(config.seed)
+    sampler = ViewSampler(len(scene.train), config.seed)
+    radius, pixels = scene.radius, training_image_pixels(scene)
+    if checkpoint is None:
+        model, note = initial_model(config, scene, device, generator)
+        team.share_parameters(model)
+        optimizers = make_optimizers(model, config.optim, radius)
+        strategy = make_strategy(config, radius, generator, pixels)
+        state = TrainingState(model, optimizers, strategy, generator, sampler)
+    else:
+        model = GaussianModel.from_state_dict(checkpoint["model"]).to(device)
+        optimizers = make_optimizers(model, config.optim, radius)
+        for name, opt in optimizers.items():
+            opt.load_state_dict(checkpoint["optimizers"][name])
+        strategy = make_strategy(config, radius, generator, pixels)
+        strategy.load_state_dict((checkpoint.get("strategy_per_process") or [checkpoint["strategy"]])[team.rank])
+        generator.set_state(checkpoint["generator"])
+        sampler.load_state_dict(checkpoint["sampler"])
+        state = TrainingState(model, optimizers, strategy, generator, sampler, step=checkpoint["step"],
+                              train_seconds=checkpoint["train_seconds"])
+        note = f"resumed at step {state.step:,}"
+    strategy.collective = team.collective
+    return state, note

@@ -1,0 +1,53 @@
+"""`train(config)`: a training run with its standard consumers, in one process or in each process of a torchrun
+group. This is the Python API behind `mcsplat train`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+from .config import TrainConfig
+from .distributed import join
+from .errors import MCSplatError
+from .events import Control, Listener
+from .run_dir import RunDir
+from .subscribers import Checkpointer, ConsoleLog, LogWriter, ProgressBar
+from .trainer import TrainingRun
+
+
+def standard_subscribers(config: TrainConfig, run_dir: Path) -> list[Listener]:
+    """The consumers every run has (progress bar, console lines, log.jsonl, periodic checkpoints, the report) and
+    the live viewer when asked for."""
+    from .report import ReportWriter  # matplotlib: loaded only when training
+
+    subscribers = [ProgressBar(config.quiet), ConsoleLog(config.quiet), LogWriter(RunDir(run_dir).log_file),
+                   Checkpointer(config.save_every), ReportWriter(config.quiet)]
+    if config.viewer:
+        from .viewer import TrainingViewer
+
+        subscribers.append(TrainingViewer(host=config.host, port=config.port, quiet=config.quiet))
+    return subscribers
+
+
+def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Control | None = None
+          ) -> dict[str, Any]:
+    """Run the whole job with the standard consumers plus `subscribers`; returns the final metrics."""
+    if config.viewer:
+        from .viewer import require_viser
+
+        require_viser()  # before the run directory is made: a missing extra must not leave a half-started run
+    team = join(config.device, config.dist_timeout)
+    finished = False
+    try:
+        if config.viewer and team.world_size > 1:
+            raise MCSplatError("--viewer does not work with several training processes yet (pausing one would "
+                               "stall the others); watch the run's checkpoints with `mcsplat view RUN` instead")
+        run = TrainingRun(config, control, team)
+        # The other processes take part in each checkpoint (save_checkpoint), without writing anything.
+        consumers = standard_subscribers(run.config, run.run_dir) + list(subscribers) if team.is_main else \
+            [Checkpointer(run.config.save_every)]
+        metrics = run.run(consumers)
+        finished = True
+        return metrics
+    finally:
+        team.close(finished)
