@@ -11,7 +11,7 @@ import torch
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import Splats, render, set_cpu_threads
 from mcsplat.render.binning import bin_gaussians
-from mcsplat.render.launch import CompositeFunction
+from mcsplat.render.launch import CompositeFunction, cpu_kernels, set_cpu_kernels
 from mcsplat.render.project import project_gaussians
 from mcsplat.render.reference import reference_composite, reference_render
 
@@ -183,6 +183,72 @@ def test_depth_is_the_expected_camera_depth(device):
     assert out.contributed.tolist() == [True]
 
 
+def stacked_on_axis(depths, opacities, scale=0.6) -> Splats:
+    """Large round Gaussians on the optical axis of make_camera() (the camera sits at z = -3)."""
+    n = len(depths)
+    return Splats(means=torch.tensor([[0.0, 0.0, z - 3.0] for z in depths]),
+                  quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1), scales=torch.full((n, 3), scale),
+                  opacities=torch.tensor(opacities), sh=torch.zeros(n, 1, 3))
+
+
+KERNELS = [("simd", torch.float32), ("scalar", torch.float32), ("scalar", torch.float64)]
+
+
+@pytest.mark.parametrize("kernels, dtype", KERNELS, ids=["simd", "scalar", "scalar-float64"])
+@pytest.mark.parametrize("scene", ["random", "opaque stack"])
+def test_median_depth_matches_reference(kernels, dtype, scene, device):
+    """Each compositing kernel (the scalar one is the CUDA path) against the dense oracle's median depth."""
+    splats = random_splats(60, 3, dtype=dtype)
+    if scene == "opaque stack":  # clamped alphas and the early stop, in front of and behind random splats
+        stack = stacked_on_axis([2.6, 2.8, 3.0, 3.2, 3.4], [0.999] * 5, scale=0.25)
+        splats = Splats(*(torch.cat([getattr(stack, p).to(dtype), getattr(splats, p)[:, :1] if p == "sh"
+                                     else getattr(splats, p)]) for p in PARAMS))
+    previous = cpu_kernels()
+    set_cpu_kernels(kernels)
+    try:
+        fast = render(on(device, splats), make_camera().to(device), median_depth=True)
+    finally:
+        set_cpu_kernels(previous)
+    ref = reference_render(on(device, splats), make_camera().to(device))
+    assert fast.median_depth.dtype == dtype and fast.median_depth.shape == fast.alpha.shape
+    torch.testing.assert_close(fast.median_depth, ref.median_depth, atol=1e-4, rtol=1e-5)
+    covered = ref.alpha.detach() > 0.5
+    assert covered.float().mean() > 0.1 and (ref.median_depth[covered] > 0).all()
+    assert (ref.median_depth[ref.alpha.detach() == 0] == 0).all()
+
+
+def test_median_depth_is_where_the_accumulated_alpha_reaches_one_half(device):
+    # On the axis, alpha is each Gaussian's opacity: 0.3, then 0.4 brings the accumulated alpha to 0.58 >= 0.5.
+    out = render(on(device, stacked_on_axis([1.0, 1.5, 2.0], [0.3, 0.4, 0.9])), make_camera().to(device),
+                 median_depth=True)
+    centre = (18, 23)
+    assert float(out.median_depth[centre]) == pytest.approx(1.5, abs=1e-5)
+    # The expected depth lies between the layers: (0.3 * 1 + 0.7 * 0.4 * 1.5 + 0.42 * 0.9 * 2) / 0.958.
+    assert float(out.depth[centre]) == pytest.approx(1.476 / 0.958, abs=5e-3)
+    # Never reaching one half, the median is the last Gaussian composited.
+    faint = render(on(device, stacked_on_axis([1.0, 1.5], [0.2, 0.2])), make_camera().to(device), median_depth=True)
+    assert float(faint.median_depth[centre]) == pytest.approx(1.5, abs=1e-5)
+
+
+@pytest.mark.parametrize("kernels", ["simd", "scalar"])
+def test_asking_for_median_depth_changes_no_other_output_or_gradient(kernels, device):
+    splats = random_splats(80, 12)
+    previous = cpu_kernels()
+    set_cpu_kernels(kernels)
+    outputs = []
+    try:
+        for median in (False, True):
+            inputs = leaf(splats, device)
+            out = render(inputs, make_camera().to(device), (0.3, 0.2, 0.1), median_depth=median)
+            assert (out.median_depth is not None) == median
+            grads = gradients(out, inputs, 5)
+            outputs.append([out.rgb.detach(), out.alpha.detach(), out.depth.detach(), out.contributed,
+                            *grads.values()])
+    finally:
+        set_cpu_kernels(previous)
+    assert all(torch.equal(a, b) for a, b in zip(*outputs))
+
+
 @pytest.mark.parametrize("seed", SEEDS)
 def test_composite_gradients_of_2d_quantities(seed, device):
     """CompositeFunction alone, on random 2D inputs: gradients of means2d, conics, opacities, colours, depths."""
@@ -327,10 +393,12 @@ def test_cuda_matches_cpu():
     outputs = {}
     for device in ("cpu", "cuda"):
         inputs = leaf(splats, device)
-        out = render(inputs, camera.to(device), background=(0.2, 0.2, 0.2))
+        out = render(inputs, camera.to(device), background=(0.2, 0.2, 0.2), median_depth=True)
         (out.rgb * 0.5 + out.alpha[..., None]).sum().backward()
-        outputs[device] = (out.rgb.detach().cpu(), {p: getattr(inputs, p).grad.cpu() for p in PARAMS})
+        outputs[device] = (out.rgb.detach().cpu(), {p: getattr(inputs, p).grad.cpu() for p in PARAMS},
+                           out.median_depth.cpu())
     torch.testing.assert_close(outputs["cuda"][0], outputs["cpu"][0], atol=1e-5, rtol=0)
+    torch.testing.assert_close(outputs["cuda"][2], outputs["cpu"][2], atol=1e-4, rtol=1e-5)
     for p in PARAMS:
         assert_close_relative(outputs["cuda"][1][p], outputs["cpu"][1][p], 1e-4, p)
 

@@ -55,6 +55,9 @@ class RenderResult:
     depths: torch.Tensor       # [N] camera-space z of each Gaussian
     contributed: torch.Tensor  # [N] bool: the Gaussian was composited into at least one pixel
     num_pairs: int             # (tile, Gaussian) intersections
+    # [H, W] with render(median_depth=True), else None: the depth of the Gaussian at which the accumulated alpha
+    # first reaches 0.5 (of the last one composited where it never does; 0 where none is). No gradient.
+    median_depth: torch.Tensor | None = None
 
     @property
     def visible(self) -> torch.Tensor:
@@ -64,10 +67,11 @@ class RenderResult:
 
 def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float] | torch.Tensor | None = None,
            sh_degree: int | None = None, *, near: float = NEAR_PLANE, far: float = FAR_PLANE,
-           eps2d: float = LOW_PASS, opacity_aware_radius: bool = False, path: RenderPath | None = None
-           ) -> RenderResult:
+           eps2d: float = LOW_PASS, opacity_aware_radius: bool = False, path: RenderPath | None = None,
+           median_depth: bool = False) -> RenderResult:
     """Render one view. `sh_degree` None uses every SH coefficient given; `background` defaults to black; `path`
-    the stages to run (default: current_render_path(), the kernels unless a caller chose otherwise)."""
+    the stages to run (default: current_render_path(), the kernels unless a caller chose otherwise); `median_depth`
+    also gives the median depth (forward kernels of their own, so that a render without it costs nothing more)."""
     stages = path or current_render_path()
     means, quats, scales, opacities = gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities
     sh, sh_rest = _sh_arrays(gaussians)
@@ -89,11 +93,13 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
     tiles_y = -(-camera.height // TILE_SIZE)
     bins: TileBins = stages.bin(projection.tile_min, projection.tile_max, projection.depths, projection.radii,
                                 tiles_x, tiles_y, means2d=means2d, alpha_extent=projection.alpha_extent)
-    rgb, alpha, depth_sum, contributed = stages.composite(
-        means2d, projection.conics, opacities, colors, projection.depths, bg, bins, camera.width, camera.height)
+    rgb, alpha, depth_sum, contributed, *median = stages.composite(
+        means2d, projection.conics, opacities, colors, projection.depths, bg, bins, camera.width, camera.height,
+        **({"median_depth": True} if median_depth else {}))
     depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))
     return RenderResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=projection.radii,
-                        depths=projection.depths, contributed=contributed, num_pairs=bins.num_pairs)
+                        depths=projection.depths, contributed=contributed, num_pairs=bins.num_pairs,
+                        median_depth=median[0] if median else None)
 
 
 def _sh_arrays(gaussians: GaussiansLike) -> tuple[torch.Tensor, torch.Tensor | None]:

@@ -7,6 +7,7 @@ run bands in parallel. Per pixel, front to back (3DGS):
     alpha_i = min(0.99, o_i * exp(-0.5 d^T Q d)),  d = mean_i - pixel centre,  Q the conic
     skip alpha_i < 1/255; stop before the transmittance would fall below 1e-4
     C = sum_i alpha_i T_i c_i + T_final * background,   D = sum_i alpha_i T_i z_i
+    median depth (a second forward kernel, for callers that ask) = z_i of the last i composited with T_i > 0.5
 
 Each pair carries a mask of the 4x4-pixel blocks of its tile the Gaussian can reach (binning.py); a pixel skips a
 pair whose block bit is clear, which only spares work. The backward walks the same list back to front from the last
@@ -26,8 +27,8 @@ import functools
 
 import warp as wp
 
-from .constants import (ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, PIXELS_PER_TILE, POWER_SKIP, TILE_SIZE,
-                        TRANSMITTANCE_MIN)
+from .constants import (ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, MEDIAN_TRANSMITTANCE, PIXELS_PER_TILE, POWER_SKIP,
+                        TILE_SIZE, TRANSMITTANCE_MIN)
 
 
 @wp.func
@@ -92,12 +93,18 @@ def _leads_warp_one():
 @functools.lru_cache(maxsize=None)
 def composite_kernels(dtype):
     """(forward, backward) kernels for scalar type wp.float32 or wp.float64."""
+    return _forward_kernel(dtype, with_median=False), _backward_kernel(dtype)
+
+
+def median_forward_kernel(dtype):
+    """The forward kernel that also writes each pixel's median depth (out_median; the plain one leaves it alone)."""
+    return _forward_kernel(dtype, with_median=True)
+
+
+@functools.lru_cache(maxsize=None)
+def _forward_kernel(dtype, with_median: bool):
+    # Two kernels from one body: wp.static drops the median's lines from the training kernel at compile time.
     vec3 = wp.types.vector(3, dtype)
-    single = dtype == wp.float32
-    warp_sum = _warp_sum_lanes if single else _warp_sum_one
-    warp_max = _warp_max_lanes if single else _warp_max_one
-    warp_any = _warp_any_lanes if single else _warp_any_one
-    leads_warp = _leads_warp_lanes if single else _leads_warp_one
 
     @wp.kernel(module="unique")
     def composite_forward(
@@ -108,7 +115,7 @@ def composite_kernels(dtype):
         colors: wp.array2d(dtype=dtype), depths: wp.array(dtype=dtype), background: wp.array(dtype=dtype),
         out_rgb: wp.array3d(dtype=dtype), out_transmittance: wp.array2d(dtype=dtype),
         out_depth: wp.array2d(dtype=dtype), out_last: wp.array2d(dtype=wp.int32),
-        contributed: wp.array(dtype=wp.int32),
+        contributed: wp.array(dtype=wp.int32), out_median: wp.array2d(dtype=dtype),
     ):
         tile, px, py, block_bit = pixel_of_thread(wp.tid(), first_tile, tiles_x)
         if px >= width or py >= height:
@@ -121,6 +128,7 @@ def composite_kernels(dtype):
         transmittance = dtype(1.0)
         rgb = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
         depth = dtype(0.0)
+        median = dtype(0.0)
         last = int(0)
         for k in range(start, end):
             if (pair_masks[k] & block_bit) == 0:
@@ -140,6 +148,9 @@ def composite_kernels(dtype):
             weight = alpha * transmittance
             rgb = rgb + weight * vec3(colors[g, 0], colors[g, 1], colors[g, 2])
             depth = depth + weight * depths[g]
+            if wp.static(with_median):
+                if transmittance > dtype(MEDIAN_TRANSMITTANCE):
+                    median = depths[g]
             transmittance = next_transmittance
             last = k - start + 1
             contributed[g] = 1
@@ -149,6 +160,20 @@ def composite_kernels(dtype):
         out_transmittance[py, px] = transmittance
         out_depth[py, px] = depth
         out_last[py, px] = last
+        if wp.static(with_median):
+            out_median[py, px] = median
+
+    return composite_forward
+
+
+@functools.lru_cache(maxsize=None)
+def _backward_kernel(dtype):
+    vec3 = wp.types.vector(3, dtype)
+    single = dtype == wp.float32
+    warp_sum = _warp_sum_lanes if single else _warp_sum_one
+    warp_max = _warp_max_lanes if single else _warp_max_one
+    warp_any = _warp_any_lanes if single else _warp_any_one
+    leads_warp = _leads_warp_lanes if single else _leads_warp_one
 
     @wp.kernel(module="unique")
     def composite_backward(
@@ -259,4 +284,4 @@ def composite_kernels(dtype):
                 wp.atomic_add(grad_conics, g, 1, d_conic_b)
                 wp.atomic_add(grad_conics, g, 2, d_conic_c)
 
-    return composite_forward, composite_backward
+    return composite_backward

@@ -14,9 +14,9 @@ from ..compute.runtime import (cpu_threads, ensure_warp, num_workers_for, run_ba
 from .binning import TileBins
 from .constants import PIXELS_PER_TILE
 from .cpu import run as simd
-from .kernels import composite_kernels
+from .kernels import composite_kernels, median_forward_kernel
 
-__all__ = ["CompositeFunction", "set_cpu_kernels", "cpu_kernels", "ensure_warp", "set_cpu_threads", "cpu_threads"]
+__all__ = ["CompositeFunction", "composite", "set_cpu_kernels", "cpu_kernels", "ensure_warp", "set_cpu_threads", "cpu_threads"]
 
 CPU_KERNELS = ("simd", "scalar")
 _cpu_kernels = "simd"
@@ -40,29 +40,32 @@ def _uses_simd(tensor: torch.Tensor, kernels: str | None) -> bool:
 
 class CompositeFunction(torch.autograd.Function):
     """(means2d, conics, opacities, colors, depths) -> (rgb [H,W,3], alpha [H,W], accumulated depth [H,W],
-    contributed [N] bool). Gradients flow to the five per-Gaussian inputs. `cpu_kernels` ('simd' or 'scalar')
-    overrides set_cpu_kernels() for this call."""
+    contributed [N] bool), and with `median_depth=True` a fifth output, the median depth [H,W] (no gradient; the
+    forward kernels that write it are separate ones, so that a render without it costs what it did). Gradients flow to
+    the five per-Gaussian inputs. `cpu_kernels` ('simd' or 'scalar') overrides set_cpu_kernels() for this call."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, background, bins: TileBins, width: int,
-                height: int, cpu_kernels: str | None = None):
+                height: int, cpu_kernels: str | None = None, median_depth: bool = False):
         ensure_warp()
         ctx.simd = _uses_simd(means2d, cpu_kernels)
         inputs = [t.detach().contiguous() for t in (means2d, conics, opacities, colors, depths, background)]
         if ctx.simd:
             records = simd.pack_records(*inputs[:5])
-            rgb, transmittance, depth, last, contributed = simd.forward(records, inputs[5], bins, width, height)
+            rgb, transmittance, depth, last, contributed, median = simd.forward(records, inputs[5], bins, width,
+                                                                                height, median_depth)
             ctx.save_for_backward(records, inputs[5], transmittance, last, rgb, depth)
         else:
-            rgb, transmittance, depth, last, contributed = _scalar_forward(inputs, bins, width, height)
+            rgb, transmittance, depth, last, contributed, median = _scalar_forward(inputs, bins, width, height,
+                                                                                   median_depth)
             ctx.save_for_backward(*inputs, transmittance, last)
         ctx.bins, ctx.width, ctx.height = bins, width, height
-        contributed = contributed.bool()
-        ctx.mark_non_differentiable(contributed)
-        return rgb, 1.0 - transmittance, depth, contributed
+        not_differentiable = (contributed.bool(),) + (() if median is None else (median,))
+        ctx.mark_non_differentiable(*not_differentiable)
+        return (rgb, 1.0 - transmittance, depth) + not_differentiable
 
     @staticmethod
-    def backward(ctx, grad_rgb, grad_alpha, grad_depth, _grad_contributed):
+    def backward(ctx, grad_rgb, grad_alpha, grad_depth, _grad_contributed, *_grad_median):
         bins, width, height = ctx.bins, ctx.width, ctx.height
         saved = ctx.saved_tensors
         like = saved[-1]  # an [H, W] tensor of the right dtype and device
@@ -78,10 +81,17 @@ class CompositeFunction(torch.autograd.Function):
                                    height)
         else:
             totals = _scalar_backward(saved, grads_in, bins, width, height)
-        return (*totals, None, None, None, None, None)
+        return (*totals, None, None, None, None, None, None)
 
 
-def _scalar_forward(inputs, bins: TileBins, width: int, height: int):
+def composite(means2d, conics, opacities, colors, depths, background, bins: TileBins, width: int, height: int, *,
+              cpu_kernels: str | None = None, median_depth: bool = False):
+    """CompositeFunction with its options by name (autograd's apply takes an option only after all those before it)."""
+    return CompositeFunction.apply(means2d, conics, opacities, colors, depths, background, bins, width, height,
+                                   cpu_kernels, median_depth)
+
+
+def _scalar_forward(inputs, bins: TileBins, width: int, height: int, with_median: bool):
     means2d = inputs[0]
     dtype, device = means2d.dtype, means2d.device
     rgb = torch.empty(height, width, 3, dtype=dtype, device=device)
@@ -89,14 +99,17 @@ def _scalar_forward(inputs, bins: TileBins, width: int, height: int):
     depth = torch.empty(height, width, dtype=dtype, device=device)
     last = torch.empty(height, width, dtype=torch.int32, device=device)
     contributed = torch.zeros(means2d.shape[0], dtype=torch.int32, device=device)
+    # The plain kernel takes the median's array too and never touches it: one element stands in.
+    median = torch.empty((height, width) if with_median else (1, 1), dtype=dtype, device=device)
     num_tiles = bins.tiles_x * bins.tiles_y
-    forward_kernel, _ = composite_kernels(warp_scalar(dtype))
+    forward_kernel = median_forward_kernel(warp_scalar(dtype)) if with_median else \
+        composite_kernels(warp_scalar(dtype))[0]
     shared = [warp_view(bins.tile_ranges), warp_view(bins.gaussian_ids), warp_view(bins.pair_masks)]
     shared += [warp_view(t) for t in inputs]
-    outputs = [warp_view(t) for t in (rgb, transmittance, depth, last, contributed)]
+    outputs = [warp_view(t) for t in (rgb, transmittance, depth, last, contributed, median)]
     run_bands(forward_kernel, lambda worker, first_tile: [first_tile, bins.tiles_x, width, height] + shared + outputs,
               num_tiles, bins.tile_ranges, device, num_workers_for(device, num_tiles), PIXELS_PER_TILE)
-    return rgb, transmittance, depth, last, contributed
+    return rgb, transmittance, depth, last, contributed, median if with_median else None
 
 
 def _scalar_backward(saved, grads_in, bins: TileBins, width: int, height: int):

@@ -4,8 +4,8 @@ baseline the speed benchmarks compare against in the same process.
     project    (means, quats, scales, opacities, sh, camera, sh_degree, sh_rest=, near=, far=, eps2d=,
                 opacity_aware_radius=) -> (Projection, colours [N, 3])
     bin        (tile_min, tile_max, depths, radii, tiles_x, tiles_y, means2d=, alpha_extent=) -> TileBins
-    composite  (means2d, conics, opacities, colours, depths, background, bins, width, height)
-               -> (rgb, alpha, accumulated depth, contributed)
+    composite  (means2d, conics, opacities, colours, depths, background, bins, width, height[, median_depth=True])
+               -> (rgb, alpha, accumulated depth, contributed[, median depth])
 
 `use_render_path(path)` makes `path` the one render() takes in the current thread or task (a benchmark wraps the
 stages with timers this way); `render(..., path=...)` chooses it for one call.
@@ -21,7 +21,7 @@ from typing import Callable, Iterator
 
 from .binning import bin_gaussians
 from .binning_torch import torch_bin_gaussians
-from .launch import CompositeFunction
+from .launch import composite
 from .project import project_and_shade_torch
 from .project_kernel import project_and_shade
 
@@ -36,10 +36,10 @@ class RenderPath:
 
 
 # Projection and SH in one Warp kernel, binning in Warp, compositing in the SIMD (CPU, float32) or scalar kernels.
-KERNEL_PATH = RenderPath(project=project_and_shade, bin=bin_gaussians, composite=CompositeFunction.apply)
+KERNEL_PATH = RenderPath(project=project_and_shade, bin=bin_gaussians, composite=composite)
 # The render path as it was before the CPU kernels: torch projection, SH and binning, scalar Warp compositing.
 TORCH_BASELINE_PATH = RenderPath(project=project_and_shade_torch, bin=torch_bin_gaussians,
-                                 composite=functools.partial(CompositeFunction.apply, cpu_kernels="scalar"))
+                                 composite=functools.partial(composite, cpu_kernels="scalar"))
 
 _current: ContextVar[RenderPath] = ContextVar("mcsplat_render_path", default=KERNEL_PATH)
 

@@ -3,7 +3,8 @@
 Every pixel looks at every Gaussian (an [H*W, N] matrix), so it needs O(H W N) memory: keep scenes tiny. It follows
 the same rules as the fast path: EWA projection with the 0.3 px low-pass, 3-sigma (or opacity-aware) radius and 16x16
 tile rectangles (a Gaussian only reaches pixels of the tiles its rectangle covers), alpha = min(0.99, o G), skip
-alpha < 1/255, stop before transmittance falls below 1e-4. Gradients come from autograd alone.
+alpha < 1/255, stop before transmittance falls below 1e-4. Gradients come from autograd alone. The median depth is
+the depth of the last Gaussian composited while the transmittance in front of it is above 0.5 (0 where none is).
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ import torch
 
 from ..camera import Camera
 from ..geometry.sh import eval_sh
-from .constants import ALPHA_MAX, ALPHA_MIN, LOW_PASS, NEAR_PLANE, TILE_SIZE, TRANSMITTANCE_MIN
+from .constants import (ALPHA_MAX, ALPHA_MIN, LOW_PASS, MEDIAN_TRANSMITTANCE, NEAR_PLANE, TILE_SIZE,
+                        TRANSMITTANCE_MIN)
 
 
 @dataclass
@@ -23,6 +25,7 @@ class ReferenceResult:
     rgb: torch.Tensor
     alpha: torch.Tensor
     depth: torch.Tensor      # expected depth
+    median_depth: torch.Tensor  # depth where the accumulated alpha first reaches 0.5 (no gradient)
     means2d: torch.Tensor    # kept in the graph with retain_grad()
     radii: torch.Tensor
 
@@ -46,7 +49,9 @@ def reference_render(gaussians, camera: Camera, background=None, sh_degree: int 
     rgb, alpha, depth_sum = reference_composite(means2d, conics, opacities, colors, depths, radii, tile_min,
                                                 tile_max, bg, camera.width, camera.height)
     depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))
-    return ReferenceResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=radii)
+    median = reference_median_depth(means2d, conics, opacities, depths, radii, tile_min, tile_max, camera.width,
+                                    camera.height)
+    return ReferenceResult(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, means2d=means2d, radii=radii)
 
 
 def reference_project(means, quats, scales, opacities, camera: Camera, *, near=NEAR_PLANE, eps2d=LOW_PASS,
@@ -116,19 +121,15 @@ def reference_project(means, quats, scales, opacities, camera: Camera, *, near=N
             torch.tensor(out_radii, **ints), torch.tensor(out_min, **ints), torch.tensor(out_max, **ints))
 
 
-def reference_composite(means2d, conics, opacities, colors, depths, radii, tile_min, tile_max, background,
-                        width: int, height: int):
-    """Dense front-to-back compositing -> (rgb [H,W,3], alpha [H,W], alpha-weighted depth sum [H,W])."""
+def _front_to_back(means2d, conics, opacities, depths, radii, tile_min, tile_max, width: int, height: int):
+    """Every pixel against every visible Gaussian, front to back -> (visible Gaussians in depth order [N'], alpha
+    [P, N'] (0 where not used), included [P, N'] (before the pixel's early stop), transmittance in front [P, N'])."""
     dtype, device = means2d.dtype, means2d.device
     ys, xs = torch.meshgrid(torch.arange(height, device=device), torch.arange(width, device=device), indexing="ij")
     px, py = xs.reshape(-1), ys.reshape(-1)
     keep = torch.nonzero(radii > 0).squeeze(1)
     # Front to back; equal depths keep index order, as the fast path does.
     keep = keep[torch.argsort(depths.detach()[keep], stable=True)]
-    if keep.numel() == 0:
-        rgb = background.reshape(1, 1, 3).expand(height, width, 3).clone()
-        zeros = torch.zeros(height, width, dtype=dtype, device=device)
-        return rgb + 0 * means2d.sum(), zeros, zeros.clone()
     m, q = means2d[keep], conics[keep]
     dx = m[None, :, 0] - (px[:, None].to(dtype) + 0.5)   # [P, N]
     dy = m[None, :, 1] - (py[:, None].to(dtype) + 0.5)
@@ -146,8 +147,36 @@ def reference_composite(means2d, conics, opacities, colors, depths, radii, tile_
         included = t_after >= TRANSMITTANCE_MIN
     factors = torch.where(included, 1.0 - alpha, torch.ones_like(alpha))
     t_before = torch.cat([torch.ones_like(factors[:, :1]), torch.cumprod(factors, dim=1)[:, :-1]], dim=1)
+    return keep, alpha, included, t_before
+
+
+def reference_composite(means2d, conics, opacities, colors, depths, radii, tile_min, tile_max, background,
+                        width: int, height: int):
+    """Dense front-to-back compositing -> (rgb [H,W,3], alpha [H,W], alpha-weighted depth sum [H,W])."""
+    dtype, device = means2d.dtype, means2d.device
+    if not (radii > 0).any():
+        rgb = background.reshape(1, 1, 3).expand(height, width, 3).clone()
+        zeros = torch.zeros(height, width, dtype=dtype, device=device)
+        return rgb + 0 * means2d.sum(), zeros, zeros.clone()
+    keep, alpha, included, t_before = _front_to_back(means2d, conics, opacities, depths, radii, tile_min, tile_max,
+                                                     width, height)
     weights = torch.where(included, alpha * t_before, torch.zeros_like(alpha))
-    t_final = torch.prod(factors, dim=1)
+    t_final = torch.where(included, 1.0 - alpha, torch.ones_like(alpha)).prod(dim=1)
     rgb = weights @ colors[keep] + t_final[:, None] * background[None, :]
     depth = weights @ depths[keep]
     return rgb.reshape(height, width, 3), (1.0 - t_final).reshape(height, width), depth.reshape(height, width)
+
+
+@torch.no_grad()
+def reference_median_depth(means2d, conics, opacities, depths, radii, tile_min, tile_max, width: int, height: int):
+    """[H, W]: the depth of the last Gaussian a pixel composites while its transmittance is still above 0.5 (where
+    the accumulated alpha first reaches 0.5, or the last one where it never does); 0 where none is composited."""
+    if not (radii > 0).any():
+        return torch.zeros(height, width, dtype=means2d.dtype, device=means2d.device)
+    keep, alpha, included, t_before = _front_to_back(means2d, conics, opacities, depths, radii, tile_min, tile_max,
+                                                     width, height)
+    candidate = included & (alpha > 0) & (t_before > MEDIAN_TRANSMITTANCE)
+    order = torch.arange(1, keep.numel() + 1, device=means2d.device)
+    last = torch.where(candidate, order, torch.zeros_like(order)).max(dim=1).values  # 0: no candidate
+    padded = torch.cat([depths.new_zeros(1), depths.detach()[keep]])
+    return padded[last].reshape(height, width)

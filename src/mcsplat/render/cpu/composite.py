@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from ..constants import ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, POWER_SKIP, TILE_SIZE, TRANSMITTANCE_MIN
+from ..constants import (ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, MEDIAN_TRANSMITTANCE, POWER_SKIP, TILE_SIZE,
+                         TRANSMITTANCE_MIN)
 
 # The tile bodies hold a tile as 16 blocks of 16 lanes: they are written for 16x16 tiles of 4x4 blocks.
 assert TILE_SIZE == 16 and BLOCK_SIZE == 4, "the SIMD tile body needs 16x16 tiles of 4x4 pixel blocks"
@@ -114,9 +115,11 @@ def _evaluate_block(taking_part: str) -> str:
 """ + _ALPHA
 
 
-_FORWARD_BODY = _PRELUDE + """
+# The forward body is a template: with_median fills its MEDIAN_* marks (the training kernel gets them empty).
+_FORWARD_TEMPLATE = _PRELUDE + """
     vf transmittance[16], red[16], green[16], blue[16], depth[16];
     vi last[16], done[16];
+MEDIAN_DECLARE
     int active = 0;  // blocks with a pixel still compositing
     for (int b = 0; b < 16; ++b) {
         transmittance[b] = 1.0f; red[b] = 0.0f; green[b] = 0.0f; blue[b] = 0.0f; depth[b] = 0.0f;
@@ -146,6 +149,7 @@ _FORWARD_BODY = _PRELUDE + """
             green[b] += weight * row[7];
             blue[b] += weight * row[8];
             depth[b] += weight * row[9];
+MEDIAN_UPDATE
             transmittance[b] = select(use, next_t, transmittance[b]);
             last[b] = (use & (k - start + 1)) | (~use & last[b]);
             composited = composited || any_lane(use);
@@ -171,9 +175,29 @@ _FORWARD_BODY = _PRELUDE + """
             t_out[pixel] = t;
             depth_out[pixel] = depth[b][l];
             last_out[pixel] = last[b][l];
+MEDIAN_STORE
         }
     }
 """
+
+# The median depth (render/kernels.py): the depth of the last Gaussian composited while the transmittance in front of
+# it is still above MEDIAN_TRANSMITTANCE, one vector per block.
+_MEDIAN_LINES = {
+    "MEDIAN_DECLARE": f"""    vf median[16];
+    for (int b = 0; b < 16; ++b) median[b] = 0.0f;
+    const float median_transmittance = {MEDIAN_TRANSMITTANCE}f;
+    float* median_out = (float*)out_median.data;""",
+    "MEDIAN_UPDATE": "            median[b] = select(use & (transmittance[b] > median_transmittance), (vf)row[9], median[b]);",
+    "MEDIAN_STORE": "            median_out[pixel] = median[b][l];",
+}
+
+
+def _forward_body(with_median: bool) -> str:
+    body = _FORWARD_TEMPLATE
+    for mark, lines in _MEDIAN_LINES.items():
+        body = body.replace(f"{mark}\n", lines + "\n" if with_median else "")
+    return body
+
 
 _BACKWARD_BODY = _PRELUDE + """
     const float* bg = (const float*)background.data;
@@ -275,11 +299,19 @@ _int_array = wp.array(dtype=wp.int32)
 _float_array = wp.array(dtype=wp.float32)
 
 
-@wp.func_native(_FORWARD_BODY)
+@wp.func_native(_forward_body(with_median=False))
 def _composite_tile_forward(tile: int, tiles_x: int, width: int, height: int, tile_ranges: _int_array,
                             gaussian_ids: _int_array, pair_masks: _int_array, records: _float_array,
                             background: _float_array, out_rgb: _float_array, out_transmittance: _float_array,
                             out_depth: _float_array, out_last: _int_array, contributed: _int_array): ...
+
+
+@wp.func_native(_forward_body(with_median=True))
+def _composite_tile_forward_median(tile: int, tiles_x: int, width: int, height: int, tile_ranges: _int_array,
+                                   gaussian_ids: _int_array, pair_masks: _int_array, records: _float_array,
+                                   background: _float_array, out_rgb: _float_array, out_transmittance: _float_array,
+                                   out_depth: _float_array, out_last: _int_array, contributed: _int_array,
+                                   out_median: _float_array): ...
 
 
 @wp.func_native(_BACKWARD_BODY)
@@ -299,6 +331,18 @@ def composite_forward_simd(first_tile: int, tiles_x: int, width: int, height: in
     """One thread per tile of the band that starts at `first_tile`."""
     _composite_tile_forward(first_tile + wp.tid(), tiles_x, width, height, tile_ranges, gaussian_ids, pair_masks,
                             records, background, out_rgb, out_transmittance, out_depth, out_last, contributed)
+
+
+@wp.kernel
+def composite_forward_median_simd(first_tile: int, tiles_x: int, width: int, height: int, tile_ranges: _int_array,
+                                  gaussian_ids: _int_array, pair_masks: _int_array, records: _float_array,
+                                  background: _float_array, out_rgb: _float_array, out_transmittance: _float_array,
+                                  out_depth: _float_array, out_last: _int_array, contributed: _int_array,
+                                  out_median: _float_array):
+    """The forward that also writes each pixel's median depth (forward only: no loss uses it)."""
+    _composite_tile_forward_median(first_tile + wp.tid(), tiles_x, width, height, tile_ranges, gaussian_ids,
+                                   pair_masks, records, background, out_rgb, out_transmittance, out_depth, out_last,
+                                   contributed, out_median)
 
 
 @wp.kernel

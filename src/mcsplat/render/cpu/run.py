@@ -7,7 +7,8 @@ import torch
 
 from ..binning import TileBins
 from ...compute.runtime import num_workers_for, run_bands, warp_view
-from .composite import RECORD_WIDTH, composite_backward_simd, composite_forward_simd
+from .composite import (RECORD_WIDTH, composite_backward_simd, composite_forward_median_simd,
+                        composite_forward_simd)
 
 
 def pack_records(means2d, conics, opacities, colors, depths) -> torch.Tensor:
@@ -19,22 +20,25 @@ def _flat(tensor: torch.Tensor):
     return warp_view(tensor.reshape(-1))
 
 
-def forward(records: torch.Tensor, background: torch.Tensor, bins: TileBins, width: int, height: int):
+def forward(records: torch.Tensor, background: torch.Tensor, bins: TileBins, width: int, height: int,
+            with_median: bool = False):
     """-> rgb [H, W, 3], final transmittance [H, W], accumulated depth [H, W], last contributor [H, W] int32 (list
-    position + 1 within the pixel's tile), contributed [N] int32."""
+    position + 1 within the pixel's tile), contributed [N] int32, median depth [H, W] (None without with_median)."""
     n = records.shape[0]
     rgb = torch.empty(height, width, 3)
     transmittance = torch.empty(height, width)
     depth = torch.empty(height, width)
     last = torch.empty(height, width, dtype=torch.int32)
     contributed = torch.zeros(n, dtype=torch.int32)
+    median = torch.empty(height, width) if with_median else None
     num_tiles = bins.tiles_x * bins.tiles_y
     arguments = [bins.tiles_x, width, height] + [_flat(t) for t in (
         bins.tile_ranges, bins.gaussian_ids, bins.pair_masks, records, background, rgb, transmittance, depth, last,
-        contributed)]
-    run_bands(composite_forward_simd, lambda worker, first_tile: [first_tile] + arguments, num_tiles,
+        contributed) + ((median,) if with_median else ())]
+    kernel = composite_forward_median_simd if with_median else composite_forward_simd
+    run_bands(kernel, lambda worker, first_tile: [first_tile] + arguments, num_tiles,
               bins.tile_ranges, records.device, num_workers_for(records.device, num_tiles), threads_per_tile=1)
-    return rgb, transmittance, depth, last, contributed
+    return rgb, transmittance, depth, last, contributed, median
 
 
 def backward(records, background, transmittance, last, rgb, depth, grad_rgb, grad_alpha, grad_depth,
