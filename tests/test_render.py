@@ -11,9 +11,9 @@ import torch
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import Splats, render, set_cpu_threads
 from mcsplat.render.binning import bin_gaussians
-from mcsplat.render.launch import CompositeFunction, cpu_kernels, set_cpu_kernels
+from mcsplat.render.launch import CompositeFunction, composite, cpu_kernels, set_cpu_kernels
 from mcsplat.render.project import project_gaussians
-from mcsplat.render.reference import reference_composite, reference_render
+from mcsplat.render.reference import reference_composite, reference_median_gaussian, reference_render
 
 SEEDS = [0, 1, 2, 3]
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
@@ -217,17 +217,56 @@ def test_median_depth_matches_reference(kernels, dtype, scene, device):
     assert (ref.median_depth[ref.alpha.detach() == 0] == 0).all()
 
 
+@pytest.mark.parametrize("kernels, dtype", KERNELS, ids=["simd", "scalar", "scalar-float64"])
+@pytest.mark.parametrize("seed", SEEDS[:2])
+def test_median_gaussian_of_each_kernel_is_the_references(kernels, dtype, seed, device):
+    """The kernels' own output, on the same projected inputs: which Gaussian each pixel's median is."""
+    splats = on(device, random_splats(120, seed, dtype=dtype, log_scale=(-3.0, -1.5)))
+    camera = make_camera(width=50, height=40).to(device)
+    proj = project_gaussians(*(getattr(splats, p) for p in PARAMS[:4]), camera)
+    bins = bin_gaussians(proj.tile_min, proj.tile_max, proj.depths, proj.radii, 4, 3, means2d=proj.means2d,
+                         alpha_extent=proj.alpha_extent)
+    colors = torch.ones(120, 3, dtype=dtype, device=device)
+    background = torch.zeros(3, dtype=dtype, device=device)
+    outputs = composite(proj.means2d, proj.conics, splats.opacities, colors, proj.depths, background, bins, 50, 40,
+                        cpu_kernels=kernels, median_gaussian=True)
+    expected = reference_median_gaussian(proj.means2d, proj.conics, splats.opacities, proj.depths, proj.radii,
+                                         proj.tile_min, proj.tile_max, 50, 40)
+    assert outputs[4].dtype == torch.int32 and torch.equal(outputs[4].long(), expected)
+    assert (expected >= 0).float().mean() > 0.3 and expected.unique().numel() > 10
+
+
 def test_median_depth_is_where_the_accumulated_alpha_reaches_one_half(device):
     # On the axis, alpha is each Gaussian's opacity: 0.3, then 0.4 brings the accumulated alpha to 0.58 >= 0.5.
     out = render(on(device, stacked_on_axis([1.0, 1.5, 2.0], [0.3, 0.4, 0.9])), make_camera().to(device),
                  median_depth=True)
     centre = (18, 23)
-    assert float(out.median_depth[centre]) == pytest.approx(1.5, abs=1e-5)
+    assert float(out.median_depth[centre]) == pytest.approx(1.5, abs=1e-3)
     # The expected depth lies between the layers: (0.3 * 1 + 0.7 * 0.4 * 1.5 + 0.42 * 0.9 * 2) / 0.958.
     assert float(out.depth[centre]) == pytest.approx(1.476 / 0.958, abs=5e-3)
     # Never reaching one half, the median is the last Gaussian composited.
     faint = render(on(device, stacked_on_axis([1.0, 1.5], [0.2, 0.2])), make_camera().to(device), median_depth=True)
-    assert float(faint.median_depth[centre]) == pytest.approx(1.5, abs=1e-5)
+    assert float(faint.median_depth[centre]) == pytest.approx(1.5, abs=1e-3)
+
+
+def test_median_depth_is_where_the_ray_crosses_a_flat_gaussian(device):
+    """A tilted flat Gaussian: each pixel's median depth is the depth of its ray's crossing with the Gaussian's plane,
+    not the centre's depth."""
+    normal = torch.tensor([0.0, 0.6, -0.8])  # facing the camera at z = -3, tilted about the x axis
+    half_angle = torch.acos(-normal[2]) / 2  # rotation of +z onto the normal's opposite side, about the x axis
+    quat = torch.tensor([[float(torch.cos(half_angle)), float(torch.sin(half_angle)), 0.0, 0.0]])
+    splats = Splats(means=torch.tensor([[0.0, 0.0, 0.0]]), quats=quat, scales=torch.tensor([[0.5, 0.5, 1e-4]]),
+                    opacities=torch.tensor([0.95]), sh=torch.zeros(1, 1, 3))
+    camera = make_camera()
+    out = render(on(device, splats), camera.to(device), median_depth=True)
+    rows, columns = torch.nonzero(out.alpha.cpu() >= 0.5, as_tuple=True)
+    assert rows.numel() > 200
+    rays = torch.stack([(columns + 0.5 - camera.cx) / camera.fx, (rows + 0.5 - camera.cy) / camera.fy,
+                        torch.ones(rows.shape)], dim=1)
+    plane_normal = torch.tensor([0.0, -float(torch.sin(2 * half_angle)), float(torch.cos(2 * half_angle))])
+    crossing = 3.0 * plane_normal[2] / (rays @ plane_normal)  # the plane through (0, 0, 3) in camera coordinates
+    torch.testing.assert_close(out.median_depth.cpu()[rows, columns], crossing, atol=2e-3, rtol=0)
+    assert (crossing - 3.0).abs().max() > 0.1, "the centre's depth would be off by this much"
 
 
 @pytest.mark.parametrize("kernels", ["simd", "scalar"])

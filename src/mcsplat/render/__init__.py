@@ -18,6 +18,7 @@ from ..compute.runtime import cpu_threads, ensure_warp, set_cpu_threads
 from ..geometry.sh import degree_from_bases
 from .binning import TileBins
 from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
+from .median import median_depth as _median_depth
 from .paths import RenderPath, current_render_path
 
 __all__ = ["render", "RenderResult", "Splats", "GaussiansLike", "set_cpu_threads", "cpu_threads", "ensure_warp",
@@ -55,8 +56,9 @@ class RenderResult:
     depths: torch.Tensor       # [N] camera-space z of each Gaussian
     contributed: torch.Tensor  # [N] bool: the Gaussian was composited into at least one pixel
     num_pairs: int             # (tile, Gaussian) intersections
-    # [H, W] with render(median_depth=True), else None: the depth of the Gaussian at which the accumulated alpha
-    # first reaches 0.5 (of the last one composited where it never does; 0 where none is). No gradient.
+    # [H, W] with render(median_depth=True), else None: the depth along the pixel's ray where the Gaussian at which
+    # the accumulated alpha first reaches 0.5 (the last one composited where it never does) is densest; 0 where none
+    # is composited. No gradient. See median.py.
     median_depth: torch.Tensor | None = None
 
     @property
@@ -93,13 +95,14 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
     tiles_y = -(-camera.height // TILE_SIZE)
     bins: TileBins = stages.bin(projection.tile_min, projection.tile_max, projection.depths, projection.radii,
                                 tiles_x, tiles_y, means2d=means2d, alpha_extent=projection.alpha_extent)
-    rgb, alpha, depth_sum, contributed, *median = stages.composite(
+    rgb, alpha, depth_sum, contributed, *median_ids = stages.composite(
         means2d, projection.conics, opacities, colors, projection.depths, bg, bins, camera.width, camera.height,
-        **({"median_depth": True} if median_depth else {}))
+        **({"median_gaussian": True} if median_depth else {}))
     depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))
+    median = _median_depth(median_ids[0], means, quats, scales, camera) if median_depth else None
     return RenderResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=projection.radii,
                         depths=projection.depths, contributed=contributed, num_pairs=bins.num_pairs,
-                        median_depth=median[0] if median else None)
+                        median_depth=median)
 
 
 def _sh_arrays(gaussians: GaussiansLike) -> tuple[torch.Tensor, torch.Tensor | None]:

@@ -7,7 +7,8 @@ run bands in parallel. Per pixel, front to back (3DGS):
     alpha_i = min(0.99, o_i * exp(-0.5 d^T Q d)),  d = mean_i - pixel centre,  Q the conic
     skip alpha_i < 1/255; stop before the transmittance would fall below 1e-4
     C = sum_i alpha_i T_i c_i + T_final * background,   D = sum_i alpha_i T_i z_i
-    median depth (a second forward kernel, for callers that ask) = z_i of the last i composited with T_i > 0.5
+    median Gaussian (a second forward kernel, for callers that ask) = the last i composited with T_i > 0.5, where
+    the accumulated alpha first reaches 0.5 (render/median.py turns it into the median depth)
 
 Each pair carries a mask of the 4x4-pixel blocks of its tile the Gaussian can reach (binning.py); a pixel skips a
 pair whose block bit is clear, which only spares work. The backward walks the same list back to front from the last
@@ -97,7 +98,8 @@ def composite_kernels(dtype):
 
 
 def median_forward_kernel(dtype):
-    """The forward kernel that also writes each pixel's median depth (out_median; the plain one leaves it alone)."""
+    """The forward kernel that also writes each pixel's median Gaussian (out_median, -1 where none; the plain one
+    leaves it alone)."""
     return _forward_kernel(dtype, with_median=True)
 
 
@@ -115,7 +117,7 @@ def _forward_kernel(dtype, with_median: bool):
         colors: wp.array2d(dtype=dtype), depths: wp.array(dtype=dtype), background: wp.array(dtype=dtype),
         out_rgb: wp.array3d(dtype=dtype), out_transmittance: wp.array2d(dtype=dtype),
         out_depth: wp.array2d(dtype=dtype), out_last: wp.array2d(dtype=wp.int32),
-        contributed: wp.array(dtype=wp.int32), out_median: wp.array2d(dtype=dtype),
+        contributed: wp.array(dtype=wp.int32), out_median: wp.array2d(dtype=wp.int32),
     ):
         tile, px, py, block_bit = pixel_of_thread(wp.tid(), first_tile, tiles_x)
         if px >= width or py >= height:
@@ -128,7 +130,7 @@ def _forward_kernel(dtype, with_median: bool):
         transmittance = dtype(1.0)
         rgb = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
         depth = dtype(0.0)
-        median = dtype(0.0)
+        median = int(-1)
         last = int(0)
         for k in range(start, end):
             if (pair_masks[k] & block_bit) == 0:
@@ -150,7 +152,7 @@ def _forward_kernel(dtype, with_median: bool):
             depth = depth + weight * depths[g]
             if wp.static(with_median):
                 if transmittance > dtype(MEDIAN_TRANSMITTANCE):
-                    median = depths[g]
+                    median = g
             transmittance = next_transmittance
             last = k - start + 1
             contributed[g] = 1

@@ -40,24 +40,25 @@ def _uses_simd(tensor: torch.Tensor, kernels: str | None) -> bool:
 
 class CompositeFunction(torch.autograd.Function):
     """(means2d, conics, opacities, colors, depths) -> (rgb [H,W,3], alpha [H,W], accumulated depth [H,W],
-    contributed [N] bool), and with `median_depth=True` a fifth output, the median depth [H,W] (no gradient; the
-    forward kernels that write it are separate ones, so that a render without it costs what it did). Gradients flow to
-    the five per-Gaussian inputs. `cpu_kernels` ('simd' or 'scalar') overrides set_cpu_kernels() for this call."""
+    contributed [N] bool), and with `median_gaussian=True` a fifth output: per pixel, the Gaussian at which the
+    accumulated alpha first reaches 0.5 ([H,W] int32, -1 where none; the forward kernels that find it are separate
+    ones, so that a render without it costs what it did). Gradients flow to the five per-Gaussian inputs.
+    `cpu_kernels` ('simd' or 'scalar') overrides set_cpu_kernels() for this call."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, colors, depths, background, bins: TileBins, width: int,
-                height: int, cpu_kernels: str | None = None, median_depth: bool = False):
+                height: int, cpu_kernels: str | None = None, median_gaussian: bool = False):
         ensure_warp()
         ctx.simd = _uses_simd(means2d, cpu_kernels)
         inputs = [t.detach().contiguous() for t in (means2d, conics, opacities, colors, depths, background)]
         if ctx.simd:
             records = simd.pack_records(*inputs[:5])
             rgb, transmittance, depth, last, contributed, median = simd.forward(records, inputs[5], bins, width,
-                                                                                height, median_depth)
+                                                                                height, median_gaussian)
             ctx.save_for_backward(records, inputs[5], transmittance, last, rgb, depth)
         else:
             rgb, transmittance, depth, last, contributed, median = _scalar_forward(inputs, bins, width, height,
-                                                                                   median_depth)
+                                                                                   median_gaussian)
             ctx.save_for_backward(*inputs, transmittance, last)
         ctx.bins, ctx.width, ctx.height = bins, width, height
         not_differentiable = (contributed.bool(),) + (() if median is None else (median,))
@@ -85,10 +86,10 @@ class CompositeFunction(torch.autograd.Function):
 
 
 def composite(means2d, conics, opacities, colors, depths, background, bins: TileBins, width: int, height: int, *,
-              cpu_kernels: str | None = None, median_depth: bool = False):
+              cpu_kernels: str | None = None, median_gaussian: bool = False):
     """CompositeFunction with its options by name (autograd's apply takes an option only after all those before it)."""
     return CompositeFunction.apply(means2d, conics, opacities, colors, depths, background, bins, width, height,
-                                   cpu_kernels, median_depth)
+                                   cpu_kernels, median_gaussian)
 
 
 def _scalar_forward(inputs, bins: TileBins, width: int, height: int, with_median: bool):
@@ -100,7 +101,7 @@ def _scalar_forward(inputs, bins: TileBins, width: int, height: int, with_median
     last = torch.empty(height, width, dtype=torch.int32, device=device)
     contributed = torch.zeros(means2d.shape[0], dtype=torch.int32, device=device)
     # The plain kernel takes the median's array too and never touches it: one element stands in.
-    median = torch.empty((height, width) if with_median else (1, 1), dtype=dtype, device=device)
+    median = torch.empty((height, width) if with_median else (1, 1), dtype=torch.int32, device=device)
     num_tiles = bins.tiles_x * bins.tiles_y
     forward_kernel = median_forward_kernel(warp_scalar(dtype)) if with_median else \
         composite_kernels(warp_scalar(dtype))[0]

@@ -4,8 +4,8 @@ baseline the speed benchmarks compare against in the same process.
     project    (means, quats, scales, opacities, sh, camera, sh_degree, sh_rest=, near=, far=, eps2d=,
                 opacity_aware_radius=) -> (Projection, colours [N, 3])
     bin        (tile_min, tile_max, depths, radii, tiles_x, tiles_y, means2d=, alpha_extent=) -> TileBins
-    composite  (means2d, conics, opacities, colours, depths, background, bins, width, height[, median_depth=True])
-               -> (rgb, alpha, accumulated depth, contributed[, median depth])
+    composite  (means2d, conics, opacities, colours, depths, background, bins, width, height[, median_gaussian=True])
+               -> (rgb, alpha, accumulated depth, contributed[, median Gaussian per pixel])
 
 `use_render_path(path)` makes `path` the one render() takes in the current thread or task (a benchmark wraps the
 stages with timers this way); `render(..., path=...)` chooses it for one call.

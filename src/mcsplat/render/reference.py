@@ -3,8 +3,9 @@
 Every pixel looks at every Gaussian (an [H*W, N] matrix), so it needs O(H W N) memory: keep scenes tiny. It follows
 the same rules as the fast path: EWA projection with the 0.3 px low-pass, 3-sigma (or opacity-aware) radius and 16x16
 tile rectangles (a Gaussian only reaches pixels of the tiles its rectangle covers), alpha = min(0.99, o G), skip
-alpha < 1/255, stop before transmittance falls below 1e-4. Gradients come from autograd alone. The median depth is
-the depth of the last Gaussian composited while the transmittance in front of it is above 0.5 (0 where none is).
+alpha < 1/255, stop before transmittance falls below 1e-4. Gradients come from autograd alone. The median Gaussian
+of a pixel is the last one composited while the transmittance in front of it is above 0.5; the median depth is where
+the pixel's ray meets its density's peak (render/median.py), here through the inverse of the 3D covariance.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ class ReferenceResult:
     rgb: torch.Tensor
     alpha: torch.Tensor
     depth: torch.Tensor      # expected depth
-    median_depth: torch.Tensor  # depth where the accumulated alpha first reaches 0.5 (no gradient)
+    median_ids: torch.Tensor    # [H, W] the median Gaussian, -1 where none
+    median_depth: torch.Tensor  # [H, W] no gradient
     means2d: torch.Tensor    # kept in the graph with retain_grad()
     radii: torch.Tensor
 
@@ -49,9 +51,11 @@ def reference_render(gaussians, camera: Camera, background=None, sh_degree: int 
     rgb, alpha, depth_sum = reference_composite(means2d, conics, opacities, colors, depths, radii, tile_min,
                                                 tile_max, bg, camera.width, camera.height)
     depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))
-    median = reference_median_depth(means2d, conics, opacities, depths, radii, tile_min, tile_max, camera.width,
-                                    camera.height)
-    return ReferenceResult(rgb=rgb, alpha=alpha, depth=depth, median_depth=median, means2d=means2d, radii=radii)
+    median_ids = reference_median_gaussian(means2d, conics, opacities, depths, radii, tile_min, tile_max,
+                                           camera.width, camera.height)
+    median = reference_median_depth(median_ids, means, quats, scales, camera)
+    return ReferenceResult(rgb=rgb, alpha=alpha, depth=depth, median_ids=median_ids, median_depth=median,
+                           means2d=means2d, radii=radii)
 
 
 def reference_project(means, quats, scales, opacities, camera: Camera, *, near=NEAR_PLANE, eps2d=LOW_PASS,
@@ -168,15 +172,43 @@ def reference_composite(means2d, conics, opacities, colors, depths, radii, tile_
 
 
 @torch.no_grad()
-def reference_median_depth(means2d, conics, opacities, depths, radii, tile_min, tile_max, width: int, height: int):
-    """[H, W]: the depth of the last Gaussian a pixel composites while its transmittance is still above 0.5 (where
-    the accumulated alpha first reaches 0.5, or the last one where it never does); 0 where none is composited."""
+def reference_median_gaussian(means2d, conics, opacities, depths, radii, tile_min, tile_max, width: int, height: int):
+    """[H, W] int64: the last Gaussian a pixel composites while its transmittance is still above 0.5 (where the
+    accumulated alpha first reaches 0.5, or the last one where it never does); -1 where none is composited."""
     if not (radii > 0).any():
-        return torch.zeros(height, width, dtype=means2d.dtype, device=means2d.device)
+        return torch.full((height, width), -1, dtype=torch.int64, device=means2d.device)
     keep, alpha, included, t_before = _front_to_back(means2d, conics, opacities, depths, radii, tile_min, tile_max,
                                                      width, height)
     candidate = included & (alpha > 0) & (t_before > MEDIAN_TRANSMITTANCE)
     order = torch.arange(1, keep.numel() + 1, device=means2d.device)
     last = torch.where(candidate, order, torch.zeros_like(order)).max(dim=1).values  # 0: no candidate
-    padded = torch.cat([depths.new_zeros(1), depths.detach()[keep]])
-    return padded[last].reshape(height, width)
+    return torch.cat([keep.new_full((1,), -1), keep])[last].reshape(height, width)
+
+
+@torch.no_grad()
+def reference_median_depth(median_ids, means, quats, scales, camera: Camera):
+    """[H, W]: along each pixel's ray r (camera z = 1), the depth r^T A m / r^T A r where the median Gaussian (mean
+    m, A the inverse of its covariance, in camera coordinates) peaks, within 3 of its largest scale of its centre's
+    depth; 0 where the pixel has none."""
+    height, width = median_ids.shape
+    depth = torch.zeros(height, width, dtype=means.dtype, device=means.device)
+    rotation = camera.world_to_camera[:3, :3].to(means.device, torch.float64)
+    translation = camera.world_to_camera[:3, 3].to(means.device, torch.float64)
+    for row, column in median_ids.ge(0).nonzero().tolist():
+        g = int(median_ids[row, column])
+        q = quats[g].detach().double() / torch.linalg.norm(quats[g].detach().double())
+        w, x, y, z = q.tolist()
+        local = torch.tensor([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                              [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                              [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]],
+                             dtype=torch.float64, device=means.device)
+        scale = scales[g].detach().double()
+        covariance = rotation @ local @ torch.diag(scale ** 2) @ local.T @ rotation.T
+        inverse = torch.linalg.inv(covariance)
+        mean = rotation @ means[g].detach().double() + translation
+        ray = torch.tensor([(column + 0.5 - camera.cx) / camera.fx, (row + 0.5 - camera.cy) / camera.fy, 1.0],
+                           dtype=torch.float64, device=means.device)
+        peak = (ray @ inverse @ mean) / (ray @ inverse @ ray)
+        reach = 3.0 * float(scale.max())
+        depth[row, column] = float(min(max(peak, mean[2] - reach), mean[2] + reach))
+    return depth

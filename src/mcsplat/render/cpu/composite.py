@@ -180,14 +180,15 @@ MEDIAN_STORE
     }
 """
 
-# The median depth (render/kernels.py): the depth of the last Gaussian composited while the transmittance in front of
-# it is still above MEDIAN_TRANSMITTANCE, one vector per block.
+# The median Gaussian (render/kernels.py): the last one composited while the transmittance in front of it is still
+# above MEDIAN_TRANSMITTANCE (-1 where none is), one vector of ids per block.
 _MEDIAN_LINES = {
-    "MEDIAN_DECLARE": f"""    vf median[16];
-    for (int b = 0; b < 16; ++b) median[b] = 0.0f;
+    "MEDIAN_DECLARE": f"""    vi median[16];
+    for (int b = 0; b < 16; ++b) median[b] = -1;
     const float median_transmittance = {MEDIAN_TRANSMITTANCE}f;
-    float* median_out = (float*)out_median.data;""",
-    "MEDIAN_UPDATE": "            median[b] = select(use & (transmittance[b] > median_transmittance), (vf)row[9], median[b]);",
+    int* median_out = (int*)out_median.data;""",
+    "MEDIAN_UPDATE": """            vi in_front_half = use & (transmittance[b] > median_transmittance);
+            median[b] = (in_front_half & g) | (~in_front_half & median[b]);""",
     "MEDIAN_STORE": "            median_out[pixel] = median[b][l];",
 }
 
@@ -311,7 +312,7 @@ def _composite_tile_forward_median(tile: int, tiles_x: int, width: int, height: 
                                    gaussian_ids: _int_array, pair_masks: _int_array, records: _float_array,
                                    background: _float_array, out_rgb: _float_array, out_transmittance: _float_array,
                                    out_depth: _float_array, out_last: _int_array, contributed: _int_array,
-                                   out_median: _float_array): ...
+                                   out_median: _int_array): ...
 
 
 @wp.func_native(_BACKWARD_BODY)
@@ -338,8 +339,8 @@ def composite_forward_median_simd(first_tile: int, tiles_x: int, width: int, hei
                                   gaussian_ids: _int_array, pair_masks: _int_array, records: _float_array,
                                   background: _float_array, out_rgb: _float_array, out_transmittance: _float_array,
                                   out_depth: _float_array, out_last: _int_array, contributed: _int_array,
-                                  out_median: _float_array):
-    """The forward that also writes each pixel's median depth (forward only: no loss uses it)."""
+                                  out_median: _int_array):
+    """The forward that also writes each pixel's median Gaussian (forward only: no loss uses it)."""
     _composite_tile_forward_median(first_tile + wp.tid(), tiles_x, width, height, tile_ranges, gaussian_ids,
                                    pair_masks, records, background, out_rgb, out_transmittance, out_depth, out_last,
                                    contributed, out_median)

@@ -23,14 +23,15 @@ def _flat(tensor: torch.Tensor):
 def forward(records: torch.Tensor, background: torch.Tensor, bins: TileBins, width: int, height: int,
             with_median: bool = False):
     """-> rgb [H, W, 3], final transmittance [H, W], accumulated depth [H, W], last contributor [H, W] int32 (list
-    position + 1 within the pixel's tile), contributed [N] int32, median depth [H, W] (None without with_median)."""
+    position + 1 within the pixel's tile), contributed [N] int32, median Gaussian [H, W] int32 (-1 where none; None
+    without with_median)."""
     n = records.shape[0]
     rgb = torch.empty(height, width, 3)
     transmittance = torch.empty(height, width)
     depth = torch.empty(height, width)
     last = torch.empty(height, width, dtype=torch.int32)
     contributed = torch.zeros(n, dtype=torch.int32)
-    median = torch.empty(height, width) if with_median else None
+    median = torch.empty(height, width, dtype=torch.int32) if with_median else None
     num_tiles = bins.tiles_x * bins.tiles_y
     arguments = [bins.tiles_x, width, height] + [_flat(t) for t in (
         bins.tile_ranges, bins.gaussian_ids, bins.pair_masks, records, background, rgb, transmittance, depth, last,
