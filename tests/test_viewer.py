@@ -195,3 +195,27 @@ def test_render_modes_of_the_viewer(tiny_run):
     # Centres: small opaque dots, so far less of the image is covered than by the Gaussians themselves.
     dots = (images["centres"] < 250).any(axis=2).mean()
     assert 0.0 < dots < (images["RGB"] < 250).any(axis=2).mean()
+
+
+def test_a_mesh_in_a_browser(browser, tmp_path):
+    """`mcsplat view mesh.ply`: the page draws the mesh itself, in its vertex colours (a red ball on white)."""
+    import trimesh
+    from PIL import Image
+
+    from mcsplat.mesh import write_mesh
+    from mcsplat.viewer.saved import serve_mesh
+
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    ball.visual.vertex_colors = np.tile([220, 30, 30, 255], (len(ball.vertices), 1)).astype(np.uint8)
+    write_mesh(tmp_path / "ball.ply", ball)
+    server, _ = serve_mesh(tmp_path / "ball.ply", "127.0.0.1", free_port(), quiet=True)
+    try:
+        browser.call("Page.navigate", url=server.url)
+        browser.wait_for("document.body.innerText.includes('faces')", timeout=60)
+        time.sleep(2.0)  # the mesh arrives and is drawn
+        browser.screenshot(tmp_path / "page.png")
+    finally:
+        server.close()
+    pixels = np.asarray(Image.open(tmp_path / "page.png").convert("RGB")).astype(int)
+    red = (pixels[..., 0] > 100) & (pixels[..., 0] > pixels[..., 1] + 60)
+    assert red.mean() > 0.02, f"the red ball covers {red.mean():.1%} of the page"

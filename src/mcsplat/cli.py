@@ -153,14 +153,15 @@ class Render:
 @dataclass
 class Export:
     """Export a trained run's Gaussians for viewers: the 3DGS .ply, antimatter15 .splat, PlayCanvas compressed .ply
-    or Niantic .spz, leaving out near-transparent Gaussians."""
+    or Niantic .spz, leaving out near-transparent Gaussians; or its surface as a triangle mesh."""
 
     run: RunDir
-    format: Literal["ply", "splat", "compressed-ply", "spz"] = "ply"
+    format: Literal["ply", "splat", "compressed-ply", "spz", "mesh"] = "ply"
     """ply: every viewer, full SH. splat: 32 bytes each, no SH. compressed-ply: SuperSplat/PlayCanvas, ~4x smaller.
-    spz: Niantic's gzip format, ~10x smaller."""
+    spz: Niantic's gzip format, ~10x smaller. mesh: the surface the training views see (median depth fused into a
+    signed distance volume, marching cubes), with vertex colours, as .ply, .glb or .obj by --out's ending."""
     out: Path | None = None
-    """Output file (default: RUN/point_cloud.ply, .splat, .compressed.ply or .spz)."""
+    """Output file (default: RUN/point_cloud.ply, .splat, .compressed.ply, .spz, or RUN/mesh.ply)."""
     min_opacity: float = 0.005
     """Leave out Gaussians of this opacity or less (0.005: the dead ones MCMC relocates)."""
     max_gaussians: int | None = None
@@ -168,6 +169,14 @@ class Export:
     prune: bool = False
     """Also leave out the Gaussians composited into no pixel of any training view (needs the run's scene), and
     print the test PSNR with and without them."""
+    voxel_size: float | None = None
+    """mesh: edge of a voxel of the fusion volume, in scene units (default: the finest the budget allows)."""
+    voxel_budget: int = 1 << 24
+    """mesh: voxels of the fusion volume at most (memory: about 16 bytes each)."""
+    alpha_min: float = 0.5
+    """mesh: pixels whose accumulated alpha stays below this show no surface and fuse nothing."""
+    min_component: float = 0.02
+    """mesh: drop connected pieces of fewer faces than this share of the largest piece's (0 keeps all)."""
     device: Device = "auto"
 
     def run_command(self) -> int:
@@ -179,6 +188,8 @@ class Export:
         from mcsplat.io.formats import EXTENSIONS, select_gaussians, write_gaussians
         from mcsplat.io.ply import write_ply
 
+        if self.format == "mesh":
+            return self._export_mesh()
         run = run_dir.load(self.run, resolve_device(self.device))
         model = run.model
         params = {k: v.detach().cpu().numpy() for k, v in model.params.items()}
@@ -201,6 +212,32 @@ class Export:
         else:
             write_gaussians(self.format, path, {k: v[chosen] for k, v in params.items()})
         print(f"wrote {path} ({chosen.size:,} of {model.num_gaussians:,} Gaussians, {path.stat().st_size:,} bytes)")
+        return 0
+
+    def _export_mesh(self) -> int:
+        import time
+
+        from mcsplat import run_dir
+        from mcsplat.compute.device import resolve_device
+        from mcsplat.mesh import MeshOptions, check_mesh_path, extract, write_mesh
+
+        options = MeshOptions(voxel_size=self.voxel_size, voxel_budget=self.voxel_budget, alpha_min=self.alpha_min,
+                              min_component=self.min_component)
+        if self.out is not None:
+            check_mesh_path(self.out)
+        run = run_dir.load(self.run, resolve_device(self.device))
+        path = self.out or run.folder.mesh_file
+        started = time.perf_counter()
+        mesh = extract(run.model, run.scene.train, options, sh_degree=run.sh_degree, progress=True)
+        write_mesh(path, mesh)
+        made = mesh.metadata["mcsplat"]
+        print(f"wrote {path} ({len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces; {made['views']} views fused "
+              f"in {made['grid'].describe()}, {time.perf_counter() - started:.0f} s)")
+        if path == run.folder.mesh_file and run.folder.report_file.is_file():
+            from mcsplat.report import make_report
+
+            test_views, render_view = _test_views_and_renderer(run.folder.path, self.device)
+            print(f"wrote {make_report([run.folder.path], test_views=test_views, render_view=render_view)}")
         return 0
 
     @staticmethod
@@ -248,10 +285,11 @@ class Report:
 @dataclass
 class ViewSaved:
     """Look at a trained run (or any 3DGS .ply) in the browser: our rasterizer renders what you point the camera at.
-    Needs `pip install mcsplat[viewer]`. Stop with Ctrl-C."""
+    A mesh (`mcsplat export --format mesh`'s .ply, .glb or .obj) the browser draws itself. Needs
+    `pip install mcsplat[viewer]`. Stop with Ctrl-C."""
 
-    path: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN|PLY")]
-    """Run directory written by `mcsplat train`, or a .ply file."""
+    path: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN|PLY|MESH")]
+    """Run directory written by `mcsplat train`, a 3DGS .ply file, or a mesh file."""
     port: int = 8080
     host: str = "127.0.0.1"
     """Address to listen on; 0.0.0.0 exposes the viewer to the network."""

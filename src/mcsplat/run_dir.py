@@ -6,6 +6,7 @@ reads a trained run back (`load`).
     RUN/log.jsonl            a record every 100 steps and at each periodic evaluation
     RUN/metrics.json         the final (or last `mcsplat eval`) scores and counts
     RUN/point_cloud.ply      the trained Gaussians, dead ones left out
+    RUN/mesh.ply             `mcsplat export --format mesh`'s surface (the report shows it when it is there)
     RUN/renders/<split>/     the test renders as PNG (and `mcsplat render`'s output; <split>.mp4 its video)
     RUN/report.html, plots/  the run report
 
@@ -36,6 +37,7 @@ CHECKPOINT = "checkpoint.pt"
 LOG = "log.jsonl"
 METRICS = "metrics.json"
 SPLATS = "point_cloud.ply"
+MESH = "mesh.ply"
 RENDERS = "renders"
 REPORT = "report.html"
 PLOTS = "plots"
@@ -54,6 +56,7 @@ class RunDir:
         self.log_file = self.path / LOG
         self.metrics_file = self.path / METRICS
         self.splats_file = self.path / SPLATS
+        self.mesh_file = self.path / MESH
         self.report_file = self.path / REPORT
         self.plots_folder = self.path / PLOTS
 

@@ -19,6 +19,7 @@ from ..events import RunFinished, Subscriber
 from ..io.atomic import atomic_write, atomic_write_text
 from ..run_dir import RunDir
 from . import plots
+from .mesh import mesh_figure_rows
 from .runs import RunRecord, load_run
 
 GRID_VIEWS = 6  # test views in the render / ground-truth grid, worst PSNR first
@@ -69,6 +70,9 @@ def make_report(run_dirs: Sequence[Path], out: Path | None = None, test_views: S
             names = ", ".join(f"{name} {value:.2f} dB" for name, value, _, _ in rows)
             figures.append(("test_views", f"Test views, worst PSNR first ({names}): render (left) and ground truth "
                             f"(right)", plots.view_grid(rows)))
+        caption, panels = mesh_figure_rows(runs[0].path, test_views, render_view)
+        if panels:
+            figures.append(("mesh", caption, plots.image_grid(panels)))
     folder = RunDir(out)  # a run folder, or a comparison's folder laid out the same way
     for name, _, png in figures:
         atomic_write(folder.plots_folder / f"{name}.png", lambda tmp, data=png: tmp.write_bytes(data))

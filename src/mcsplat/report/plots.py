@@ -124,14 +124,20 @@ def step_time(runs: list[RunRecord]) -> bytes:
 
 def view_grid(rows: list[tuple[str, float, np.ndarray, np.ndarray]]) -> bytes:
     """Rows of (view name, PSNR, render, ground truth) as uint8 images, in the given order."""
-    figure = Figure(figsize=(6.0, 2.8 * len(rows)))
-    axes = figure.subplots(len(rows), 2, squeeze=False)
-    for (name, value, rendered, truth), (a, b) in zip(rows, axes):
-        a.imshow(rendered)
-        a.set_title(f"{name}: render, {value:.2f} dB", fontsize=9)
-        b.imshow(truth)
-        b.set_title("ground truth", fontsize=9)
-        for ax in (a, b):
+    return image_grid([[(f"{name}: render, {value:.2f} dB", rendered), ("ground truth", truth)]
+                       for name, value, rendered, truth in rows])
+
+
+def image_grid(rows: list[list[tuple[str, np.ndarray]]]) -> bytes:
+    """Rows of (title, uint8 image) panels, in the given order."""
+    columns = max(len(panels) for panels in rows)
+    figure = Figure(figsize=(3.0 * columns, 2.8 * len(rows)))
+    axes = figure.subplots(len(rows), columns, squeeze=False)
+    for panels, row in zip(rows, axes):
+        for (title, image), ax in zip(panels, row):
+            ax.imshow(image)
+            ax.set_title(title, fontsize=9)
+        for ax in row:
             ax.set_axis_off()
     figure.tight_layout()
     return _png(figure)

@@ -1,4 +1,5 @@
-"""`mcsplat view`: the viewer on a finished (or stopped) run, or on any 3DGS .ply."""
+"""`mcsplat view`: the viewer on a finished (or stopped) run, on any 3DGS .ply, or on a mesh (.ply with faces, .glb,
+.obj), which the browser draws itself (viser's mesh)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from .. import run_dir
 from ..errors import MCSplatError
 from ..gaussians import GaussianModel
 from ..io.ply import read_ply
+from ..mesh import holds_mesh, read_mesh
 from .server import ViewerServer
 
 
@@ -26,7 +28,7 @@ def load_for_viewing(path: Path, device: torch.device):
             return run.model, [], (0.0, 0.0, 0.0), _radius_of(run.model)
         return run.model, [v.camera for v in scene.train], run.background, scene.radius
     if path.suffix.lower() != ".ply":
-        raise MCSplatError(f"{path}: give a run directory or a 3DGS .ply file")
+        raise MCSplatError(f"{path}: give a run directory, a 3DGS .ply file or a mesh (.ply, .glb, .obj)")
     model = GaussianModel(**read_ply(path)).to(device)
     return model, [], (0.0, 0.0, 0.0), _radius_of(model)
 
@@ -36,13 +38,13 @@ def _radius_of(model) -> float:
     return float((means - means.median(dim=0).values).norm(dim=1).quantile(0.9)) if means.shape[0] else 1.0
 
 
-def initial_pose_for(model, radius: float):
-    """A view from outside the scene towards its centre, for a .ply without cameras (OpenCV axes: y down)."""
+def initial_pose_for(centre, radius: float):
+    """A view from outside the scene towards `centre` [3], for a file without cameras (OpenCV axes: y down)."""
     import numpy as np
 
     from .cameras import matrix_to_quat
 
-    centre = model.means.detach().median(dim=0).values.cpu().double().numpy()
+    centre = np.asarray(centre, dtype=np.float64)
     position = centre + np.array([0.0, -1.0, -2.5]) * radius
     forward = (centre - position) / np.linalg.norm(centre - position)
     right = np.cross(forward, [0.0, -1.0, 0.0])
@@ -54,6 +56,8 @@ def initial_pose_for(model, radius: float):
 def view_saved(path: Path, host: str, port: int, device: torch.device, stop: threading.Event | None = None,
                quiet: bool = False) -> ViewerServer:
     """Serve the viewer until `stop` is set (Ctrl-C from the CLI); returns the stopped server."""
+    if Path(path).is_file() and holds_mesh(Path(path)):
+        return view_mesh(Path(path), host, port, stop, quiet)
     model, cameras, background, radius = load_for_viewing(Path(path), device)
     with torch.no_grad():
         model.requires_grad_(False)
@@ -63,10 +67,43 @@ def view_saved(path: Path, host: str, port: int, device: torch.device, stop: thr
         if cameras:
             server.add_cameras(cameras)
         else:
-            server.initial_pose = initial_pose_for(model, radius)
+            server.initial_pose = initial_pose_for(model.means.detach().median(dim=0).values.cpu(), radius)
         server.set_model(model)
         server.set_stats(f"{Path(path).name}: {model.num_gaussians:,} Gaussians, SH degree {model.sh_degree}")
         (stop or threading.Event()).wait()
     finally:
         server.close()
     return server
+
+
+def view_mesh(path: Path, host: str, port: int, stop: threading.Event | None = None, quiet: bool = False
+              ) -> ViewerServer:
+    """Serve a mesh file until `stop` is set; returns the stopped server."""
+    server, _ = serve_mesh(path, host, port, quiet)
+    try:
+        (stop or threading.Event()).wait()
+    finally:
+        server.close()
+    return server
+
+
+def serve_mesh(path: Path, host: str, port: int, quiet: bool = False):
+    """(server, viser's handle of the mesh): the browser draws the mesh itself, vertex colours kept; nothing is
+    rendered here, so the controls of the splats' renders are hidden."""
+    import numpy as np
+
+    mesh = read_mesh(path)
+    low, high = mesh.bounds
+    radius = float(np.linalg.norm(high - low)) / 2 or 1.0
+    server = ViewerServer(host, port, lock=threading.RLock(), scene_radius=radius, background=(1.0, 1.0, 1.0),
+                          max_sh_degree=0, training=False, quiet=quiet)
+    try:
+        for control in (server.mode, server.sh_degree, server.show_cameras):
+            control.visible = False
+        handle = server.server.scene.add_mesh_trimesh("/mesh", mesh)
+        server.initial_pose = initial_pose_for((low + high) / 2, radius)
+        server.set_stats(f"{path.name}: {len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces")
+    except BaseException:
+        server.close()
+        raise
+    return server, handle

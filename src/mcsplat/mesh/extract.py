@@ -1,0 +1,95 @@
+"""`extract(model, views)`: a trained model's surface as a coloured triangle mesh.
+
+    render every view's median depth, alpha and colour  ->  fuse them into a truncated signed distance volume
+    ->  marching cubes  ->  drop the small pieces
+
+Pixels whose accumulated alpha stays below `alpha_min` fuse nothing (they show no surface), and their colour is the
+foreground's own (the background taken out and divided by alpha). Everything but marching cubes runs on the model's
+device.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+import trimesh
+from tqdm import tqdm
+
+from ..camera import Camera
+from ..errors import MCSplatError
+from ..render import GaussiansLike, render
+from .clean import drop_small_pieces
+from .fusion import TSDFVolume
+from .grid import VoxelGrid, check_memory, choose_grid, object_box
+from .surface import zero_surface
+
+DEFAULT_VOXEL_BUDGET = 1 << 24  # 256^3
+
+
+@dataclass(frozen=True)
+class MeshOptions:
+    voxel_size: float | None = None           # world units; None: the finest that keeps to the budget
+    voxel_budget: int = DEFAULT_VOXEL_BUDGET  # voxels of the fusion volume at most
+    alpha_min: float = 0.5                    # pixels less opaque than this fuse nothing
+    min_component: float = 0.02               # drop pieces of fewer faces than this share of the largest's
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.alpha_min <= 1.0:
+            raise MCSplatError(f"--alpha-min must be in (0, 1], got {self.alpha_min}")
+        if not 0.0 <= self.min_component <= 1.0:
+            raise MCSplatError(f"--min-component must be in [0, 1] (a share of the largest piece's faces), got "
+                               f"{self.min_component}")
+
+
+@torch.no_grad()
+def extract(model: GaussiansLike, views: Sequence, options: MeshOptions = MeshOptions(), *,
+            sh_degree: int | None = None, progress: bool = False) -> trimesh.Trimesh:
+    """The surface that `views` (scene Views or Cameras) see of `model`, as a Trimesh with vertex colours, in the
+    scene's world coordinates. `mesh.metadata["mcsplat"]` tells the grid and the time of each stage."""
+    cameras: list[Camera] = [getattr(view, "camera", view) for view in views]
+    if not cameras:
+        raise MCSplatError("no views to fuse: the run's scene has no training views")
+    device = model.means.device
+    grid = choose_grid(*object_box(model.means, model.opacities), options.voxel_size, options.voxel_budget)
+    check_memory(grid, device)
+    seconds = {}
+    started = time.perf_counter()
+    volume = TSDFVolume(grid, device)
+    surface_pixels = 0
+    for camera in tqdm(cameras, desc="fusing views", unit="view", disable=not progress, leave=False):
+        depth, rgb = surface_of_view(model, camera.to(device), options.alpha_min, sh_degree)
+        surface_pixels += int(torch.isfinite(depth).sum())
+        volume.integrate(camera, depth, rgb)
+    if surface_pixels == 0:
+        raise MCSplatError(f"no pixel of any view reaches --alpha-min {options.alpha_min}: nothing to fuse; lower it")
+    seconds["fusion"] = time.perf_counter() - started
+    started = time.perf_counter()
+    vertices, faces, colors = zero_surface(volume, progress)
+    del volume
+    if len(faces) == 0:
+        raise MCSplatError(f"the fused volume ({grid.describe()}) holds no surface; lower --voxel-size or "
+                           f"--alpha-min")
+    seconds["marching_cubes"] = time.perf_counter() - started
+    started = time.perf_counter()
+    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=colors)  # merges the blocks' seams
+    mesh = drop_small_pieces(mesh, options.min_component)
+    seconds["cleaning"] = time.perf_counter() - started
+    mesh.metadata["mcsplat"] = {"grid": grid, "seconds": seconds, "views": len(cameras)}
+    return mesh
+
+
+def surface_of_view(model: GaussiansLike, camera: Camera, alpha_min: float, sh_degree: int | None
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(median depth [H, W], -inf where alpha < alpha_min; foreground colour [H, W, 3]) of one view."""
+    out = render(model, camera, None, sh_degree, median_depth=True)  # black background: rgb is the foreground
+    depth = torch.where(out.alpha >= alpha_min, out.median_depth, torch.full_like(out.median_depth, -float("inf")))
+    rgb = out.rgb / out.alpha.clamp(min=1e-6)[..., None]
+    return depth, rgb
+
+
+def grid_of(mesh: trimesh.Trimesh) -> VoxelGrid:
+    """The grid a mesh from extract() was fused in."""
+    return mesh.metadata["mcsplat"]["grid"]

@@ -1,0 +1,86 @@
+"""Truncated signed distance fusion (Curless & Levoy 1996) of depth maps into a VoxelGrid, in torch on the volume's
+device.
+
+A grid point seen by a view at camera depth z, in front of the pixel's depth d or at most the truncation t behind it,
+takes the observation min(1, (d - z) / t) into its running mean; farther behind it is hidden and left alone. The
+running mean of the pixel's colour goes with it. Pixels without a surface (depth -inf) update nothing. The volume is
+walked in slabs of the first axis, so that the temporaries stay small whatever the grid.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..camera import Camera
+from ..render.constants import NEAR_PLANE
+from .grid import VoxelGrid
+
+SLAB_VOXELS = 1 << 20  # grid points per slab
+
+
+class TSDFVolume:
+    def __init__(self, grid: VoxelGrid, device: torch.device):
+        self.grid, self.device = grid, device
+        self.tsdf = torch.ones(grid.shape, dtype=torch.float32, device=device)   # in units of the truncation
+        self.weight = torch.zeros(grid.shape, dtype=torch.float32, device=device)  # observations so far
+        self.color = torch.zeros((*grid.shape, 3), dtype=torch.float16, device=device)
+
+    @torch.no_grad()
+    def integrate(self, camera: Camera, depth: torch.Tensor, rgb: torch.Tensor) -> None:
+        """Fuse one view: `depth` [H, W] camera depth of the surface (-inf where there is none), `rgb` [H, W, 3]."""
+        grid, device = self.grid, self.device
+        nx, ny, nz = grid.shape
+        height, width = depth.shape
+        w2c = camera.world_to_camera.to(device, torch.float64)
+        rotation = w2c[:3, :3]
+        # Camera coordinates of grid point (i, j, k): base + i a + j b + k c, each axis's term computed once.
+        base = (rotation @ torch.tensor(grid.origin, dtype=torch.float64, device=device) + w2c[:3, 3])
+        steps = rotation * grid.voxel_size  # columns: a, b, c
+        j = torch.arange(ny, device=device, dtype=torch.float64)[:, None]
+        k = torch.arange(nz, device=device, dtype=torch.float64)[None, :]
+        plane = [(base[r] + steps[r, 1] * j + steps[r, 2] * k).float() for r in range(3)]  # [ny, nz] per axis
+        fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+        depth_flat = depth.reshape(-1).float()
+        rgb_flat = rgb.reshape(-1, 3).float()
+        truncation = grid.truncation
+        slab = max(1, SLAB_VOXELS // (ny * nz))
+        for x0 in range(0, nx, slab):
+            x1 = min(nx, x0 + slab)
+            if not self._slab_in_view(base, steps, x0, x1, camera):
+                continue
+            i = torch.arange(x0, x1, device=device, dtype=torch.float32)[:, None, None]
+            x, y, z = (plane[r][None] + float(steps[r, 0]) * i for r in range(3))
+            inverse_z = 1.0 / z
+            u = x * inverse_z * fx + cx
+            v = y * inverse_z * fy + cy
+            seen = (z > NEAR_PLANE) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+            pixel = v.clamp(0, height - 1).long() * width + u.clamp(0, width - 1).long()
+            sdf = depth_flat[pixel] - z
+            ids = (seen & (sdf >= -truncation)).reshape(-1).nonzero().squeeze(1)
+            if ids.numel() == 0:
+                continue
+            ids_in_volume = ids + x0 * ny * nz
+            weight = self.weight.view(-1)[ids_in_volume]
+            new_weight = weight + 1.0
+            observed = (sdf.reshape(-1)[ids] / truncation).clamp(max=1.0)
+            tsdf = self.tsdf.view(-1)
+            tsdf[ids_in_volume] = (tsdf[ids_in_volume] * weight + observed) / new_weight
+            self.weight.view(-1)[ids_in_volume] = new_weight
+            color = self.color.view(-1, 3)
+            old = color[ids_in_volume].float()
+            color[ids_in_volume] = (old + (rgb_flat[pixel.reshape(-1)[ids]] - old) / new_weight[:, None]).half()
+
+    def _slab_in_view(self, base, steps, x0: int, x1: int, camera: Camera) -> bool:
+        """False when the slab's box lies wholly behind the camera or wholly beside the image (a safe shortcut)."""
+        ny, nz = self.grid.shape[1:]
+        corners = torch.tensor([[a, b, c] for a in (x0, x1 - 1) for b in (0, ny - 1) for c in (0, nz - 1)],
+                               dtype=torch.float64, device=base.device)
+        points = base + corners @ steps.T
+        z = points[:, 2]
+        if (z <= NEAR_PLANE).all():
+            return False
+        if (z <= NEAR_PLANE).any():  # straddles the camera plane: its projection is unbounded
+            return True
+        u = points[:, 0] / z * camera.fx + camera.cx
+        v = points[:, 1] / z * camera.fy + camera.cy
+        return bool(u.max() >= 0 and u.min() < camera.width and v.max() >= 0 and v.min() < camera.height)

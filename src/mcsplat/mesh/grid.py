@@ -1,0 +1,123 @@
+"""The voxel grid a mesh is fused in: where it lies, how fine it is, and whether it fits in memory.
+
+The box is the one that holds the Gaussians a view can see (opacity of at least OPAQUE, the central 98% of them
+along each axis, so that a few floaters far out do not stretch it), padded by the truncation band. The voxel size is
+given, or the one that fills the box with the voxel budget. Grid point (i, j, k) sits at origin + (i, j, k) x size.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import torch
+
+from ..errors import MCSplatError
+
+OPAQUE = 0.1           # Gaussians at least this opaque decide the box
+BOX_QUANTILE = 0.01    # ... the box holds all but this share of them on each side, along each axis
+TRUNCATION_VOXELS = 4  # half-width of the signed distance band, in voxels
+# Per voxel: signed distance and weight (float32), colour (3 x float16), two masks when meshing (bool).
+BYTES_PER_VOXEL = 4 + 4 + 3 * 2 + 2
+MEMORY_SHARE = 0.8     # of the free memory the volume may take (the rest: renders, marching cubes, the mesh)
+MIN_VOXELS_PER_SIDE = 8
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    origin: tuple[float, float, float]  # world position of grid point (0, 0, 0)
+    voxel_size: float
+    shape: tuple[int, int, int]
+
+    @property
+    def num_voxels(self) -> int:
+        return math.prod(self.shape)
+
+    @property
+    def truncation(self) -> float:
+        """Half-width of the signed distance band, in world units."""
+        return TRUNCATION_VOXELS * self.voxel_size
+
+    def to_world(self, points: torch.Tensor) -> torch.Tensor:
+        """[..., 3] grid coordinates (voxel units, fractional) -> world coordinates."""
+        origin = torch.tensor(self.origin, dtype=points.dtype, device=points.device)
+        return origin + points * self.voxel_size
+
+    def describe(self) -> str:
+        nx, ny, nz = self.shape
+        return f"{nx}x{ny}x{nz} voxels of {self.voxel_size:.4g}"
+
+
+def object_box(means: torch.Tensor, opacities: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(lowest, highest) corner [3] of the box that holds the opaque Gaussians (see the module docstring)."""
+    opaque = means[opacities >= OPAQUE].detach().float()
+    if opaque.shape[0] < 2:
+        raise MCSplatError(f"the model has {opaque.shape[0]} Gaussian(s) of opacity {OPAQUE} or more: nothing to "
+                           f"mesh; train the run further")
+    if opaque.shape[0] > 1_000_000:  # torch.quantile's limit is 2^24 elements; a sample finds the box as well
+        opaque = opaque[torch.randperm(opaque.shape[0], generator=torch.Generator().manual_seed(0))[:1_000_000]
+                        .to(opaque.device)]
+    bounds = torch.quantile(opaque, torch.tensor([BOX_QUANTILE, 1 - BOX_QUANTILE], device=opaque.device), dim=0)
+    return bounds[0], bounds[1]
+
+
+def choose_grid(low: torch.Tensor, high: torch.Tensor, voxel_size: float | None, voxel_budget: int) -> VoxelGrid:
+    """The grid over the box [low, high] widened by the truncation band: voxels of `voxel_size`, or the finest that
+    keeps to `voxel_budget` voxels."""
+    if voxel_budget < MIN_VOXELS_PER_SIDE ** 3:
+        raise MCSplatError(f"--voxel-budget {voxel_budget:,} is too small; give at least {MIN_VOXELS_PER_SIDE ** 3:,}")
+    if voxel_size is not None and not voxel_size > 0:
+        raise MCSplatError(f"--voxel-size must be positive, got {voxel_size}")
+    extent = (high - low).double().clamp(min=1e-9).tolist()
+    size = voxel_size if voxel_size is not None else _finest_size(extent, voxel_budget)
+    margin = (TRUNCATION_VOXELS + 1) * size
+    grid = VoxelGrid(origin=tuple(float(v) - margin for v in low.tolist()), voxel_size=float(size),  # type: ignore
+                     shape=_shape(extent, size))
+    if grid.num_voxels > voxel_budget:
+        raise MCSplatError(f"--voxel-size {size:.4g} needs {grid.describe()} = {grid.num_voxels:,} voxels, over the "
+                           f"budget of {voxel_budget:,}; raise --voxel-size or --voxel-budget")
+    return grid
+
+
+def _shape(extent: list[float], size: float) -> tuple[int, int, int]:
+    """Grid points along each axis: the extent and a margin of the band plus one voxel on both ends."""
+    return tuple(math.ceil(e / size) + 2 * (TRUNCATION_VOXELS + 1) + 1 for e in extent)  # type: ignore[return-value]
+
+
+def _finest_size(extent: list[float], budget: int) -> float:
+    """The smallest voxel size whose grid keeps to `budget` (bisection: the count only falls as the size grows)."""
+    low, high = max(extent) * 1e-6, max(extent)
+    while math.prod(_shape(extent, high)) > budget:  # a budget near the minimum: the margins alone fill it
+        high *= 2
+    for _ in range(60):
+        middle = 0.5 * (low + high)
+        low, high = (middle, high) if math.prod(_shape(extent, middle)) > budget else (low, middle)
+    return high
+
+
+def check_memory(grid: VoxelGrid, device: torch.device) -> None:
+    """A one-line error, before anything is allocated, when the volume would not fit in free memory."""
+    need = grid.num_voxels * BYTES_PER_VOXEL
+    free = free_memory(device)
+    if free is not None and need > MEMORY_SHARE * free:
+        raise MCSplatError(f"the volume of {grid.describe()} needs {need / 2**30:.1f} GiB, more than "
+                           f"{MEMORY_SHARE:.0%} of the {free / 2**30:.1f} GiB free on {device}; lower --voxel-budget "
+                           f"(or raise --voxel-size)")
+
+
+def free_memory(device: torch.device) -> int | None:
+    """Bytes free on `device` (None where it cannot be told)."""
+    if device.type == "cuda":
+        return torch.cuda.mem_get_info(device)[0]
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
