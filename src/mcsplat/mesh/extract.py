@@ -23,7 +23,7 @@ from ..errors import MCSplatError
 from ..render import GaussiansLike, render
 from .clean import drop_small_pieces
 from .fusion import TSDFVolume
-from .grid import VoxelGrid, check_memory, choose_grid, object_box
+from .grid import check_memory, choose_grid, object_box
 from .surface import zero_surface
 
 DEFAULT_VOXEL_BUDGET = 1 << 24  # 256^3
@@ -89,7 +89,3 @@ def surface_of_view(model: GaussiansLike, camera: Camera, alpha_min: float, sh_d
     rgb = out.rgb / out.alpha.clamp(min=1e-6)[..., None]
     return depth, rgb
 
-
-def grid_of(mesh: trimesh.Trimesh) -> VoxelGrid:
-    """The grid a mesh from extract() was fused in."""
-    return mesh.metadata["mcsplat"]["grid"]

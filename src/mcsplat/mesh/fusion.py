@@ -31,17 +31,21 @@ class TSDFVolume:
         grid, device = self.grid, self.device
         nx, ny, nz = grid.shape
         height, width = depth.shape
+        # A border of pixels without a surface: grid points that project outside the image land on it.
+        framed_depth = torch.full((height + 2, width + 2), -float("inf"), device=device)
+        framed_depth[1:-1, 1:-1] = depth
+        framed_rgb = torch.zeros((height + 2, width + 2, 3), device=device)
+        framed_rgb[1:-1, 1:-1] = rgb
+        framed_depth, framed_rgb = framed_depth.reshape(-1), framed_rgb.reshape(-1, 3)
         w2c = camera.world_to_camera.to(device, torch.float64)
         rotation = w2c[:3, :3]
         # Camera coordinates of grid point (i, j, k): base + i a + j b + k c, each axis's term computed once.
-        base = (rotation @ torch.tensor(grid.origin, dtype=torch.float64, device=device) + w2c[:3, 3])
+        base = rotation @ torch.tensor(grid.origin, dtype=torch.float64, device=device) + w2c[:3, 3]
         steps = rotation * grid.voxel_size  # columns: a, b, c
         j = torch.arange(ny, device=device, dtype=torch.float64)[:, None]
         k = torch.arange(nz, device=device, dtype=torch.float64)[None, :]
-        plane = [(base[r] + steps[r, 1] * j + steps[r, 2] * k).float() for r in range(3)]  # [ny, nz] per axis
-        fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-        depth_flat = depth.reshape(-1).float()
-        rgb_flat = rgb.reshape(-1, 3).float()
+        plane = [(base[r] + steps[r, 1] * j + steps[r, 2] * k).float()[None] for r in range(3)]  # [1, ny, nz]
+        step_i = [float(steps[r, 0]) for r in range(3)]
         truncation = grid.truncation
         slab = max(1, SLAB_VOXELS // (ny * nz))
         for x0 in range(0, nx, slab):
@@ -49,26 +53,26 @@ class TSDFVolume:
             if not self._slab_in_view(base, steps, x0, x1, camera):
                 continue
             i = torch.arange(x0, x1, device=device, dtype=torch.float32)[:, None, None]
-            x, y, z = (plane[r][None] + float(steps[r, 0]) * i for r in range(3))
-            inverse_z = 1.0 / z
-            u = x * inverse_z * fx + cx
-            v = y * inverse_z * fy + cy
-            seen = (z > NEAR_PLANE) & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-            pixel = v.clamp(0, height - 1).long() * width + u.clamp(0, width - 1).long()
-            sdf = depth_flat[pixel] - z
-            ids = (seen & (sdf >= -truncation)).reshape(-1).nonzero().squeeze(1)
+            z = torch.add(plane[2], i, alpha=step_i[2])
+            inverse_z = z.clamp(min=NEAR_PLANE).reciprocal_()  # behind the camera: any finite value, left out below
+            # Framed pixel coordinates, clamped onto the frame: floor by truncation, as they are not negative.
+            column = torch.add(plane[0], i, alpha=step_i[0]).mul_(inverse_z).mul_(camera.fx).add_(camera.cx + 1)
+            row = torch.add(plane[1], i, alpha=step_i[1]).mul_(inverse_z).mul_(camera.fy).add_(camera.cy + 1)
+            pixel = row.clamp_(0, height + 1).long().mul_(width + 2).add_(column.clamp_(0, width + 1).long())
+            sdf = framed_depth[pixel].sub_(z)
+            ids = ((sdf >= -truncation) & (z > NEAR_PLANE)).reshape(-1).nonzero().squeeze(1)
             if ids.numel() == 0:
                 continue
-            ids_in_volume = ids + x0 * ny * nz
-            weight = self.weight.view(-1)[ids_in_volume]
+            in_volume = ids + x0 * ny * nz
+            weight = self.weight.view(-1)[in_volume]
             new_weight = weight + 1.0
-            observed = (sdf.reshape(-1)[ids] / truncation).clamp(max=1.0)
+            observed = (sdf.reshape(-1)[ids] / truncation).clamp_(max=1.0)
             tsdf = self.tsdf.view(-1)
-            tsdf[ids_in_volume] = (tsdf[ids_in_volume] * weight + observed) / new_weight
-            self.weight.view(-1)[ids_in_volume] = new_weight
+            tsdf[in_volume] = (tsdf[in_volume] * weight + observed) / new_weight
+            self.weight.view(-1)[in_volume] = new_weight
             color = self.color.view(-1, 3)
-            old = color[ids_in_volume].float()
-            color[ids_in_volume] = (old + (rgb_flat[pixel.reshape(-1)[ids]] - old) / new_weight[:, None]).half()
+            old = color[in_volume].float()
+            color[in_volume] = (old + (framed_rgb[pixel.reshape(-1)[ids]] - old) / new_weight[:, None]).half()
 
     def _slab_in_view(self, base, steps, x0: int, x1: int, camera: Camera) -> bool:
         """False when the slab's box lies wholly behind the camera or wholly beside the image (a safe shortcut)."""

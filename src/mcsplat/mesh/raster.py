@@ -17,7 +17,10 @@ from ..camera import Camera
 from ..render.constants import NEAR_PLANE
 
 PAIRS_PER_CHUNK = 1 << 22
-AMBIENT = 0.3  # of the light in the pictures that does not depend on the surface's slant
+# The pictures' light: from the upper left behind the camera (camera axes: x right, y down, z forward). Grey pictures
+# show the shape, so mostly by the slant to this light; coloured ones mostly by their colours.
+LIGHT = (-0.4, -0.6, -0.7)
+AMBIENT_GREY, AMBIENT_COLOUR = 0.15, 0.6
 
 
 @dataclass
@@ -98,23 +101,23 @@ def face_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
 @torch.no_grad()
 def picture(vertices: torch.Tensor, faces: torch.Tensor, camera: Camera, colors: torch.Tensor | None = None,
             background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> np.ndarray:
-    """uint8 [H, W, 3]: the mesh lit from the camera (a headlight), in its vertex colours [V, 3] (uint8 or [0, 1]
-    floats) or in grey without them."""
+    """uint8 [H, W, 3]: the mesh in its vertex colours [V, 3] (uint8, or floats in [0, 1]), or in grey without them,
+    lit by LIGHT (both sides of a triangle alike)."""
     raster = rasterize(vertices, faces, camera)
     hit = raster.face >= 0
     face = raster.face[hit]
     device = vertices.device
-    centre = camera.center.to(device, torch.float64)
-    v = vertices.double()[faces.long()[face]]
-    towards_camera = centre - v.mean(dim=1)
-    towards_camera = towards_camera / towards_camera.norm(dim=1, keepdim=True)
-    slant = (face_normals(vertices, faces)[face] * towards_camera).sum(dim=1).abs()
-    light = AMBIENT + (1 - AMBIENT) * slant
+    rotation = camera.world_to_camera[:3, :3].to(device, torch.float64)
+    light = torch.nn.functional.normalize(rotation.T @ torch.tensor(LIGHT, dtype=torch.float64, device=device), dim=0)
+    slant = (face_normals(vertices, faces)[face] @ -light).abs()
     if colors is None:
-        albedo = torch.full((face.shape[0], 3), 0.8, dtype=torch.float64, device=device)
+        albedo = torch.full((face.shape[0], 3), 0.85, dtype=torch.float64, device=device)
+        ambient = AMBIENT_GREY
     else:
         scale = 255.0 if colors.dtype == torch.uint8 else 1.0
         albedo = colors.to(device).double()[faces.long()[face]].mean(dim=1) / scale
+        ambient = AMBIENT_COLOUR
+    shade = ambient + (1 - ambient) * slant
     image = torch.tensor(background, dtype=torch.float64, device=device).expand(camera.height, camera.width, 3).clone()
-    image[hit] = albedo * light[:, None]
+    image[hit] = albedo * shade[:, None]
     return (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()

@@ -1,0 +1,287 @@
+"""Meshes of trained scenes (`mcsplat export --format mesh`): how close they come to geometry nobody here made, and
+whether MCMC puts its Gaussians on the surface more than ADC does, at the same cap, steps and fusion settings.
+
+    .venv/bin/python benchmarks/mesh_quality.py                        # cup and bird (MCMC, ADC), DTU and lego (MCMC)
+    .venv/bin/python benchmarks/mesh_quality.py --scenes cup --strategies mcmc adc
+    .venv/bin/python benchmarks/mesh_quality.py --runs RUN [RUN ...]   # runs trained elsewhere (no SfM: no distances)
+    .venv/bin/python benchmarks/mesh_quality.py --report               # rebuild results.md from results.jsonl
+
+Each scene trains (or a finished run is reused) with the squeezed schedule of the other benchmarks: 3,000 steps, cap
+100k, refinement from step 50 every 10 steps to 2,500 (MCMC) or densification to 1,500 with an opacity reset every
+300 (ADC), SH degree +1 every 100 steps, images at half size (DTU at full size), into results/mesh_quality/runs/
+(git-ignored). Every run's mesh is exported in a fresh process with the command's defaults (voxel budget 2^24,
+--alpha-min 0.5, --min-component 0.02), which records its time and peak memory. Then, in units of the scene radius R
+(3DGS's: 1.1 x the cameras' largest distance from their centre):
+
+    SfM points -> mesh       distance from each COLMAP point (triangulated from image features) to the mesh: median,
+                             90th percentile, and the share within 1% of R (completeness)
+    mesh -> SfM points       distance from each mesh vertex to the nearest COLMAP point (an accuracy proxy: the points
+                             are sparse, so it is never 0)
+    Gaussians on the surface the share of the live Gaussians (opacity above 0.005) whose centre lies within 3 voxels of
+                             the mesh, plainly and weighted by opacity
+    depth agreement          on up to 10 test views, the share of pixels where both show a surface whose mesh depth
+                             (mcsplat.mesh.raster) is within 1% of the splats' median depth
+
+and a picture per run: a test view's splats, the mesh in its vertex colours and the mesh shaded
+(results/mesh_quality/<run>.png).
+"""
+
+from __future__ import annotations
+
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+import _common as C
+
+SCENES = {"cup": ("colmap_cup", 2), "bird": ("colmap_bird", 2), "dtu": ("dtu_scan24_monosdf/scan24", 1),
+          "lego": (C.LEGO, 2)}
+DEFAULT_JOBS = [("cup", "mcmc"), ("cup", "adc"), ("bird", "mcmc"), ("bird", "adc"), ("dtu", "mcmc"), ("lego", "mcmc")]
+TRAIN_OPTIONS = ["--steps", "3000", "--cap-max", "100000", "--sh-increase-every", "100", "--lpips-net", "alex",
+                 "--no-save-renders"]
+STRATEGY_OPTIONS = {
+    "mcmc": ["--mcmc.refine-start", "50", "--mcmc.refine-every", "10", "--mcmc.refine-stop", "2500"],
+    "adc": ["--strategy", "adc", "--adc.densify-start", "50", "--adc.densify-every", "10", "--adc.densify-stop",
+            "1500", "--adc.reset-every", "300"]}
+NEAR_VOXELS = 3           # "on the surface": within this many voxels of the mesh
+COMPLETE = 0.01           # completeness threshold, in units of R
+AGREEMENT = 0.01          # depth agreement threshold, relative to the depth
+AGREEMENT_VIEWS = 10
+PICTURE_SIDE = 320        # pixels of a picture panel's longest side
+OUT = C.results_dir("mesh_quality")
+
+
+# ------------------------------------------------------------------------------------------------ training
+def train(scene: str, strategy: str, data_root: Path, threads: int) -> Path:
+    """The run folder of (scene, strategy), trained first unless a finished run is there."""
+    folder, downscale = SCENES[scene]
+    run = OUT / "runs" / f"{scene}-{strategy}"
+    if (run / "metrics.json").is_file():
+        return run
+    command = [sys.executable, "-m", "mcsplat", "train", str(data_root / folder), "--out", str(run), "--overwrite",
+               "--downscale", str(downscale), "--threads", str(threads), "--quiet", *TRAIN_OPTIONS,
+               *STRATEGY_OPTIONS[strategy]]
+    print(" ".join(command[1:]), file=sys.stderr, flush=True)
+    subprocess.run(command, check=True)
+    return run
+
+
+# ------------------------------------------------------------------------------------------------ export
+def export_worker(run: str) -> None:
+    """In a fresh process: what `mcsplat export RUN --format mesh` does, timed; prints one JSON line."""
+    from mcsplat import run_dir
+    from mcsplat.mesh import MeshOptions, extract, write_mesh
+
+    started = time.perf_counter()
+    trained = run_dir.load(run, torch.device("cpu"))
+    mesh = extract(trained.model, trained.scene.train, MeshOptions(), sh_degree=trained.sh_degree)
+    write_mesh(trained.folder.mesh_file, mesh)
+    made = mesh.metadata["mcsplat"]
+    grid = made["grid"]
+    print(json.dumps({"export_seconds": round(time.perf_counter() - started, 1), "peak_rss_mb": round(C.peak_rss_mb()),
+                      "stage_seconds": {k: round(v, 1) for k, v in made["seconds"].items()},
+                      "voxel_size": grid.voxel_size, "grid": list(grid.shape), "voxels": grid.num_voxels,
+                      "views": made["views"], "vertices": len(mesh.vertices), "faces": len(mesh.faces)}))
+
+
+def export(run: Path) -> dict:
+    done = subprocess.run([sys.executable, __file__, "--export-worker", str(run)], capture_output=True, text=True)
+    if done.returncode != 0:
+        sys.exit(f"export of {run} failed: {done.stderr.strip()}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+# ------------------------------------------------------------------------------------------------ distances
+def closest_on_triangles(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """[P, 3] closest points of triangles (a, b, c) [P, 3] each to `points` (Ericson, Real-Time Collision
+    Detection 5.1.5: the vertex, edge or face region the point projects into)."""
+    ab, ac, ap = b - a, c - a, points - a
+    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+    bp = points - b
+    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+    cp = points - c
+    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        denominator = va + vb + vc
+        v, w = vb / denominator, vc / denominator
+        result = a + ab * v[:, None] + ac * w[:, None]  # inside the face
+        t_ab, t_ac = d1 / (d1 - d3), d2 / (d2 - d6)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+    regions = [  # later regions take precedence where two conditions hold (the order of Ericson's early exits)
+        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), b + (c - b) * np.nan_to_num(t_bc)[:, None]),
+        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), a + ac * np.nan_to_num(t_ac)[:, None]),
+        ((d6 >= 0) & (d5 <= d6), c),
+        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), a + ab * np.nan_to_num(t_ab)[:, None]),
+        ((d3 >= 0) & (d4 <= d3), b), ((d1 <= 0) & (d2 <= 0), a)]
+    for mask, closest in regions:
+        result[mask] = closest[mask]
+    return result
+
+
+def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, candidates: int = 16
+                     ) -> np.ndarray:
+    """[P] distance from each point to the nearest of the `candidates` triangles whose centroids are nearest (exact
+    for a mesh of small, even triangles such as marching cubes makes)."""
+    triangles = vertices[faces]
+    _, nearest = cKDTree(triangles.mean(axis=1)).query(points, k=candidates)
+    best = np.full(len(points), np.inf)
+    for k in range(candidates):
+        t = triangles[nearest[:, k]]
+        best = np.minimum(best, np.linalg.norm(points - closest_on_triangles(points, t[:, 0], t[:, 1], t[:, 2]),
+                                               axis=1))
+    return best
+
+
+# ------------------------------------------------------------------------------------------------ measures
+def measure(run: Path, exported: dict) -> dict:
+    from mcsplat import run_dir
+    from mcsplat.mesh import read_mesh
+
+    trained = run_dir.load(run, torch.device("cpu"))
+    mesh = read_mesh(trained.folder.mesh_file)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    scene, radius = trained.scene, trained.scene.radius
+    metrics = json.loads((run / "metrics.json").read_text())
+    record = {"run": run.name, "scene": trained.config.data.name, "strategy": trained.config.strategy,
+              "psnr": round(metrics["psnr"], 2), "num_gaussians": trained.model.num_gaussians, "radius": radius,
+              **exported, "voxel_size_r": exported["voxel_size"] / radius}
+    if scene.points is not None:
+        points = scene.points.double().numpy()
+        to_mesh = distance_to_mesh(points, vertices, faces) / radius
+        to_points = cKDTree(points).query(vertices)[0] / radius
+        record.update(sfm_points=len(points), points_to_mesh_median=float(np.median(to_mesh)),
+                      points_to_mesh_p90=float(np.quantile(to_mesh, 0.9)),
+                      completeness=float((to_mesh <= COMPLETE).mean()),
+                      mesh_to_points_median=float(np.median(to_points)),
+                      mesh_to_points_p90=float(np.quantile(to_points, 0.9)))
+    opacities = trained.model.opacities.detach().numpy()
+    alive = opacities > 0.005
+    near = distance_to_mesh(trained.model.means.detach().double().numpy()[alive], vertices, faces) \
+        <= NEAR_VOXELS * exported["voxel_size"]
+    record.update(gaussians_on_surface=float(near.mean()),
+                  gaussians_on_surface_weighted=float((near * opacities[alive]).sum() / opacities[alive].sum()))
+    record.update(depth_agreement(trained, vertices, faces))
+    picture(trained, vertices, faces, np.asarray(mesh.visual.vertex_colors)[:, :3], OUT / f"{run.name}.png")
+    return record
+
+
+@torch.no_grad()
+def depth_agreement(trained, vertices: np.ndarray, faces: np.ndarray) -> dict:
+    from mcsplat.mesh.raster import rasterize
+    from mcsplat.render import render
+
+    views = (trained.scene.test or trained.scene.train)[:AGREEMENT_VIEWS]
+    v, f = torch.from_numpy(vertices).float(), torch.from_numpy(faces)
+    agreeing = covered = surface = 0
+    for view in views:
+        splats = render(trained.model, view.camera, None, trained.sh_degree, median_depth=True)
+        drawn = rasterize(v, f, view.camera).depth
+        shown = splats.alpha >= 0.5
+        both = shown & torch.isfinite(drawn)
+        difference = (drawn - splats.median_depth).abs() / splats.median_depth
+        agreeing += int((difference[both] <= AGREEMENT).sum())
+        covered += int(both.sum())
+        surface += int(shown.sum())
+    return {"depth_agreement": agreeing / max(covered, 1), "mesh_covers": covered / max(surface, 1)}
+
+
+@torch.no_grad()
+def picture(trained, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray, path: Path) -> None:
+    """One test view: splats, mesh in vertex colours, mesh shaded, side by side."""
+    from PIL import Image
+
+    from mcsplat.mesh.raster import picture as mesh_picture
+    from mcsplat.render import render
+
+    views = trained.scene.test or trained.scene.train
+    camera = views[len(views) // 2].camera
+    shrink = min(1.0, PICTURE_SIDE / max(camera.width, camera.height))
+    camera = camera.scaled(round(camera.width * shrink), round(camera.height * shrink))
+    splats = render(trained.model, camera, trained.background, trained.sh_degree).rgb
+    v, f, c = torch.from_numpy(vertices).float(), torch.from_numpy(faces), torch.from_numpy(colors.copy())
+    panels = [(splats.clamp(0, 1) * 255 + 0.5).byte().numpy(), mesh_picture(v, f, camera, c),
+              mesh_picture(v, f, camera)]
+    Image.fromarray(np.concatenate(panels, axis=1)).save(path, optimize=True)
+
+
+# ------------------------------------------------------------------------------------------------ report
+def percent(key: str):
+    return lambda r: "-" if r.get(key) is None else f"{100 * r[key]:.2f}"
+
+
+def report(records: list[dict]) -> str:
+    table = C.markdown_table(records, [
+        ("run", "run", ""), ("PSNR", "psnr", ".2f"), ("Gaussians", "num_gaussians", ","), ("faces", "faces", ","),
+        ("voxel %R", "voxel_size_r", percent("voxel_size_r")),
+        ("SfM->mesh median %R", "", percent("points_to_mesh_median")),
+        ("SfM->mesh p90 %R", "", percent("points_to_mesh_p90")),
+        ("complete (1% R)", "", percent("completeness")),
+        ("mesh->SfM median %R", "", percent("mesh_to_points_median")),
+        ("mesh->SfM p90 %R", "", percent("mesh_to_points_p90")),
+        ("Gaussians on surface %", "", percent("gaussians_on_surface")),
+        ("opacity-weighted %", "", percent("gaussians_on_surface_weighted")),
+        ("depth within 1% (test views)", "", percent("depth_agreement")),
+        ("export s", "export_seconds", ".0f"), ("peak RSS MB", "peak_rss_mb", ",")])
+    lines = []
+    for scene in dict.fromkeys(r["scene"] for r in records):
+        by = {r["strategy"]: r for r in records if r["scene"] == scene and "points_to_mesh_median" in r}
+        if {"mcmc", "adc"} <= set(by):
+            m, a = by["mcmc"], by["adc"]
+            closer = "MCMC" if m["points_to_mesh_median"] < a["points_to_mesh_median"] else "ADC"
+            lines.append(f"- {scene}: {closer}'s mesh is closer to the SfM points (median "
+                         f"{100 * m['points_to_mesh_median']:.2f}% R for MCMC, {100 * a['points_to_mesh_median']:.2f}% "
+                         f"R for ADC; completeness {100 * m['completeness']:.1f}% vs {100 * a['completeness']:.1f}%); "
+                         f"{100 * m['gaussians_on_surface']:.1f}% of MCMC's Gaussians lie within {NEAR_VOXELS} voxels "
+                         f"of the surface, {100 * a['gaussians_on_surface']:.1f}% of ADC's")
+    text = (f"# Meshes of trained scenes\n\n{table}\n\n" + "\n".join(lines) + ("\n" if lines else "") +
+            f"\nDistances in % of the scene radius R; \"on surface\": the centre within {NEAR_VOXELS} voxels of the "
+            f"mesh. Export: `mcsplat export RUN --format mesh` with its defaults, in a fresh process on the CPU.\n")
+    C.write_text(OUT / "results.md", text)
+    return text
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="+", choices=list(SCENES), help="default: cup, bird, dtu, lego")
+    parser.add_argument("--strategies", nargs="+", choices=list(STRATEGY_OPTIONS), default=None)
+    parser.add_argument("--runs", nargs="+", type=Path, help="measure these run folders instead of training")
+    parser.add_argument("--data-root", type=Path, default=C.DATA_ROOT)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--report", action="store_true", help="only rebuild results.md from results.jsonl")
+    parser.add_argument("--export-worker", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.export_worker:
+        export_worker(args.export_worker)
+        return
+    results = OUT / "results.jsonl"
+    if not args.report:
+        C.warn_if_busy()
+        if args.runs:
+            runs = args.runs
+        else:
+            jobs = [(s, k) for s, k in DEFAULT_JOBS if (args.scenes is None or s in args.scenes)
+                    and (args.strategies is None or k in args.strategies)]
+            if args.scenes and args.strategies:
+                jobs = [(s, k) for s in args.scenes for k in args.strategies]
+            runs = [train(scene, strategy, args.data_root, args.threads) for scene, strategy in jobs]
+        for run in runs:
+            record = {**measure(run, export(run)), "machine": C.machine(), "commit": C.git_commit(),
+                      "date": C.timestamp(), "benchmark": "mesh_quality"}
+            C.emit(record)
+            C.append_jsonl(results, [record])
+    latest = {r["run"]: r for r in C.read_jsonl(results)}  # the last record of each run
+    print(report(list(latest.values())))
+
+
+if __name__ == "__main__":
+    main()
