@@ -9,8 +9,8 @@ ALL_BLOCKS = 0xFFFF                # the mask of all 16 blocks of a tile
 ALPHA_MIN = 1.0 / 255.0            # a Gaussian is skipped at a pixel where its alpha is below this
 ALPHA_MAX = 0.99                   # alpha is clamped here (3DGS), so one Gaussian never hides all behind it
 TRANSMITTANCE_MIN = 1e-4           # a pixel stops before its transmittance would fall below this
-# Median depth: the depth of the Gaussian at which a pixel's accumulated alpha first reaches 0.5, i.e. the last one
-# composited while the transmittance in front of it is still above this.
+# A pixel's median Gaussian, whose depth is its median depth: the one at which its accumulated alpha first reaches 0.5,
+# i.e. the last one composited while the transmittance in front of it is still above this.
 MEDIAN_TRANSMITTANCE = 0.5
 # alpha = o exp(power) <= exp(power), so below ln(1/255) the alpha test fails for any opacity: skipping there saves
 # the exp for most of the list. The margin keeps the shortcut from deciding a case the exact test would not.

@@ -16,7 +16,8 @@ from .constants import PIXELS_PER_TILE
 from .cpu import run as simd
 from .kernels import composite_kernels, median_forward_kernel
 
-__all__ = ["CompositeFunction", "composite", "set_cpu_kernels", "cpu_kernels", "ensure_warp", "set_cpu_threads", "cpu_threads"]
+__all__ = ["CompositeFunction", "composite", "set_cpu_kernels", "cpu_kernels", "ensure_warp", "set_cpu_threads",
+           "cpu_threads"]
 
 CPU_KERNELS = ("simd", "scalar")
 _cpu_kernels = "simd"
