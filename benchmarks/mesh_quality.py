@@ -8,9 +8,11 @@ whether MCMC puts its Gaussians on the surface more than ADC does, at the same c
 
 Each scene trains (or a finished run is reused) with the squeezed schedule of the other benchmarks: 3,000 steps, cap
 100k, refinement from step 50 every 10 steps to 2,500 (MCMC) or densification to 1,500 with an opacity reset every
-300 (ADC), SH degree +1 every 100 steps, images at half size (DTU at full size), into results/mesh_quality/runs/
+300 (ADC), SH degree +1 every 100 steps, images at half size (DTU at full size, from 5,000 random points as in
+auto_cap.py; lego from the default 100,000; the captures from their SfM points), into results/mesh_quality/runs/
 (git-ignored). Every run's mesh is exported in a fresh process with the command's defaults (voxel budget 2^24,
---alpha-min 0.5, --min-component 0.02), which records its time and peak memory. Then, in units of the scene radius R
+--alpha-min 0.5, --min-component 0.02), which records its time and peak memory; a scene's second strategy fuses in
+the first one's voxel size, so that MCMC and ADC are meshed alike. Then, in units of the scene radius R
 (3DGS's: 1.1 x the cameras' largest distance from their centre):
 
     SfM points -> mesh       distance from each COLMAP point (triangulated from image features) to the mesh: median,
@@ -43,8 +45,9 @@ from scipy.spatial import cKDTree
 
 import _common as C
 
-SCENES = {"cup": ("colmap_cup", 2), "bird": ("colmap_bird", 2), "dtu": ("dtu_scan24_monosdf/scan24", 1),
-          "lego": (C.LEGO, 2)}
+# name -> (folder under the shared data, downscale, options of its own)
+SCENES = {"cup": ("colmap_cup", 2, []), "bird": ("colmap_bird", 2, []),
+          "dtu": ("dtu_scan24_monosdf/scan24", 1, ["--model.num-init-points", "5000"]), "lego": (C.LEGO, 2, [])}
 DEFAULT_JOBS = [("cup", "mcmc"), ("cup", "adc"), ("bird", "mcmc"), ("bird", "adc"), ("dtu", "mcmc"), ("lego", "mcmc")]
 TRAIN_OPTIONS = ["--steps", "3000", "--cap-max", "100000", "--sh-increase-every", "100", "--lpips-net", "alex",
                  "--no-save-renders"]
@@ -63,27 +66,31 @@ OUT = C.results_dir("mesh_quality")
 # ------------------------------------------------------------------------------------------------ training
 def train(scene: str, strategy: str, data_root: Path, threads: int) -> Path:
     """The run folder of (scene, strategy), trained first unless a finished run is there."""
-    folder, downscale = SCENES[scene]
+    folder, downscale, own_options = SCENES[scene]
     run = OUT / "runs" / f"{scene}-{strategy}"
     if (run / "metrics.json").is_file():
         return run
     command = [sys.executable, "-m", "mcsplat", "train", str(data_root / folder), "--out", str(run), "--overwrite",
                "--downscale", str(downscale), "--threads", str(threads), "--quiet", *TRAIN_OPTIONS,
-               *STRATEGY_OPTIONS[strategy]]
+               *STRATEGY_OPTIONS[strategy], *own_options]
     print(" ".join(command[1:]), file=sys.stderr, flush=True)
     subprocess.run(command, check=True)
     return run
 
 
 # ------------------------------------------------------------------------------------------------ export
-def export_worker(run: str) -> None:
-    """In a fresh process: what `mcsplat export RUN --format mesh` does, timed; prints one JSON line."""
+def export_worker(run: str, voxel_size: float | None) -> None:
+    """In a fresh process: what `mcsplat export RUN --format mesh [--voxel-size S]` does, timed; prints one JSON
+    line."""
     from mcsplat import run_dir
-    from mcsplat.mesh import MeshOptions, extract, write_mesh
+    from mcsplat.mesh import DEFAULT_VOXEL_BUDGET, MeshOptions, extract, write_mesh
 
     started = time.perf_counter()
     trained = run_dir.load(run, torch.device("cpu"))
-    mesh = extract(trained.model, trained.scene.train, MeshOptions(), sh_degree=trained.sh_degree)
+    # A given voxel size may need more voxels than the default budget when this model's box is larger.
+    options = MeshOptions() if voxel_size is None else MeshOptions(voxel_size=voxel_size,
+                                                                   voxel_budget=4 * DEFAULT_VOXEL_BUDGET)
+    mesh = extract(trained.model, trained.scene.train, options, sh_degree=trained.sh_degree)
     write_mesh(trained.folder.mesh_file, mesh)
     made = mesh.metadata["mcsplat"]
     grid = made["grid"]
@@ -93,8 +100,10 @@ def export_worker(run: str) -> None:
                       "views": made["views"], "vertices": len(mesh.vertices), "faces": len(mesh.faces)}))
 
 
-def export(run: Path) -> dict:
-    done = subprocess.run([sys.executable, __file__, "--export-worker", str(run)], capture_output=True, text=True)
+def export(run: Path, voxel_size: float | None = None) -> dict:
+    size = [] if voxel_size is None else ["--voxel-size", repr(voxel_size)]
+    done = subprocess.run([sys.executable, __file__, "--export-worker", str(run), *size], capture_output=True,
+                          text=True)
     if done.returncode != 0:
         sys.exit(f"export of {run} failed: {done.stderr.strip()}")
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -259,9 +268,10 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--report", action="store_true", help="only rebuild results.md from results.jsonl")
     parser.add_argument("--export-worker", help=argparse.SUPPRESS)
+    parser.add_argument("--voxel-size", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.export_worker:
-        export_worker(args.export_worker)
+        export_worker(args.export_worker, args.voxel_size)
         return
     results = OUT / "results.jsonl"
     if not args.report:
@@ -274,8 +284,12 @@ def main() -> None:
             if args.scenes and args.strategies:
                 jobs = [(s, k) for s in args.scenes for k in args.strategies]
             runs = [train(scene, strategy, args.data_root, args.threads) for scene, strategy in jobs]
+        voxel_sizes: dict[str, float] = {}  # per scene: the first run's, so that MCMC and ADC fuse in equal voxels
         for run in runs:
-            record = {**measure(run, export(run)), "machine": C.machine(), "commit": C.git_commit(),
+            scene = run.name.rsplit("-", 1)[0]
+            exported = export(run, voxel_sizes.get(scene))
+            voxel_sizes.setdefault(scene, exported["voxel_size"])
+            record = {**measure(run, exported), "machine": C.machine(), "commit": C.git_commit(),
                       "date": C.timestamp(), "benchmark": "mesh_quality"}
             C.emit(record)
             C.append_jsonl(results, [record])

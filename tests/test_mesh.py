@@ -18,7 +18,7 @@ from mcsplat.cli import Export, main
 from mcsplat.errors import MCSplatError
 from mcsplat.mesh import DEFAULT_VOXEL_BUDGET, MeshOptions, extract, holds_mesh, read_mesh, write_mesh
 from mcsplat.mesh.fusion import TSDFVolume
-from mcsplat.mesh.grid import VoxelGrid, choose_grid
+from mcsplat.mesh.grid import VoxelGrid, choose_grid, object_box
 from mcsplat.mesh.raster import picture, rasterize
 from mcsplat.mesh.surface import zero_surface
 from mcsplat.render import Splats, render
@@ -129,6 +129,22 @@ def test_surfaces_end_where_the_views_stop_seeing():
     vertices, faces, colors = zero_surface(volume)
     assert len(faces) > 100 and np.abs(vertices[:, 2]).max() < 1e-3
     assert (colors == 128).all()
+
+
+def test_the_volume_holds_what_most_views_see():
+    """A sphere all the cameras look at, and a wall far behind it that a quarter of them face: the box holds the
+    sphere only; with the wall in view of every camera it would stretch to the wall."""
+    sphere = sphere_of_gaussians(2000)
+    wall_points = torch.stack(torch.meshgrid(torch.linspace(-3, 3, 30), torch.linspace(-3, 3, 30),
+                                             indexing="ij"), dim=-1).reshape(-1, 2)
+    wall = torch.cat([wall_points, torch.full((900, 1), 12.0)], dim=1)
+    means = torch.cat([sphere.means, wall])
+    opacities = torch.full((means.shape[0],), 0.9)
+    low, high = object_box(means, opacities, all_around())
+    assert (low > -1.1).all() and (high < 1.1).all() and (high - low > 1.8).all()
+    facing_the_wall = [look_at(torch.tensor([0.3, 0.2, -3.5], dtype=torch.float64), 160)] * 3
+    low, high = object_box(means, opacities, facing_the_wall)
+    assert high[2] > 11
 
 
 def test_grid_keeps_to_the_budget_and_explains_what_does_not_fit():

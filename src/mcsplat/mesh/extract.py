@@ -53,7 +53,8 @@ def extract(model: GaussiansLike, views: Sequence, options: MeshOptions = MeshOp
     if not cameras:
         raise MCSplatError("no views to fuse: the run's scene has no training views")
     device = model.means.device
-    grid = choose_grid(*object_box(model.means, model.opacities), options.voxel_size, options.voxel_budget)
+    grid = choose_grid(*object_box(model.means, model.opacities, cameras), options.voxel_size,
+                       options.voxel_budget)
     check_memory(grid, device)
     seconds = {}
     started = time.perf_counter()

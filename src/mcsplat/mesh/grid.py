@@ -1,8 +1,10 @@
 """The voxel grid a mesh is fused in: where it lies, how fine it is, and whether it fits in memory.
 
-The box is the one that holds the Gaussians a view can see (opacity of at least OPAQUE, the central 98% of them
-along each axis, so that a few floaters far out do not stretch it), padded by the truncation band. The voxel size is
-given, or the one that fills the box with the voxel budget. Grid point (i, j, k) sits at origin + (i, j, k) x size.
+The box holds the opaque Gaussians (opacity of at least OPAQUE) that at least half of the views have in their field of
+view: the object a capture goes around, not the far walls of its room, which few views face (a forward-facing capture
+keeps everything, as every view sees it all). Along each axis it takes the central 98% of them, so that a few floaters
+do not stretch it, and it is padded by the truncation band. The voxel size is given, or the one that fills the box
+with the voxel budget. Grid point (i, j, k) sits at origin + (i, j, k) x size.
 """
 
 from __future__ import annotations
@@ -10,12 +12,16 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 
+from ..camera import Camera
 from ..errors import MCSplatError
+from ..render.constants import NEAR_PLANE
 
 OPAQUE = 0.1           # Gaussians at least this opaque decide the box
+IN_VIEW_SHARE = 0.5    # ... when at least this share of the views has them in its field of view
 BOX_QUANTILE = 0.01    # ... the box holds all but this share of them on each side, along each axis
 TRUNCATION_VOXELS = 4  # half-width of the signed distance band, in voxels
 # Per voxel: signed distance and weight (float32), colour (3 x float16), two masks when meshing (bool).
@@ -49,17 +55,31 @@ class VoxelGrid:
         return f"{nx}x{ny}x{nz} voxels of {self.voxel_size:.4g}"
 
 
-def object_box(means: torch.Tensor, opacities: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(lowest, highest) corner [3] of the box that holds the opaque Gaussians (see the module docstring)."""
+def object_box(means: torch.Tensor, opacities: torch.Tensor, cameras: Sequence[Camera]
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(lowest, highest) corner [3] of the box that holds the opaque Gaussians most views see (module docstring)."""
     opaque = means[opacities >= OPAQUE].detach().float()
     if opaque.shape[0] < 2:
         raise MCSplatError(f"the model has {opaque.shape[0]} Gaussian(s) of opacity {OPAQUE} or more: nothing to "
                            f"mesh; train the run further")
+    in_view = sum(_in_field_of_view(opaque, camera).float() for camera in cameras) / len(cameras)
+    if int((in_view >= IN_VIEW_SHARE).sum()) >= 2:
+        opaque = opaque[in_view >= IN_VIEW_SHARE]
     if opaque.shape[0] > 1_000_000:  # torch.quantile's limit is 2^24 elements; a sample finds the box as well
         opaque = opaque[torch.randperm(opaque.shape[0], generator=torch.Generator().manual_seed(0))[:1_000_000]
                         .to(opaque.device)]
     bounds = torch.quantile(opaque, torch.tensor([BOX_QUANTILE, 1 - BOX_QUANTILE], device=opaque.device), dim=0)
     return bounds[0], bounds[1]
+
+
+def _in_field_of_view(points: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """[N] bool: in front of the camera and projected inside its image."""
+    w2c = camera.world_to_camera.to(points.device, points.dtype)
+    local = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = local[:, 2].clamp(min=NEAR_PLANE)
+    u = local[:, 0] / z * camera.fx + camera.cx
+    v = local[:, 1] / z * camera.fy + camera.cy
+    return (local[:, 2] > NEAR_PLANE) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
 
 
 def choose_grid(low: torch.Tensor, high: torch.Tensor, voxel_size: float | None, voxel_budget: int) -> VoxelGrid:

@@ -7,8 +7,6 @@ time; the blocks share their boundary plane, whose vertices the caller merges (t
 
 from __future__ import annotations
 
-from typing import Iterator
-
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -37,9 +35,12 @@ def zero_surface(volume: TSDFVolume, progress: bool = False) -> tuple[np.ndarray
     faces wind counter-clockwise seen from outside (the positive side)."""
     cubes = observed_cubes(volume.weight)
     vertices, faces, count = [], [], 0
-    for x0, block_vertices, block_faces in tqdm(_blocks(volume, cubes), desc="marching cubes", unit="block",
-                                                total=-(-(volume.grid.shape[0] - 1) // BLOCK_SLABS),
-                                                disable=not progress, leave=False):
+    starts = range(0, volume.grid.shape[0] - 1, BLOCK_SLABS)
+    for x0 in tqdm(starts, desc="marching cubes", unit="block", disable=not progress, leave=False):
+        found = _block_surface(volume, cubes, x0)
+        if found is None:
+            continue
+        block_vertices, block_faces = found
         block_vertices[:, 0] += x0
         vertices.append(block_vertices)
         faces.append(block_faces + count)
@@ -52,25 +53,23 @@ def zero_surface(volume: TSDFVolume, progress: bool = False) -> tuple[np.ndarray
     return world.cpu().numpy(), np.concatenate(faces).astype(np.int64), colors.cpu().numpy()
 
 
-def _blocks(volume: TSDFVolume, cubes: torch.Tensor) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
-    """(first slab, vertices in the block's grid coordinates, faces) of each block that holds a surface."""
+def _block_surface(volume: TSDFVolume, cubes: torch.Tensor, x0: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(vertices in the block's grid coordinates, faces) of the block of slabs from x0, or None without a surface."""
     from skimage.measure import marching_cubes
 
-    nx = volume.grid.shape[0]
-    for x0 in range(0, nx - 1, BLOCK_SLABS):
-        x1 = min(nx, x0 + BLOCK_SLABS + 1)  # one plane shared with the next block
-        mask = cubes[x0:x1].cpu().numpy()
-        if not mask[1:].any():
-            continue
-        values = volume.tsdf[x0:x1].cpu().numpy()
-        seen = values[volume.weight[x0:x1].cpu().numpy() > 0]
-        if seen.min() > 0 or seen.max() < 0:
-            continue
-        try:
-            block_vertices, block_faces, _, _ = marching_cubes(values, 0.0, mask=mask)
-        except (ValueError, RuntimeError):  # "no surface found" within the observed cubes
-            continue
-        yield x0, block_vertices.astype(np.float32), block_faces
+    x1 = min(volume.grid.shape[0], x0 + BLOCK_SLABS + 1)  # one plane shared with the next block
+    mask = cubes[x0:x1].cpu().numpy()
+    if not mask[1:].any():
+        return None
+    values = volume.tsdf[x0:x1].cpu().numpy()
+    seen = values[volume.weight[x0:x1].cpu().numpy() > 0]
+    if seen.min() > 0 or seen.max() < 0:
+        return None
+    try:
+        block_vertices, block_faces, _, _ = marching_cubes(values, 0.0, mask=mask)
+    except (ValueError, RuntimeError):  # "no surface found" within the observed cubes
+        return None
+    return block_vertices.astype(np.float32), block_faces
 
 
 def trilinear(volume: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
