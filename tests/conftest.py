@@ -50,7 +50,7 @@ def tiny_run(tmp_path_factory) -> Path:
 
     run = tmp_path_factory.mktemp("tiny") / "run"
     train(TrainConfig(data=REPO / "data" / "lego_demo", out=run, steps=60, quiet=True, lpips_net="alex",
-                      eval_every=30, save_every=0, model=ModelConfig(num_init_points=2000),
+                      eval_every=30, save_every=0, model=ModelConfig(num_init_points=2000), scale_schedule=False,
                       mcmc=MCMCConfig(cap_max=2400, refine_start=20, refine_every=20)))
     return run
 

@@ -28,7 +28,7 @@ VIEWS = 2400
 
 def demo_config(out: Path, **overrides) -> TrainConfig:
     options = dict(data=DEMO, out=out, steps=VIEWS, downscale=2, quiet=True, lpips_net="alex", save_renders=False,
-                   save_every=500, threads=1, model=ModelConfig(num_init_points=3000),
+                   save_every=500, threads=1, model=ModelConfig(num_init_points=3000), scale_schedule=False,
                    mcmc=MCMCConfig(cap_max=3400, refine_start=50, refine_every=50))
     options.update(overrides)
     return TrainConfig(**options)

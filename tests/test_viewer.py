@@ -101,7 +101,8 @@ def test_live_viewer_in_a_browser_and_the_report(browser, tiny_run, tmp_path):
 
     viewer, control = TrainingViewer(port=free_port(), quiet=True), Control()
     config = TrainConfig(data=DEMO, out=tmp_path / "live", steps=100_000, quiet=True, save_every=0, eval_every=0,
-                         model=ModelConfig(num_init_points=2000), mcmc=MCMCConfig(cap_max=3000, refine_start=50))
+                         model=ModelConfig(num_init_points=2000), mcmc=MCMCConfig(cap_max=3000, refine_start=50),
+                         scale_schedule=False)
     failure: list[BaseException] = []
 
     def run() -> None:

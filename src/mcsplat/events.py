@@ -100,6 +100,7 @@ class StepDone:
     sh_degree: int
     train_seconds: float  # training time so far, pauses and consumers not counted
     refine: RefineReport | None = None  # what the strategy did after this step's optimizer step
+    resolution: float = 1.0  # the share of the image size the step trained at (coarse to fine)
 
 
 @dataclass(frozen=True)

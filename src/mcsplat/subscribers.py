@@ -31,6 +31,8 @@ class ProgressBar(Subscriber):
                         dynamic_ncols=True, unit="step", mininterval=0.5)
 
     def on_step_done(self, event: StepDone) -> None:
+        if self.bar.total != event.total_steps:  # --budget plans the steps as it goes
+            self.bar.total = event.total_steps
         self.bar.update(1)
         if event.step % 10 == 0 or event.step == event.total_steps:
             self.bar.set_postfix(loss=f"{event.loss:.4f}", psnr=f"{event.train_psnr:.2f}",
@@ -55,6 +57,8 @@ class ConsoleLog(Subscriber):
         scene, config = run.scene, run.config
         processes = run.world_size
         steps = f"{config.steps:,} steps" + (f" of {processes} views ({processes} processes)" if processes > 1 else "")
+        if config.budget is not None:
+            steps = f"a {config.budget} budget (steps, cap and resolution planned as it runs)"
         self.write(f"mcsplat: {scene.kind} scene {scene.root.name}: {len(scene.train)} train / {len(scene.test)} "
                    f"test views, {config.strategy} strategy, init {event.init_note}, {steps} on {run.device}")
 
@@ -72,6 +76,9 @@ class ConsoleLog(Subscriber):
         self.write(f"test PSNR {evaluation.psnr:.2f} dB, SSIM {evaluation.ssim:.4f}, LPIPS-{m['lpips_net']} "
                    f"{lpips_text} on {evaluation.views} views; {m['num_gaussians']:,} Gaussians, "
                    f"{m['train_seconds']:.0f} s of training")
+        if "budget_seconds" in m:
+            self.write(f"budget: {m['steps']:,} steps in {m['wall_seconds']:.0f} s of the {m['budget_seconds']:.0f} s "
+                       "budget (set-up, the final evaluation and the export not counted)")
         if evaluation.lpips is None:
             self.write(f"hint: {LPIPS_HINT}")
         run_dir = RunDir(event.run.run_dir)
@@ -105,7 +112,8 @@ class LogWriter(Subscriber):
         record = None
         if event.step % LOG_EVERY == 0 or event.step == event.total_steps:
             record = {"step": event.step, "loss": round(event.loss, 6), "train_psnr": round(event.train_psnr, 3),
-                      "num_gaussians": event.num_gaussians, "elapsed_seconds": round(event.train_seconds, 2)}
+                      "num_gaussians": event.num_gaussians, "elapsed_seconds": round(event.train_seconds, 2),
+                      "resolution": round(event.resolution, 4)}
             record.update(self.counts)
             self.counts = {}
         if self.evaluation is not None and self.evaluation.step == event.step:

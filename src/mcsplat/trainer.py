@@ -12,6 +12,7 @@ scoring evaluation.py's; train.py puts a run together with its consumers.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import signal
 import time
@@ -22,6 +23,7 @@ from typing import Any, Callable, Protocol, Sequence
 import torch
 
 from . import __version__, losses, render, run_dir
+from .budget import BudgetPlanner
 from .compute.compile import compile_kernels, modules_to_compile
 from .compute.device import resolve_device
 from .config import PROCESS_OPTIONS, TrainConfig, to_jsonable
@@ -31,17 +33,20 @@ from .errors import MCSplatError
 from .evaluation import Evaluation, evaluate, seen_in_views
 from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Listener, RefineDone, RunFinished,
                      RunStarted, StepDone)
-from .gaussians import GaussianModel
+from .gaussians import PARAM_KEYS, GaussianModel
 from .losses import photometric_loss
 from .metrics import psnr
-from .optim import means_lr_at, set_means_lr
+from .optim import make_optimizers, means_lr_at, set_means_lr
 from .render import RenderResult, set_cpu_threads
-from .schedule import final_sh_degree, sh_degree_at
-from .state import start
+from .schedule import final_sh_degree, fitted_to_steps, planned_growth_rate, resolution_at, sh_degree_at
+from .state import make_strategy, start, training_image_pixels
+from .strategy.auto_cap import pixel_ceiling
 from .strategy.base import RefineReport, changed
+from .strategy.mcmc import prune_to_cap
 from .visibility import count_invisible
 
 PREFETCH_VIEWS = 2  # images decoded in the background ahead of their step (a no-op when all are in memory)
+CALIBRATION_SMALL, CALIBRATION_LARGE = 2000, 3  # --budget times models of 2,000 and of 3x the starting Gaussians
 
 
 @dataclass
@@ -80,8 +85,8 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
     the gradients (and the two values) over them (distributed/team.py)."""
     lap = phases.lap if phases is not None else (lambda phase: None)
     set_means_lr(optimizers, means_lr_at(step, config.steps, config.optim, scene_radius))
-    target = view.image_float(device)
-    camera = view.camera.to(device)
+    camera = view.camera_at(resolution_at(config, step)).to(device)  # coarse to fine, when configured
+    target = view.image_float(device, size=(camera.width, camera.height))
     lap("other")
     result = render.render(model, camera, background, sh_degree_at(config, step))
     lap("render")
@@ -156,7 +161,7 @@ class TrainingRun:
         if config.resume:
             run_dir.check_resumable(config, team.world_size)
         else:
-            config = scaled_for_processes(config, team.world_size)
+            config = scaled_for_processes(fitted_to_steps(config), team.world_size)
         self.config = config
         self.folder = run_dir.RunDir(config.run_dir)
         self.run_dir = self.folder.path
@@ -170,9 +175,13 @@ class TrainingRun:
         team.check_same_setup(_scene_summary(self.scene))
         self.background = run_dir.background_of(config, self.scene)
         checkpoint = team.on_main(self.folder.read_checkpoint) if config.resume else None
-        self.state, self.init_note = start(config, self.scene, self.device, team, checkpoint)
-        if not config.resume and team.is_main:
-            self.folder.write_config(config)
+        self.state, self.init_note = start(config, self.scene, self.device, team, checkpoint,
+                                           progress=not config.quiet and team.is_main)
+        self.planner = self._budget_planner()
+        if not config.resume:
+            self._plan_growth()
+            if team.is_main:
+                self.folder.write_config(config)
         self._stop_vote = False  # several processes: whether any of them asked to stop, agreed with the gradients
         self._emit: Listener = lambda event: None
 
@@ -183,6 +192,55 @@ class TrainingRun:
     @property
     def world_size(self) -> int:
         return self.team.world_size
+
+    def _plan_growth(self) -> None:
+        """MCMC grows fast enough to reach its cap (or the automatic cap's ceiling) by growth_share of the run
+        (under --budget the planner sets the rate as it plans the cap)."""
+        if self.config.strategy == "mcmc" and self.planner is None:
+            self.config.mcmc.grow_rate = planned_growth_rate(self.config, self.state.model.num_gaussians,
+                                                             self.state.strategy.ceiling)
+
+    def _budget_planner(self) -> BudgetPlanner | None:
+        """--budget: the planner, bounded by --cap-max and the automatic cap's 3 Gaussians per pixel."""
+        config = self.config
+        if config.budget is None:
+            return None
+        if self.team.world_size > 1:
+            raise MCSplatError("--budget does not work with several training processes yet (each would plan its own "
+                               "steps); give --steps instead")
+        cap = config.mcmc.cap_max if config.strategy == "mcmc" else (config.adc.cap_max or config.mcmc.cap_max)
+        ceiling = pixel_ceiling(cap, training_image_pixels(self.scene), config.mcmc.gaussians_per_pixel)
+        return BudgetPlanner(config, ceiling)
+
+    def _start_budget(self) -> None:
+        """Time a few steps, make the first plan, and cut an initialisation larger than it affords."""
+        state = self.state
+        self._calibrate()
+        self.planner.start(state.step, state.wall_seconds, state.model.num_gaussians)
+        if self.config.strategy == "mcmc" and state.step == 0:
+            prune_to_cap(state.model, state.optimizers, self.config.mcmc.cap_max)
+        if self.team.is_main:
+            self.folder.write_config(self.config)
+
+    def _calibrate(self) -> None:
+        """Time steps of throwaway copies of the model, small and large, at full size and at the starting size, so
+        that the first plan knows what pixels and Gaussians cost (not counted in the budget)."""
+        config, state = self.config, self.state
+        count = state.model.num_gaussians
+        small = min(count, CALIBRATION_SMALL)
+        views = self.scene.train[:2]
+        for gaussians, scale in ((small, 1.0), (small, config.resolution_start), (count, 1.0),
+                                 (CALIBRATION_LARGE * count, 1.0), (CALIBRATION_LARGE * count, config.resolution_start)):
+            probe = dataclasses.replace(config, resolution_start=scale, resolution_full_at=1.0, steps=10**9)
+            model = _resized(state.model, gaussians)
+            optimizers = make_optimizers(model, config.optim, self.scene.radius)
+            strategy = make_strategy(probe, self.scene.radius, torch.Generator(self.device).manual_seed(0))
+            for i, view in enumerate(views):
+                tick = time.perf_counter()
+                train_step(0, model, optimizers, strategy, view, config=probe, scene_radius=self.scene.radius,
+                           background=self.background, device=self.device)
+                if i:  # the first is a warm-up
+                    self.planner.calibrate(time.perf_counter() - tick, model.num_gaussians, scale)
 
     def save_checkpoint(self) -> None:
         """Rank 0 writes the checkpoint; every process calls this at the same steps, for the strategy's state
@@ -203,6 +261,8 @@ class TrainingRun:
         try:
             emit(RunStarted(run=self, start_step=self.state.step, init_note=self.init_note))
             self.team.first_on_each_machine(lambda: self._compile_kernels(emit))
+            if self.planner is not None:
+                self._start_budget()
             with _CtrlC(self.control):
                 self._steps(emit)
             return self._finish(emit)
@@ -229,23 +289,31 @@ class TrainingRun:
         # agreed on in the step's all-reduce (or one would stop while the others wait for it).
         return self.control.stop_requested if self.team.world_size == 1 else self._stop_vote
 
+    def _done(self) -> bool:
+        if self.planner is not None:
+            return self.planner.finished(self.state.step, self.state.wall_seconds)
+        return self.state.step >= self.config.steps
+
     def _steps(self, emit: Listener) -> None:
         config, control, team, state = self.config, self.control, self.team, self.state
         n = team.world_size
-        while state.step < config.steps:
+        while not self._done():
             control.wait_while_paused()
+            started = time.perf_counter()
             with control.lock:
                 tick = time.perf_counter()
                 view = self.scene.train[team.pick(state.sampler.take(n))]
                 for index in state.sampler.upcoming(PREFETCH_VIEWS * n)[team.rank::n]:  # decode ahead when images
                     self.scene.train[index].prefetch()                                   # are not all in memory
+                count, scale = state.model.num_gaussians, resolution_at(config, state.step)
                 done = train_step(state.step, state.model, state.optimizers, state.strategy, view, config=config,
                                   scene_radius=self.scene.radius, background=self.background, device=self.device,
                                   reduce=self._reduce)
                 if changed(done.refine):
                     emit(RefineDone(step=state.step, report=done.refine))
                 state.step += 1
-                state.train_seconds += time.perf_counter() - tick
+                seconds = time.perf_counter() - tick
+                state.train_seconds += seconds
                 step = state.step
                 team.check_identical(state.model, step)
                 if config.eval_every and step % config.eval_every == 0 and step < config.steps:
@@ -254,11 +322,22 @@ class TrainingRun:
                                   num_gaussians=state.model.num_gaussians))
             emit(StepDone(step=step, total_steps=config.steps, loss=done.loss, train_psnr=done.train_psnr,
                           num_gaussians=state.model.num_gaussians, sh_degree=sh_degree_at(config, step - 1),
-                          train_seconds=state.train_seconds, refine=done.refine))
+                          train_seconds=state.train_seconds, refine=done.refine, resolution=scale))
+            state.wall_seconds += time.perf_counter() - started
+            if self.planner is not None:
+                self._follow_budget(seconds, count, scale)
             if self._stop_now():
                 self.save_checkpoint()
                 raise MCSplatError(f"stopped at step {step:,}; the checkpoint is saved: continue with "
                                    f"`mcsplat train {config.data} --out {self.run_dir} --resume`")
+
+    def _follow_budget(self, step_seconds: float, count: int, scale: float) -> None:
+        """--budget: measure the step, plan again when due (config.json keeps the plan)."""
+        state, planner = self.state, self.planner
+        planner.observe(step_seconds, count, scale)
+        if planner.due(state.step, state.wall_seconds):
+            planner.replan(state.step, state.wall_seconds, state.model.num_gaussians)
+            self.folder.write_config(self.config)
 
     def _evaluate(self, sh_degree: int, lpips_net: str | None = None, save_renders: bool = False,
                   progress: bool = False) -> Evaluation:
@@ -269,6 +348,10 @@ class TrainingRun:
 
     def _finish(self, emit: Listener) -> dict[str, Any]:
         config, state, team = self.config, self.state, self.team
+        if self.planner is not None:  # the run ends at the step it reached: what the last plan said, or fewer
+            config.steps = state.step
+            config.budget_plan = self.planner.record()
+            self.folder.write_config(config)
         self.save_checkpoint()
         final_degree = final_sh_degree(config, state.step)
         evaluation = self._evaluate(final_degree, lpips_net=config.lpips_net, save_renders=config.save_renders,
@@ -282,6 +365,8 @@ class TrainingRun:
                    "exported_gaussians": exported, "steps": state.step, "train_seconds": round(state.train_seconds, 2),
                    "device": str(self.device), "strategy": config.strategy, "test_views": evaluation.views,
                    "sh_degree": final_degree, "processes": team.world_size,
+                   "wall_seconds": round(state.wall_seconds, 2),
+                   **({"budget_seconds": self.planner.budget} if self.planner is not None else {}),
                    "invisible_gaussians": invisible.as_dict(),
                    # --cap-max auto: where growth stopped (None: the demand never fell, the ceiling decided)
                    **({"auto_cap": strategy.chosen_cap, "auto_cap_ceiling": strategy.ceiling}
@@ -291,6 +376,12 @@ class TrainingRun:
             self.folder.write_metrics(metrics)
         emit(RunFinished(run=self, metrics=metrics, evaluation=evaluation))
         return metrics
+
+
+def _resized(model: GaussianModel, count: int) -> GaussianModel:
+    """A detached model of `count` Gaussians: the first `count` of `model`, or copies of it side by side."""
+    copies = -(-count // max(model.num_gaussians, 1))
+    return GaussianModel(*(torch.cat([model.params[key].detach()] * copies)[:count] for key in PARAM_KEYS))
 
 
 def _setup_of(config: TrainConfig) -> dict[str, Any]:

@@ -39,49 +39,83 @@ def choose_matcher(matcher: Matcher, from_video: bool, count: int) -> str:
     return "sequential" if from_video else "exhaustive"
 
 
+def extract_features(database: Path, image_dir: Path, names: list[str], *, camera_model: str,
+                     single_camera: bool, max_size: int, threads: int, gpu: bool, progress: bool = True,
+                     max_features: int | None = None) -> float:
+    """SIFT features of `names` into `database`, in chunks so that a progress bar moves and Ctrl-C is heard between
+    them; one camera for all images, or one per image; at most `max_features` per image (COLMAP's 8,192 by
+    default). Returns the seconds it took."""
+    import pycolmap
+    from tqdm import tqdm
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = threads
+    extraction.max_image_size = max_size
+    extraction.use_gpu = gpu
+    if max_features is not None:
+        extraction.sift.max_num_features = max_features
+    mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.PER_IMAGE
+    device = pycolmap.Device.cuda if gpu else pycolmap.Device.cpu
+    start = time.perf_counter()
+    with tqdm(total=len(names), desc="features", unit="image", disable=not progress, leave=False) as bar:
+        for first in range(0, len(names), EXTRACT_CHUNK):
+            chunk = names[first:first + EXTRACT_CHUNK]
+            pycolmap.extract_features(database, image_dir, image_names=chunk, camera_mode=mode, reader_options=reader,
+                                      extraction_options=extraction, device=device)
+            if single_camera:
+                reader.existing_camera_id = 1  # later chunks join the first chunk's camera (the database's first)
+            bar.update(len(chunk))
+    return time.perf_counter() - start
+
+
+def match_features(database: Path, matcher: str, *, overlap: int, threads: int, gpu: bool,
+                   progress: bool = True) -> float:
+    """Match every pair (exhaustive) or each image with its `overlap` neighbours in name order (sequential).
+    Returns the seconds it took."""
+    import pycolmap
+    from tqdm import tqdm
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    matching.use_gpu = gpu
+    device = pycolmap.Device.cuda if gpu else pycolmap.Device.cpu
+    start = time.perf_counter()
+    with tqdm(total=1, desc=f"matching ({matcher})", disable=not progress, leave=False) as bar:
+        if matcher == "sequential":
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = overlap
+            pairing.loop_detection = False  # needs a vocabulary tree file, which cannot be had offline
+            pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=device)
+        else:
+            pycolmap.match_exhaustive(database, matching_options=matching, device=device)
+        bar.update(1)
+    return time.perf_counter() - start
+
+
+def uses_gpu(requested: bool) -> bool:
+    import pycolmap
+
+    return requested and pycolmap.has_cuda
+
+
 def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, from_video: bool,
             progress: bool = True) -> SfmResult:
     import pycolmap
     from tqdm import tqdm
 
     threads = options.threads or os.cpu_count() or 1
-    gpu = options.use_gpu and pycolmap.has_cuda
-    device = pycolmap.Device.cuda if gpu else pycolmap.Device.cpu
+    gpu = uses_gpu(options.use_gpu)
     database = work / "database.db"
     seconds: dict[str, float] = {}
-
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = options.camera_model
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = threads
-    extraction.max_image_size = options.max_size
-    extraction.use_gpu = gpu
-    start = time.perf_counter()
-    with tqdm(total=len(names), desc="features", unit="image", disable=not progress, leave=False) as bar:
-        for first in range(0, len(names), EXTRACT_CHUNK):
-            chunk = names[first:first + EXTRACT_CHUNK]
-            # One camera for all images: one phone or one video, so its intrinsics are shared and well constrained.
-            pycolmap.extract_features(database, image_dir, image_names=chunk, camera_mode=pycolmap.CameraMode.SINGLE,
-                                      reader_options=reader, extraction_options=extraction, device=device)
-            reader.existing_camera_id = 1  # later chunks join the first chunk's camera (the database's first)
-            bar.update(len(chunk))
-    seconds["features"] = time.perf_counter() - start
-
+    # One camera for all images: one phone or one video, so its intrinsics are shared and well constrained.
+    seconds["features"] = extract_features(database, image_dir, names, camera_model=options.camera_model,
+                                           single_camera=True, max_size=options.max_size, threads=threads, gpu=gpu,
+                                           progress=progress)
     matcher = choose_matcher(options.matcher, from_video, len(names))
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = threads
-    matching.use_gpu = gpu
-    start = time.perf_counter()
-    with tqdm(total=1, desc=f"matching ({matcher})", disable=not progress, leave=False) as bar:
-        if matcher == "sequential":
-            pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap = options.overlap
-            pairing.loop_detection = False  # needs a vocabulary tree file, which cannot be had offline
-            pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing, device=device)
-        else:
-            pycolmap.match_exhaustive(database, matching_options=matching, device=device)
-        bar.update(1)
-    seconds["matching"] = time.perf_counter() - start
+    seconds["matching"] = match_features(database, matcher, overlap=options.overlap, threads=threads, gpu=gpu,
+                                         progress=progress)
 
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = threads
