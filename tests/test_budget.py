@@ -22,7 +22,6 @@ from mcsplat.initialization import initial_model
 from mcsplat.initialization.frustum import points_in_frustums
 from mcsplat.io.transforms import write_transforms
 from mcsplat.schedule import fitted_to_steps, planned_growth_rate, refine_steps_between, resolution_at
-from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.train import train
 
 DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"

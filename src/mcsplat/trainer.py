@@ -160,8 +160,8 @@ class TrainingRun:
             setattr(config, key, getattr(local, key))
         if config.resume:
             run_dir.check_resumable(config, team.world_size)
-        else:
-            config = scaled_for_processes(fitted_to_steps(config), team.world_size)
+        else:  # a fixed number of steps gets its schedules fitted here; --budget fits them as it plans
+            config = scaled_for_processes(config if config.budget else fitted_to_steps(config), team.world_size)
         self.config = config
         self.folder = run_dir.RunDir(config.run_dir)
         self.run_dir = self.folder.path
