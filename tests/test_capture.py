@@ -5,6 +5,7 @@ One SfM reconstruction of the cup is shared by the tests that need it (module fi
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -112,6 +113,46 @@ class _nothing:
 
     def __exit__(self, *args):
         return False
+
+
+def copy_photos(cup_photos: Path, folder: Path, count: int) -> Path:
+    folder.mkdir(parents=True)
+    for path in sorted(cup_photos.glob("*.jpg"))[:count]:
+        (folder / path.name).write_bytes(path.read_bytes())
+    return folder
+
+
+def test_an_input_inside_the_output_is_refused_and_kept(cup_photos, tmp_path):
+    """`process SCENE/images --out SCENE --overwrite` would replace the folder that holds the photos."""
+    scene = tmp_path / "scene"
+    photos = copy_photos(cup_photos, scene / "images", 2)
+    (scene / "sparse").mkdir()
+    for source in (photos, scene):
+        with pytest.raises(MCSplatError, match="inside") as info:
+            process(source, scene, ProcessOptions(threads=1, progress=False, overwrite=True))
+        assert "\n" not in str(info.value)
+    assert sorted(p.name for p in photos.iterdir()) == sorted(p.name for p in cup_photos.glob("*.jpg"))[:2]
+
+
+def test_overwrite_replaces_only_what_process_wrote(cup_photos, tmp_path):
+    """A scene is replaced only while it holds nothing but the files its process.json lists."""
+    two = copy_photos(cup_photos, tmp_path / "two", 2)  # fails ("at least 3") after the check of --out
+    scene = tmp_path / "scene"
+    copy_photos(cup_photos, scene / "images", 3)
+    (scene / "sparse" / "0").mkdir(parents=True)
+    (scene / "sparse" / "0" / "cameras.bin").write_bytes(b"made elsewhere")
+    options = ProcessOptions(threads=1, progress=False, overwrite=True)
+    with pytest.raises(MCSplatError, match="did not make"):
+        process(two, scene, options)
+    listed = sorted(str(p.relative_to(scene)) for p in scene.rglob("*") if p.is_file())
+    (scene / "process.json").write_text(json.dumps({"files": listed + ["process.json"]}))
+    (scene / "notes.txt").write_text("mine")
+    with pytest.raises(MCSplatError, match=r"did not write \(notes.txt\)"):
+        process(two, scene, options)
+    (scene / "notes.txt").unlink()
+    with pytest.raises(MCSplatError, match="at least 3"), pytest.warns(UserWarning):
+        process(two, scene, options)  # past the check: the scene would have been replaced
+    assert len(list((scene / "images").iterdir())) == 3, "a failed run replaces nothing"
 
 
 def test_ctrl_c_leaves_no_scene(cup_photos, tmp_path):

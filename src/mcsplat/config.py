@@ -17,7 +17,8 @@ from .strategy.mcmc import MCMCConfig
 
 # Options that only affect how this process runs: on --resume they come from the command line, the rest from
 # the run's saved configuration (steps included: the learning-rate schedule depends on it).
-PROCESS_OPTIONS = ("eval_every", "save_every", "quiet", "threads", "device", "viewer", "port", "host", "dist_timeout")
+PROCESS_OPTIONS = ("eval_every", "save_every", "save_every_minutes", "quiet", "threads", "device", "viewer", "port",
+                   "host", "dist_timeout")
 
 
 @dataclass
@@ -66,7 +67,9 @@ class TrainConfig:
     eval_every: int = 0
     """Evaluate on the test views every N steps (0: only at the end)."""
     save_every: int = 5000
-    """Write a checkpoint every N steps (and on Ctrl-C)."""
+    """Write a checkpoint every N steps (and on Ctrl-C or SIGTERM)."""
+    save_every_minutes: float = 10.0
+    """Also write one when this many minutes have passed since the last (0: off)."""
     resume: bool = False
     """Continue from the run directory's checkpoint."""
     overwrite: bool = False
@@ -102,6 +105,7 @@ class TrainConfig:
                   (self.downscale >= 1, "--downscale must be at least 1"),
                   (self.eval_every >= 0, "--eval-every must be 0 (off) or positive"),
                   (self.save_every >= 0, "--save-every must be 0 (off) or positive"),
+                  (self.save_every_minutes >= 0, "--save-every-minutes must be 0 (off) or positive"),
                   (self.cap_max in (None, "auto") or self.cap_max >= 1, "--cap-max must be at least 1 or auto"),
                   (self.cap_max != "auto" or self.strategy == "mcmc",
                    "--cap-max auto is for the MCMC strategy (ADC's growth has its own rule); give ADC a number"),

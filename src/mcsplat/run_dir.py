@@ -2,12 +2,14 @@
 reads a trained run back (`load`).
 
     RUN/config.json          the resolved configuration (what --resume continues with)
-    RUN/checkpoint.pt        model, Adam state, strategy state, RNG states, step (written atomically)
+    RUN/checkpoint.pt        model, Adam state, strategy state, RNG states, step (written atomically, checksummed)
+    RUN/checkpoint.prev.pt   the checkpoint before it (what to fall back to when checkpoint.pt is damaged)
     RUN/log.jsonl            a record every 100 steps and at each periodic evaluation
     RUN/metrics.json         the final (or last `mcsplat eval`) scores and counts
     RUN/point_cloud.ply      the trained Gaussians, dead ones left out
     RUN/renders/<split>/     the test renders as PNG (and `mcsplat render`'s output; <split>.mp4 its video)
     RUN/report.html, plots/  the run report
+    RUN/.lock                while a command writes the folder: who it is (io/lock.py)
 
 Only this module spells out these names; everything else asks a RunDir for them.
 """
@@ -16,6 +18,8 @@ from __future__ import annotations
 
 import functools
 import json
+import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,19 +30,22 @@ from .config import PROCESS_OPTIONS, TrainConfig, load_config, save_config
 from .data import Scene, load_scene
 from .errors import MCSplatError
 from .gaussians import DEAD_OPACITY, GaussianModel
-from .io.atomic import atomic_write_text, remove_stale_temporaries
-from .io.checkpoint import load_checkpoint, save_checkpoint
+from .io.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
+from .io.checkpoint import DamagedCheckpoint, load_checkpoint, save_checkpoint
+from .io.lock import FolderLock
 from .io.ply import write_ply
 from .schedule import final_sh_degree
 
 CONFIG = "config.json"
 CHECKPOINT = "checkpoint.pt"
+PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"
 LOG = "log.jsonl"
 METRICS = "metrics.json"
 SPLATS = "point_cloud.ply"
 RENDERS = "renders"
 REPORT = "report.html"
 PLOTS = "plots"
+LOCK = ".lock"
 MARKERS = (CONFIG, CHECKPOINT, METRICS, SPLATS)  # any of them: the folder holds a run
 
 Background = tuple[float, float, float]
@@ -51,11 +58,13 @@ class RunDir:
         self.path = Path(path)
         self.config_file = self.path / CONFIG
         self.checkpoint_file = self.path / CHECKPOINT
+        self.previous_checkpoint_file = self.path / PREVIOUS_CHECKPOINT
         self.log_file = self.path / LOG
         self.metrics_file = self.path / METRICS
         self.splats_file = self.path / SPLATS
         self.report_file = self.path / REPORT
         self.plots_folder = self.path / PLOTS
+        self.lock_file = self.path / LOCK
 
     def __repr__(self) -> str:
         return f"RunDir({str(self.path)!r})"
@@ -78,6 +87,24 @@ class RunDir:
     def holds_run(self) -> bool:
         return self.path.is_dir() and any((self.path / marker).exists() for marker in MARKERS)
 
+    def own_files(self) -> list[Path]:
+        """The files that hold the run's state and records: no command's output may replace them."""
+        return [self.config_file, self.checkpoint_file, self.previous_checkpoint_file, self.log_file,
+                self.metrics_file, self.report_file, self.lock_file]
+
+    def is_own_file(self, path: str | Path) -> bool:
+        return Path(path).resolve() in {own.resolve() for own in self.own_files()}
+
+    def contains(self, path: str | Path) -> bool:
+        return Path(path).resolve().is_relative_to(self.path.resolve())
+
+    def lock(self, command: str) -> FolderLock:
+        """The folder's writer lock for `command` (`with run.lock("mcsplat eval"): ...`); only for a folder that
+        holds a run (a new run's folder is locked by `prepare`)."""
+        if not self.config_file.is_file():
+            self.read_config()  # the one-line "not a run directory" error
+        return FolderLock(self.lock_file, command)
+
     # --------------------------------------------------------------------------------------------- reading
     def read_config(self) -> TrainConfig:
         if not self.config_file.is_file():
@@ -85,7 +112,15 @@ class RunDir:
         return load_config(self.config_file)
 
     def read_checkpoint(self) -> dict[str, Any]:
-        return load_checkpoint(self.checkpoint_file)
+        try:
+            return load_checkpoint(self.checkpoint_file)
+        except DamagedCheckpoint as error:
+            if self.previous_checkpoint_file.is_file():
+                advice = (f"go back to the checkpoint before it with `mv {self.previous_checkpoint_file} "
+                          f"{self.checkpoint_file}`, or start again with --overwrite")
+            else:
+                advice = "there is no older checkpoint to go back to; start again with --overwrite"
+            raise MCSplatError(f"{error}; {advice}") from None
 
     def read_metrics(self) -> dict[str, Any]:
         """metrics.json, or {} before the run has finished once."""
@@ -102,6 +137,10 @@ class RunDir:
         save_config(config, self.config_file)
 
     def write_checkpoint(self, state: dict[str, Any]) -> None:
+        """checkpoint.pt, the one it replaces kept as checkpoint.prev.pt (a hard link made before the write, so that
+        checkpoint.pt never stops existing)."""
+        if self.checkpoint_file.is_file():
+            keep_as_previous(self.checkpoint_file, self.previous_checkpoint_file)
         save_checkpoint(self.checkpoint_file, state)
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:
@@ -118,6 +157,17 @@ class RunDir:
         return write_ply(self.splats_file, dict(model.params.items()), keep=alive(model))
 
 
+def keep_as_previous(current: Path, previous: Path) -> None:
+    """Make `previous` the same file as `current` (replacing it in one step), or a copy where links are not
+    allowed."""
+    with atomic_path(previous) as tmp:
+        tmp.unlink()
+        try:
+            os.link(current, tmp)
+        except OSError:
+            shutil.copyfile(current, tmp)
+
+
 def render_file(folder: Path, view_name: str) -> Path:
     """A view's render inside `folder`: the view's file stem as a PNG."""
     return folder / f"{Path(view_name).stem}.png"
@@ -129,22 +179,30 @@ def alive(model: GaussianModel) -> torch.Tensor:
 
 
 # --------------------------------------------------------------------------------------------- starting a run
-def prepare(config: TrainConfig) -> TrainConfig:
-    """Make the run folder ready for `config` and return the configuration to train with: `config` itself for a
-    new run; on --resume the run's saved configuration with this command line's process options. A folder holding
-    a run is refused without --resume or --overwrite."""
+def train_lock(config: TrainConfig) -> FolderLock:
+    """The lock a training run holds on its folder from `prepare` to its end (the caller releases it)."""
+    return FolderLock(RunDir(config.run_dir).lock_file, "mcsplat train")
+
+
+def prepare(config: TrainConfig, lock: FolderLock) -> TrainConfig:
+    """Make the run folder ready for `config`, take its `lock`, and return the configuration to train with:
+    `config` itself for a new run; on --resume the run's saved configuration with this command line's process
+    options. A folder holding a run is refused without --resume or --overwrite."""
     run = RunDir(config.run_dir)
     if run.path.exists() and not run.path.is_dir():
         raise MCSplatError(f"--out {run.path}: exists and is not a directory")
     if config.resume:
         if not run.checkpoint_file.is_file():
             raise MCSplatError(f"--resume: {run.path} has no {CHECKPOINT} to continue from")
-        # A run killed while writing its checkpoint leaves the half-written temporary beside it.
-        remove_stale_temporaries(run.checkpoint_file)
     elif run.holds_run() and not config.overwrite:
         raise MCSplatError(f"{run.path} already holds a run; pass --resume to continue it, --overwrite to replace "
                            f"its files, or --out to choose another directory")
     run.path.mkdir(parents=True, exist_ok=True)
+    lock.acquire()
+    if config.resume:
+        # A run killed while writing its checkpoint leaves the half-written temporary beside it.
+        remove_stale_temporaries(run.checkpoint_file)
+        remove_stale_temporaries(run.previous_checkpoint_file)
     if not config.resume:
         return config
     saved = run.read_config()

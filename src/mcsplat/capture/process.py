@@ -23,6 +23,7 @@ from mcsplat.errors import MCSplatError
 
 MIN_SFM_SIZE = 1000  # long side in pixels under which SIFT starts to fragment the model (the cup at 200x150 did)
 SCENE_MARKERS = ("images", "sparse", "transforms.json", "transforms_train.json", "poses_bounds.npy")
+MANIFEST = "process.json"  # the summary of the run that made the scene, with the files it wrote
 
 
 @dataclass
@@ -74,6 +75,8 @@ def process(source: str | os.PathLike, out: str | os.PathLike, options: ProcessO
                            f"({', '.join(frames.VIDEO_SUFFIXES)})")
     if source.is_dir() and (out == source or out.is_relative_to(source)):
         raise MCSplatError(f"--out {out} is inside the input folder {source}; write the scene somewhere else")
+    if source.is_relative_to(out):  # --overwrite would replace the folder that holds the input
+        raise MCSplatError(f"the input {source} is inside --out {out}; write the scene to another folder")
     _check_output(out, options.overwrite)
     photos = None if from_video else frames.list_photos(source)  # fail on a bad input before any work
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -101,6 +104,28 @@ def _check_output(out: Path, overwrite: bool) -> None:
     if not holds_scene:
         raise MCSplatError(f"--out {out} is not empty and holds no scene ({', '.join(sorted(entries)[:3])} ...); "
                            "give a new or empty folder")
+    if not (out / MANIFEST).is_file():
+        raise MCSplatError(f"--overwrite: {out} holds a scene that mcsplat process did not make (it has no "
+                           f"{MANIFEST}), and --overwrite replaces only those; choose another folder")
+    foreign = files_not_written_by_process(out)
+    if foreign:
+        raise MCSplatError(f"--overwrite: {out} holds files that mcsplat process did not write "
+                           f"({', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}), which replacing it would "
+                           "delete; move them out of it, or choose another folder")
+
+
+def files_in(folder: Path) -> list[str]:
+    """Every file below `folder`, as sorted paths relative to it."""
+    return sorted(str(path.relative_to(folder)) for path in folder.rglob("*") if not path.is_dir())
+
+
+def files_not_written_by_process(scene: Path) -> list[str]:
+    """The files of `scene` that its MANIFEST does not list (all of them for a scene that process did not make)."""
+    try:
+        written = set(json.loads((scene / MANIFEST).read_text()).get("files", []))
+    except (OSError, ValueError, AttributeError):
+        written = set()
+    return [name for name in files_in(scene) if name not in written]
 
 
 def _run_in_child(work: Path, photos: frames.Photos, from_video: bool, options: ProcessOptions) -> dict:
@@ -156,7 +181,9 @@ def _process(source: Path, out: Path, work: Path, photos, from_video: bool, opti
         matcher=result["matcher"], models=result["models"], camera=result["camera"],
         undistorted_camera=describe_camera(next(iter(model.cameras.values()))),
         seconds={k: round(v, 2) for k, v in seconds.items()})
-    (scene / "process.json").write_text(json.dumps(asdict(summary), indent=2) + "\n")
+    # The summary, and the list of the files written: --overwrite replaces the scene only while that is all it holds.
+    files = sorted(files_in(scene) + [MANIFEST])
+    (scene / MANIFEST).write_text(json.dumps({**asdict(summary), "files": files}, indent=2) + "\n")
     _move_into_place(scene, out, work)
     return summary
 

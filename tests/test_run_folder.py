@@ -1,0 +1,160 @@
+"""What mcsplat guarantees about a run folder (README, "What mcsplat guarantees"): one writer at a time, checkpoints
+that are checked and kept one deep, saved on SIGTERM and by time, a log that matches the checkpoint."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from mcsplat import subscribers
+from mcsplat.cli import main
+from mcsplat.errors import MCSplatError
+from mcsplat.io.checkpoint import load_checkpoint, save_checkpoint
+from mcsplat.strategy.mcmc import MCMCStrategy
+from mcsplat.train import train
+from test_train_e2e import small_config
+
+HOLD_LOCK = """
+import sys, time
+from mcsplat.io.lock import FolderLock
+FolderLock(sys.argv[1], "mcsplat train").acquire()
+print("held", flush=True)
+time.sleep(120)
+"""
+
+
+class LockHolder:
+    """Another process holding a run folder's lock, as a second `mcsplat train` would."""
+
+    def __init__(self, run: Path):
+        run.mkdir(parents=True, exist_ok=True)
+        self.process = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(run / ".lock")], stdout=subprocess.PIPE,
+                                        text=True)
+        assert self.process.stdout.readline().strip() == "held"
+
+    def kill(self) -> None:
+        """Dies without a word (SIGKILL): its lock file stays behind, stale."""
+        self.process.kill()
+        self.process.wait()
+
+
+@pytest.fixture
+def run_copy(tiny_run, tmp_path) -> Path:
+    return Path(shutil.copytree(tiny_run, tmp_path / "run"))
+
+
+def test_a_second_writer_of_a_run_folder_gets_a_one_line_error(tmp_path, run_copy, capsys):
+    run = tmp_path / "busy"
+    holder = LockHolder(run)
+    try:
+        with pytest.raises(MCSplatError, match=rf"busy is in use by mcsplat train \(pid {holder.process.pid}"):
+            train(small_config(run, steps=5))
+        assert sorted(p.name for p in run.iterdir()) == [".lock"], "the refused run wrote nothing"
+    finally:
+        holder.kill()
+    # The lock of a process that died is stale: the next run takes it over, and leaves no lock behind.
+    assert (run / ".lock").exists()
+    train(small_config(run, steps=5))
+    assert (run / "checkpoint.pt").is_file() and not (run / ".lock").exists()
+
+    holder = LockHolder(run_copy)
+    try:
+        for command in (["eval", str(run_copy)], ["export", str(run_copy), "--format", "spz"],
+                        ["report", str(run_copy)], ["render", str(run_copy)]):
+            capsys.readouterr()
+            assert main(command) == 2, command
+            error = capsys.readouterr().err
+            assert error.startswith("mcsplat: error:") and error.count("\n") == 1, error
+            assert "is in use by mcsplat train" in error, error
+        assert not (run_copy / "point_cloud.spz").exists()
+    finally:
+        holder.kill()
+
+
+def test_the_previous_checkpoint_is_kept_and_a_damaged_one_is_refused(tmp_path, capsys):
+    run = tmp_path / "run"
+    train(small_config(run, steps=30, save_every=10))
+    assert load_checkpoint(run / "checkpoint.pt")["step"] == 30
+    assert load_checkpoint(run / "checkpoint.prev.pt")["step"] == 20
+    # Damage the tensor bytes of the checkpoint, keeping the archive readable.
+    state = load_checkpoint(run / "checkpoint.pt")
+    means = state["model"]["params.means"]
+    data = (run / "checkpoint.pt").read_bytes()
+    where = data.find(means.numpy().tobytes()[:64])
+    assert where > 0
+    damaged = bytearray(data)
+    damaged[where + 3] ^= 0x40
+    (run / "checkpoint.pt").write_bytes(bytes(damaged))
+    for command in (["eval", str(run)], ["export", str(run), "--out", str(tmp_path / "x.ply")]):
+        capsys.readouterr()
+        assert main(command) == 2
+        error = capsys.readouterr().err
+        assert "damaged checkpoint" in error and "checkpoint.prev.pt" in error and error.count("\n") == 1, error
+    assert not (tmp_path / "x.ply").exists()
+    (run / "checkpoint.prev.pt").replace(run / "checkpoint.pt")  # what the message advises
+    assert main(["export", str(run), "--out", str(tmp_path / "x.ply")]) == 0
+
+
+def test_export_refuses_parameters_that_are_not_finite(run_copy, capsys):
+    state = load_checkpoint(run_copy / "checkpoint.pt")
+    state["model"]["params.means"][7, 1] = float("inf")
+    save_checkpoint(run_copy / "checkpoint.pt", {k: v for k, v in state.items() if k != "version"})
+    before = (run_copy / "point_cloud.ply").read_bytes()
+    capsys.readouterr()
+    assert main(["export", str(run_copy)]) == 2
+    error = capsys.readouterr().err
+    assert "NaN or infinite values in means" in error and error.count("\n") == 1, error
+    assert (run_copy / "point_cloud.ply").read_bytes() == before
+
+
+@pytest.fixture
+def sigterm_reaches_no_default():
+    """SIGTERM's default handler would end this test process: make it an error the test sees instead."""
+    def not_handled(signum, frame):
+        raise AssertionError("SIGTERM was not handled by the training run")
+
+    previous = signal.signal(signal.SIGTERM, not_handled)
+    yield
+    signal.signal(signal.SIGTERM, previous)
+
+
+def test_sigterm_saves_a_checkpoint_then_stops(tmp_path, monkeypatch, sigterm_reaches_no_default):
+    original = MCMCStrategy.step_post_optimizer
+
+    def terminated(self, step, *args, **kwargs):
+        if step == 37:
+            signal.raise_signal(signal.SIGTERM)
+        return original(self, step, *args, **kwargs)
+
+    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", terminated)
+    with pytest.raises(MCSplatError, match="stopped at step 38.*--resume"):
+        train(small_config(tmp_path / "run", steps=200))
+    assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == 38
+    assert signal.getsignal(signal.SIGTERM).__name__ == "not_handled", "the run puts the handler back"
+
+
+def test_checkpoints_are_also_written_by_time(tmp_path, monkeypatch):
+    original = MCMCStrategy.step_post_optimizer
+    clock = {"now": 0.0}
+    monkeypatch.setattr(subscribers, "time", SimpleNamespace(monotonic=lambda: clock["now"]))
+
+    def slow_steps(self, step, *args, **kwargs):
+        clock["now"] += 7.0  # seconds per step
+        if step == 45:
+            raise RuntimeError("simulated crash")
+        return original(self, step, *args, **kwargs)
+
+    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", slow_steps)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(small_config(tmp_path / "run", steps=200, save_every=0, save_every_minutes=2.0))
+    # 2 minutes are 18 steps of 7 s: a checkpoint at step 18 and at step 36.
+    assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == 36
+    assert load_checkpoint(tmp_path / "run" / "checkpoint.prev.pt")["step"] == 18
+    assert small_config(tmp_path / "x").save_every_minutes == 10.0, "by default every 10 minutes"
