@@ -208,3 +208,22 @@ def test_video_path_keeps_the_sharp_frames_and_registers_them(shared_data, tmp_p
     kept = [sharpness(np.asarray(Image.open(p).convert("RGB"))) for p in frames]
     threshold = 3 * max(blurred)
     assert min(originals) > threshold and min(kept) > threshold, (min(kept), threshold)
+
+
+def test_photos_of_two_sizes_get_a_camera_each_and_all_register(cup_photos, tmp_path):
+    """pycolmap's single camera silently skips the images of any other size than the first."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i, path in enumerate(sorted(cup_photos.glob("*.jpg"))[:24]):
+        image = Image.open(path)
+        (image if i % 2 else image.resize((360, 270), Image.Resampling.BOX)).save(photos / path.name, quality=95)
+    out = tmp_path / "scene"
+    with pytest.warns(UserWarning):
+        summary = process(photos, out, ProcessOptions(threads=2, progress=False))
+    assert summary.images == 24 and summary.registered >= 20, summary
+    assert summary.image_sizes == {"400x300": 12, "360x270": 12}
+    assert any(line.startswith("sizes:") and "one camera per size" in line for line in summary.lines())
+    model = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    sizes = {model.cameras[image.camera_id].width for image in model.images.values()}
+    assert len(model.cameras) == 2 and len(sizes) == 2, "both sizes registered, each under its own camera"
+    assert len(load_scene(out).train) > 0

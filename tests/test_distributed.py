@@ -84,7 +84,7 @@ def test_two_processes_train_one_model_and_rank_0_alone_writes(together, tmp_pat
         assert (run / name).is_file(), name
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log if "test_psnr" in r] == [600], "the periodic evaluation, split and gathered"
-    renders = sorted(p.name for p in (run / "renders" / "test").iterdir())
+    renders = sorted(p.name for p in (run / "renders" / "test").rglob("*") if p.is_file())
     assert len(renders) == 25 and all(name.endswith(".png") for name in renders), "every test view, from both ranks"
     saved = json.loads((run / "config.json").read_text())
     assert saved["world_size"] == 2 and saved["steps"] == VIEWS // 2 and saved["mcmc"]["refine_every"] == 25

@@ -17,9 +17,10 @@ from mcsplat import subscribers
 from mcsplat.cli import main
 from mcsplat.errors import MCSplatError
 from mcsplat.io.checkpoint import load_checkpoint, save_checkpoint
-from mcsplat.strategy.mcmc import MCMCStrategy
+from mcsplat.run_dir import render_file
+from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
 from mcsplat.train import train
-from test_train_e2e import small_config
+from test_train_e2e import DEMO, small_config
 
 HOLD_LOCK = """
 import sys, time
@@ -45,23 +46,42 @@ class LockHolder:
         self.process.wait()
 
 
+@pytest.fixture(scope="module")
+def mini_demo(tmp_path_factory) -> Path:
+    """The demo scene cut to 12 training and 3 test views: the runs here end (evaluation, report) in a second."""
+    root = tmp_path_factory.mktemp("mini") / "lego"
+    for split, count in (("train", 12), ("test", 3)):
+        meta = json.loads((DEMO / f"transforms_{split}.json").read_text())
+        meta["frames"] = meta["frames"][:count]
+        (root / split).mkdir(parents=True)
+        for frame in meta["frames"]:
+            name = Path(frame["file_path"]).name + ".png"
+            shutil.copyfile(DEMO / split / name, root / split / name)
+        (root / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return root
+
+
+def mini_config(scene: Path, out: Path, **overrides):
+    return small_config(out, data=scene, **overrides)
+
+
 @pytest.fixture
 def run_copy(tiny_run, tmp_path) -> Path:
     return Path(shutil.copytree(tiny_run, tmp_path / "run"))
 
 
-def test_a_second_writer_of_a_run_folder_gets_a_one_line_error(tmp_path, run_copy, capsys):
+def test_a_second_writer_of_a_run_folder_gets_a_one_line_error(tmp_path, run_copy, mini_demo, capsys):
     run = tmp_path / "busy"
     holder = LockHolder(run)
     try:
         with pytest.raises(MCSplatError, match=rf"busy is in use by mcsplat train \(pid {holder.process.pid}"):
-            train(small_config(run, steps=5))
+            train(mini_config(mini_demo, run, steps=5))
         assert sorted(p.name for p in run.iterdir()) == [".lock"], "the refused run wrote nothing"
     finally:
         holder.kill()
     # The lock of a process that died is stale: the next run takes it over, and leaves no lock behind.
     assert (run / ".lock").exists()
-    train(small_config(run, steps=5))
+    train(mini_config(mini_demo, run, steps=5))
     assert (run / "checkpoint.pt").is_file() and not (run / ".lock").exists()
 
     holder = LockHolder(run_copy)
@@ -78,9 +98,9 @@ def test_a_second_writer_of_a_run_folder_gets_a_one_line_error(tmp_path, run_cop
         holder.kill()
 
 
-def test_the_previous_checkpoint_is_kept_and_a_damaged_one_is_refused(tmp_path, capsys):
+def test_the_previous_checkpoint_is_kept_and_a_damaged_one_is_refused(tmp_path, mini_demo, capsys):
     run = tmp_path / "run"
-    train(small_config(run, steps=30, save_every=10))
+    train(mini_config(mini_demo, run, steps=30, save_every=10))
     assert load_checkpoint(run / "checkpoint.pt")["step"] == 30
     assert load_checkpoint(run / "checkpoint.prev.pt")["step"] == 20
     # Damage the tensor bytes of the checkpoint, keeping the archive readable.
@@ -125,7 +145,7 @@ def sigterm_reaches_no_default():
     signal.signal(signal.SIGTERM, previous)
 
 
-def test_sigterm_saves_a_checkpoint_then_stops(tmp_path, monkeypatch, sigterm_reaches_no_default):
+def test_sigterm_saves_a_checkpoint_then_stops(tmp_path, mini_demo, monkeypatch, sigterm_reaches_no_default):
     original = MCMCStrategy.step_post_optimizer
 
     def terminated(self, step, *args, **kwargs):
@@ -135,12 +155,12 @@ def test_sigterm_saves_a_checkpoint_then_stops(tmp_path, monkeypatch, sigterm_re
 
     monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", terminated)
     with pytest.raises(MCSplatError, match="stopped at step 38.*--resume"):
-        train(small_config(tmp_path / "run", steps=200))
+        train(mini_config(mini_demo, tmp_path / "run", steps=200))
     assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == 38
     assert signal.getsignal(signal.SIGTERM).__name__ == "not_handled", "the run puts the handler back"
 
 
-def test_checkpoints_are_also_written_by_time(tmp_path, monkeypatch):
+def test_checkpoints_are_also_written_by_time(tmp_path, mini_demo, monkeypatch):
     original = MCMCStrategy.step_post_optimizer
     clock = {"now": 0.0}
     monkeypatch.setattr(subscribers, "time", SimpleNamespace(monotonic=lambda: clock["now"]))
@@ -153,8 +173,60 @@ def test_checkpoints_are_also_written_by_time(tmp_path, monkeypatch):
 
     monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", slow_steps)
     with pytest.raises(RuntimeError, match="simulated crash"):
-        train(small_config(tmp_path / "run", steps=200, save_every=0, save_every_minutes=2.0))
+        train(mini_config(mini_demo, tmp_path / "run", steps=200, save_every=0, save_every_minutes=2.0))
     # 2 minutes are 18 steps of 7 s: a checkpoint at step 18 and at step 36.
     assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == 36
     assert load_checkpoint(tmp_path / "run" / "checkpoint.prev.pt")["step"] == 18
     assert small_config(tmp_path / "x").save_every_minutes == 10.0, "by default every 10 minutes"
+
+
+def logged_steps(run: Path) -> list[int]:
+    return [json.loads(line)["step"] for line in (run / "log.jsonl").read_text().splitlines()]
+
+
+def test_the_log_matches_the_run_after_overwrite_and_after_a_resume(tmp_path, mini_demo, monkeypatch):
+    run = tmp_path / "run"
+    train(mini_config(mini_demo, run, steps=30, save_every=10))
+    assert logged_steps(run) == [30] and (run / "checkpoint.prev.pt").is_file()
+    # --overwrite: a new log, and no checkpoint of the old run left to fall back to.
+    train(mini_config(mini_demo, run, steps=20, overwrite=True))
+    assert logged_steps(run) == [20]
+    assert not (run / "checkpoint.prev.pt").exists() and load_checkpoint(run / "checkpoint.pt")["step"] == 20
+
+    # Killed at step 50, after the evaluation of step 40 was logged but with the checkpoint of step 30: the resumed
+    # run logs step 40 again, once.
+    original = MCMCStrategy.step_post_optimizer
+
+    def crash(self, step, *args, **kwargs):
+        if step == 50:
+            raise RuntimeError("simulated crash")
+        return original(self, step, *args, **kwargs)
+
+    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", crash)
+    config = dict(steps=60, eval_every=40, save_every=30)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        train(mini_config(mini_demo, tmp_path / "killed", **config))
+    assert logged_steps(tmp_path / "killed") == [40]
+    with (tmp_path / "killed" / "log.jsonl").open("a") as log:
+        log.write('{"step": 41, "loss"')  # a record cut short by the kill
+    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", original)
+    train(mini_config(mini_demo, tmp_path / "killed", resume=True, **config))
+    assert logged_steps(tmp_path / "killed") == [40, 60]
+
+
+def test_renders_of_views_with_one_file_name_in_two_folders_are_all_kept(tiny_run, tmp_path, capsys):
+    """The demo's train/r_0 and test/r_0: rendered into one folder, each keeps its render."""
+    out = tmp_path / "renders"
+    for split in ("test", "train"):
+        assert main(["render", str(tiny_run), "--split", split, "--out", str(out)]) == 0
+    pngs = sorted(str(p.relative_to(out)) for p in out.rglob("*.png"))
+    assert len(pngs) == 125 and "test/r_0.png" in pngs and "train/r_0.png" in pngs
+    assert render_file(out, "../../a/./b") == out / "a" / "b.png", "nothing is written outside the folder"
+
+
+def test_a_cap_below_the_initial_points_is_kept_from_the_start(tmp_path, mini_demo):
+    notes = []
+    metrics = train(mini_config(mini_demo, tmp_path / "run", steps=5, mcmc=MCMCConfig(cap_max=500)),
+                    subscribers=[lambda event: notes.append(getattr(event, "init_note", None))])
+    assert metrics["num_gaussians"] == 500
+    assert "random (3,000 points, 500 of them kept at random to stay within --cap-max)" in notes

@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 import shutil
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import torch
@@ -81,7 +82,7 @@ class RunDir:
         return self.path / RENDERS / f"{split}.mp4"
 
     def render_file(self, split: str, view_name: str) -> Path:
-        """Where a view's render is written: RUN/renders/<split>/<view's file stem>.png."""
+        """Where a view's render is written: RUN/renders/<split>/<view's name>.png."""
         return render_file(self.renders_folder(split), view_name)
 
     def holds_run(self) -> bool:
@@ -136,6 +137,27 @@ class RunDir:
     def write_config(self, config: TrainConfig) -> None:
         save_config(config, self.config_file)
 
+    def begin(self, config: TrainConfig, step: int) -> None:
+        """The run's files as training starts at `step`, once its set-up has succeeded. A new run writes its
+        configuration and empties the log; with --overwrite it also removes the old run's checkpoints, which a
+        --resume of the new configuration must not continue from. A resumed run cuts the log back to its
+        checkpoint's step (a run killed between two checkpoints logged steps that will now be trained again)."""
+        if config.resume:
+            self.cut_log(step)
+            return
+        self.write_config(config)
+        self.cut_log(0)
+        for old in (self.checkpoint_file, self.previous_checkpoint_file):
+            old.unlink(missing_ok=True)
+
+    def cut_log(self, step: int) -> None:
+        """Keep the log's records up to `step` (and drop a line cut short by a kill)."""
+        if not self.log_file.is_file():
+            return
+        kept = [line for line in self.log_file.read_text().splitlines(keepends=True)
+                if line.endswith("\n") and _logged_step(line) <= step]
+        atomic_write_text(self.log_file, "".join(kept))
+
     def write_checkpoint(self, state: dict[str, Any]) -> None:
         """checkpoint.pt, the one it replaces kept as checkpoint.prev.pt (a hard link made before the write, so that
         checkpoint.pt never stops existing)."""
@@ -157,6 +179,14 @@ class RunDir:
         return write_ply(self.splats_file, dict(model.params.items()), keep=alive(model))
 
 
+def _logged_step(line: str) -> float:
+    """The step of a log record; infinity for a line that is not one (so that cutting the log drops it)."""
+    try:
+        return float(json.loads(line)["step"])
+    except (ValueError, KeyError, TypeError):
+        return math.inf
+
+
 def keep_as_previous(current: Path, previous: Path) -> None:
     """Make `previous` the same file as `current` (replacing it in one step), or a copy where links are not
     allowed."""
@@ -169,8 +199,11 @@ def keep_as_previous(current: Path, previous: Path) -> None:
 
 
 def render_file(folder: Path, view_name: str) -> Path:
-    """A view's render inside `folder`: the view's file stem as a PNG."""
-    return folder / f"{Path(view_name).stem}.png"
+    """A view's render inside `folder`: the view's name (its image's path in the scene, without the extension) as a
+    PNG, sub-folders kept, so that two images of one name in two sub-folders keep two renders. Parts that would lead
+    out of `folder` are left out."""
+    parts = [part for part in PurePosixPath(view_name.replace("\\", "/")).parts if part not in ("/", ".", "..")]
+    return folder.joinpath(*parts[:-1], f"{parts[-1] if parts else 'view'}.png")
 
 
 def alive(model: GaussianModel) -> torch.Tensor:

@@ -180,8 +180,8 @@ class TrainingRun:
         self.background = run_dir.background_of(config, self.scene)
         checkpoint = team.on_main(self.folder.read_checkpoint) if config.resume else None
         self.state, self.init_note = start(config, self.scene, self.device, team, checkpoint)
-        if not config.resume and team.is_main:
-            self.folder.write_config(config)
+        if team.is_main:
+            self.folder.begin(config, self.state.step)
         # Several processes: whether any of them asked to stop / for a checkpoint, agreed with the gradients.
         self._stop_vote = self._save_vote = False
         self._saved_at = -1  # the step of the last checkpoint written

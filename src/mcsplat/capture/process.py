@@ -14,11 +14,12 @@ import sys
 import tempfile
 import time
 import warnings
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from mcsplat.capture import frames
-from mcsplat.capture.sfm import Matcher, describe_camera
+from mcsplat.capture.sfm import Matcher, describe_cameras
 from mcsplat.errors import MCSplatError
 
 MIN_SFM_SIZE = 1000  # long side in pixels under which SIFT starts to fragment the model (the cup at 200x150 did)
@@ -51,12 +52,16 @@ class ProcessSummary:
     models: int
     camera: str
     undistorted_camera: str
+    image_sizes: dict[str, int] = field(default_factory=dict)  # "WxH" -> how many input images have that size
     seconds: dict[str, float] = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         stages = ", ".join(f"{name} {value:.1f} s" for name, value in self.seconds.items())
+        sizes = ", ".join(f"{count} at {size}" for size, count in self.image_sizes.items())
         return [f"registered: {self.registered} of {self.images} images ({self.models} model"
                 f"{'s' if self.models != 1 else ''} found, the largest kept; {self.matcher} matching)",
+                *([f"sizes:      the images come in {len(self.image_sizes)} sizes ({sizes}): one camera per size"]
+                  if len(self.image_sizes) > 1 else []),
                 f"points:     {self.points:,}, mean reprojection error {self.mean_reprojection_error:.2f} px",
                 f"camera:     {self.camera} -> {self.undistorted_camera}",
                 f"time:       {stages} (total {sum(self.seconds.values()):.1f} s)",
@@ -135,7 +140,8 @@ def _run_in_child(work: Path, photos: frames.Photos, from_video: bool, options: 
     pycolmap from another thread left its threads running into interpreter shutdown (an abort). The child ignores
     SIGINT; on Ctrl-C the parent stops it and the partial work is thrown away with the work folder.
     """
-    job = {"folder": str(photos.folder), "names": photos.names, "from_video": from_video, "options": asdict(options)}
+    job = {"folder": str(photos.folder), "names": photos.names, "sizes": photos.sizes, "from_video": from_video,
+           "options": asdict(options)}
     (work / "job.json").write_text(json.dumps(job))
     child = subprocess.Popen([sys.executable, "-m", "mcsplat.capture.worker", str(work)])
     try:
@@ -179,13 +185,18 @@ def _process(source: Path, out: Path, work: Path, photos, from_video: bool, opti
         scene=str(out), input=str(source), registered=model.num_reg_images(), images=len(photos.names),
         points=model.num_points3D(), mean_reprojection_error=float(model.compute_mean_reprojection_error()),
         matcher=result["matcher"], models=result["models"], camera=result["camera"],
-        undistorted_camera=describe_camera(next(iter(model.cameras.values()))),
+        undistorted_camera=describe_cameras(model), image_sizes=_count_sizes(photos.sizes),
         seconds={k: round(v, 2) for k, v in seconds.items()})
     # The summary, and the list of the files written: --overwrite replaces the scene only while that is all it holds.
     files = sorted(files_in(scene) + [MANIFEST])
     (scene / MANIFEST).write_text(json.dumps({**asdict(summary), "files": files}, indent=2) + "\n")
     _move_into_place(scene, out, work)
     return summary
+
+
+def _count_sizes(sizes: list[tuple[int, int]]) -> dict[str, int]:
+    """"WxH" -> how many images have that size, the most common first."""
+    return dict(Counter(f"{width}x{height}" for width, height in sizes).most_common())
 
 
 def _move_into_place(scene: Path, out: Path, work: Path) -> None:

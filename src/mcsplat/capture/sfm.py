@@ -39,8 +39,16 @@ def choose_matcher(matcher: Matcher, from_video: bool, count: int) -> str:
     return "sequential" if from_video else "exhaustive"
 
 
-def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, from_video: bool,
-            progress: bool = True) -> SfmResult:
+def by_size(names: list[str], sizes: list[tuple[int, int]]) -> dict[tuple[int, int], list[str]]:
+    """The images of each size (width, height), the most common size first."""
+    groups: dict[tuple[int, int], list[str]] = {}
+    for name, size in zip(names, sizes):
+        groups.setdefault(tuple(size), []).append(name)
+    return dict(sorted(groups.items(), key=lambda item: -len(item[1])))
+
+
+def run_sfm(image_dir: Path, names: list[str], sizes: list[tuple[int, int]], work: Path, options: SfmOptions,
+            from_video: bool, progress: bool = True) -> SfmResult:
     import pycolmap
     from tqdm import tqdm
 
@@ -58,13 +66,18 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     extraction.use_gpu = gpu
     start = time.perf_counter()
     with tqdm(total=len(names), desc="features", unit="image", disable=not progress, leave=False) as bar:
-        for first in range(0, len(names), EXTRACT_CHUNK):
-            chunk = names[first:first + EXTRACT_CHUNK]
-            # One camera for all images: one phone or one video, so its intrinsics are shared and well constrained.
-            pycolmap.extract_features(database, image_dir, image_names=chunk, camera_mode=pycolmap.CameraMode.SINGLE,
-                                      reader_options=reader, extraction_options=extraction, device=device)
-            reader.existing_camera_id = 1  # later chunks join the first chunk's camera (the database's first)
-            bar.update(len(chunk))
+        # One camera per image size: one phone or one video, so its intrinsics are shared and well constrained.
+        # (pycolmap's single camera skips, without a word, every image of another size than the first.)
+        for group in by_size(names, sizes).values():
+            reader.existing_camera_id = -1  # the group's first chunk makes its camera
+            for first in range(0, len(group), EXTRACT_CHUNK):
+                chunk = group[first:first + EXTRACT_CHUNK]
+                pycolmap.extract_features(database, image_dir, image_names=chunk,
+                                          camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                          extraction_options=extraction, device=device)
+                if reader.existing_camera_id == -1:  # later chunks join it
+                    reader.existing_camera_id = _camera_of(database, chunk[0])
+                bar.update(len(chunk))
     seconds["features"] = time.perf_counter() - start
 
     matcher = choose_matcher(options.matcher, from_video, len(names))
@@ -100,6 +113,15 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
         raise MCSplatError(_too_few(best.num_reg_images(), len(names), matcher))
     return SfmResult(best, len(models), matcher, seconds)
 
+def _camera_of(database: Path, image_name: str) -> int:
+    import pycolmap
+
+    db = pycolmap.Database.open(database)
+    try:
+        return db.read_image_with_name(image_name).camera_id
+    finally:
+        db.close()
+
 
 def _too_few(registered: int, total: int, matcher: str) -> str:
     other = "exhaustive" if matcher == "sequential" else "sequential (if the images are in capture order)"
@@ -107,7 +129,13 @@ def _too_few(registered: int, total: int, matcher: str) -> str:
             f"--matcher {other}, photos with more overlap and texture, or a larger --sfm-max-size")
 
 
-
 def describe_camera(camera) -> str:
     params = ", ".join(f"{p:.4g}" for p in camera.params)
     return f"{camera.model.name} {camera.width}x{camera.height} ({params})"
+
+
+def describe_cameras(reconstruction) -> str:
+    """Each camera of the model (one per image size) on one line."""
+    cameras = list(reconstruction.cameras.values())
+    text = "; ".join(describe_camera(camera) for camera in cameras)
+    return text if len(cameras) == 1 else f"{len(cameras)} cameras, one per image size: {text}"

@@ -13,14 +13,15 @@ import sys
 import time
 from pathlib import Path
 
-from mcsplat.capture.sfm import SfmOptions, describe_camera, run_sfm
+from mcsplat.capture.sfm import SfmOptions, describe_cameras, run_sfm
 from mcsplat.errors import MCSplatError
 
 
-def reconstruct(work: Path, folder: Path, names: list[str], from_video: bool, options: dict) -> dict:
+def reconstruct(work: Path, folder: Path, names: list[str], sizes: list[tuple[int, int]], from_video: bool,
+                options: dict) -> dict:
     import pycolmap
 
-    sfm = run_sfm(folder, names, work,
+    sfm = run_sfm(folder, names, sizes, work,
                   SfmOptions(matcher=options["matcher"], camera_model=options["camera_model"],
                              max_size=options["sfm_max_size"], overlap=options["overlap"], threads=options["threads"]),
                   from_video, options["progress"])
@@ -36,8 +37,8 @@ def reconstruct(work: Path, folder: Path, names: list[str], from_video: bool, op
     for item in (undistorted / "sparse").iterdir():  # COLMAP writes sparse/*.bin; 3DGS tools expect sparse/0/
         os.replace(item, scene / "sparse" / "0" / item.name)
     seconds = dict(sfm.seconds, undistortion=time.perf_counter() - start)
-    camera = next(iter(sfm.reconstruction.cameras.values()))
-    return {"matcher": sfm.matcher, "models": sfm.models, "seconds": seconds, "camera": describe_camera(camera)}
+    return {"matcher": sfm.matcher, "models": sfm.models, "seconds": seconds,
+            "camera": describe_cameras(sfm.reconstruction)}
 
 
 def main(work: Path) -> None:
@@ -47,7 +48,8 @@ def main(work: Path) -> None:
     pycolmap.logging.minloglevel = 1  # COLMAP's per-image INFO lines would bury the progress bars
     job = json.loads((work / "job.json").read_text())
     try:
-        result = reconstruct(work, Path(job["folder"]), job["names"], job["from_video"], job["options"])
+        result = reconstruct(work, Path(job["folder"]), job["names"], [tuple(size) for size in job["sizes"]],
+                             job["from_video"], job["options"])
     except MCSplatError as error:
         result = {"error": str(error)}
     (work / "result.json").write_text(json.dumps(result))
