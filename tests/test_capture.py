@@ -155,8 +155,22 @@ def test_overwrite_replaces_only_what_process_wrote(cup_photos, tmp_path):
     assert len(list((scene / "images").iterdir())) == 3, "a failed run replaces nothing"
 
 
-def test_ctrl_c_leaves_no_scene(cup_photos, tmp_path):
-    """SIGINT once feature extraction has started: exit status 2, a one-line message, and nothing on disk."""
+def processes_mentioning(text: str) -> list[int]:
+    """The pids of the processes whose command line contains `text` (the worker names its work folder)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and text.encode() in (entry / "cmdline").read_bytes():
+                found.append(int(entry.name))
+        except OSError:
+            continue
+    return found
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_signal_leaves_no_scene_and_no_worker(cup_photos, tmp_path, sig):
+    """SIGINT (Ctrl-C) or SIGTERM (kill, timeout, docker) once feature extraction has started: exit status 2, a
+    one-line message, the SfM worker stopped, and nothing on disk."""
     out = tmp_path / "scene"
     command = [sys.executable, "-m", "mcsplat.cli", "process", str(cup_photos), "--out", str(out), "--threads", "1"]
     # SIGINT as a terminal delivers it (a parent started in the background may have left it ignored).
@@ -172,7 +186,8 @@ def test_ctrl_c_leaves_no_scene(cup_photos, tmp_path):
             seen += chunk
         assert b"features:" in seen, seen[-2000:]
         time.sleep(1.0)
-        child.send_signal(signal.SIGINT)
+        assert processes_mentioning(str(tmp_path / ".scene.partial-")), "the SfM worker runs"
+        child.send_signal(sig)
         stderr = (seen + child.communicate(timeout=60)[1]).decode(errors="replace")
     finally:
         if child.poll() is None:
@@ -180,6 +195,10 @@ def test_ctrl_c_leaves_no_scene(cup_photos, tmp_path):
             child.wait()
     assert child.returncode == 2, stderr[-3000:]
     assert "mcsplat: error: interrupted: no scene was written" in stderr
+    deadline = time.monotonic() + 10  # the worker is stopped (and waited for) before the parent exits
+    while processes_mentioning(str(tmp_path / ".scene.partial-")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert processes_mentioning(str(tmp_path / ".scene.partial-")) == [], "the SfM worker was left running"
     assert list(tmp_path.iterdir()) == []
 
 

@@ -15,6 +15,7 @@ from distributed_worker import run as worker
 from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.distributed import scaled_for_processes
 from mcsplat.errors import MCSplatError
+from mcsplat.io.checkpoint import load_checkpoint
 from mcsplat.strategy.adc import ADCConfig
 from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.train import train
@@ -146,11 +147,41 @@ def test_processes_started_differently_stop_at_once(tmp_path):
 
 def test_the_reduce_averages_every_gradient_and_the_values(tmp_path):
     rank0, rank1 = spawn(tmp_path / "comm", 2, reduce_once)
+    for rank in (rank0, rank1):  # the tests' processes meet through a file and talk over the loopback only
+        assert all(is_loopback(address) for address in rank.pop("listening")), rank
     assert rank0 == rank1, "every process gets the same bytes back"
     assert rank0["values"] == [15.0, 0.5], "the loss is averaged; a stop vote from one process shows as > 0"
     for key, grad in rank0["grads"].items():
         expected = [0.0] * len(grad) if key == "quats" else [1.5 * i for i in range(len(grad))]
         assert grad == expected, key
+
+
+def is_loopback(proc_address: str) -> bool:
+    """An address of /proc/net/tcp{,6} ("0100007F:9C40": 127.0.0.1 in the kernel's byte order) on the loopback."""
+    host = proc_address.split(":")[0]
+    if len(host) == 8:
+        return host.endswith("7F")
+    return host in ("00000000000000000000000001000000", "0000000000000000FFFF00000100007F")
+
+
+def test_sigterm_stops_every_process_with_a_checkpoint_and_the_torchrun_command(tmp_path):
+    """torchrun passes SIGTERM on to its processes (kill, timeout, SLURM, Kubernetes); here rank 0 alone gets it."""
+    outcomes = launch(tmp_path / "comm", [demo_config(tmp_path / "run", steps=400, save_every=0)] * 2,
+                      crash={"rank": 0, "step": 30, "how": "sigterm"})
+    for outcome in outcomes:
+        assert "stopped at step" in outcome.get("error", ""), outcomes
+        assert f"`torchrun --nproc-per-node 2 -m mcsplat train {DEMO} --out {tmp_path / 'run'} --resume`" in \
+            outcome["error"], outcome
+    stopped = int(outcomes[0]["error"].split("stopped at step ")[1].split(";")[0])
+    assert 31 <= stopped <= 33 and load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == stopped
+
+
+def test_the_readme_says_how_to_keep_the_rendezvous_off_the_network():
+    """torchrun's store listens on every interface whatever --master-addr says, without authentication."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("### Several processes or machines (torchrun)")[1].split("\n### ")[0]
+    assert "every network interface" in section and "--master-addr" in section
+    assert "unshare --net" in section, "the safe way on a shared network"
 
 
 def test_the_schedule_rule_for_n_processes():

@@ -296,6 +296,9 @@ class ViewSaved:
     port: int = 8080
     host: str = "127.0.0.1"
     """Address to listen on; 0.0.0.0 exposes the viewer to the network."""
+    viewer_origin: tuple[str, ...] = ()
+    """Web pages (host names or origins such as http://myhost:8080) allowed to connect besides the viewer's own page:
+    where it is reached under a name, or through a proxy."""
     device: Device = "auto"
 
     def run_command(self) -> int:
@@ -308,7 +311,7 @@ class ViewSaved:
         if not self.path.exists():
             raise MCSplatError(f"{self.path}: no such run directory or .ply file")
         try:
-            view_saved(self.path, self.host, self.port, resolve_device(self.device))
+            view_saved(self.path, self.host, self.port, resolve_device(self.device), origins=self.viewer_origin)
         except KeyboardInterrupt:
             print("mcsplat: viewer stopped", file=sys.stderr)
         return 0

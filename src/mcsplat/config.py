@@ -18,7 +18,7 @@ from .strategy.mcmc import MCMCConfig
 # Options that only affect how this process runs: on --resume they come from the command line, the rest from
 # the run's saved configuration (steps included: the learning-rate schedule depends on it).
 PROCESS_OPTIONS = ("eval_every", "save_every", "save_every_minutes", "quiet", "threads", "device", "viewer", "port",
-                   "host", "dist_timeout")
+                   "host", "viewer_origin", "dist_timeout")
 
 
 @dataclass
@@ -90,6 +90,9 @@ class TrainConfig:
     """Port of the live viewer."""
     host: str = "127.0.0.1"
     """Address the live viewer listens on; 0.0.0.0 exposes it to the network."""
+    viewer_origin: tuple[str, ...] = ()
+    """Web pages (host names or origins such as http://myhost:8080) allowed to connect to the viewer besides its own
+    page: where it is reached under a name, or through a proxy."""
     dist_timeout: float = 600.0
     """Under torchrun: seconds a process waits for the others before it stops with an error (a process died or
     hangs)."""

@@ -25,7 +25,8 @@ def standard_subscribers(config: TrainConfig, run_dir: Path) -> list[Listener]:
     if config.viewer:
         from .viewer import TrainingViewer
 
-        subscribers.append(TrainingViewer(host=config.host, port=config.port, quiet=config.quiet))
+        subscribers.append(TrainingViewer(host=config.host, port=config.port, quiet=config.quiet,
+                                          origins=config.viewer_origin))
     return subscribers
 
 
@@ -34,8 +35,10 @@ def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Co
     """Run the whole job with the standard consumers plus `subscribers`; returns the final metrics."""
     if config.viewer:
         from .viewer import require_viser
+        from .viewer.access import check_listen_address
 
         require_viser()  # before the run directory is made: a missing extra must not leave a half-started run
+        check_listen_address(config.host, config.port)
     team = join(config.device, config.dist_timeout)
     lock = train_lock(config)
     finished = False

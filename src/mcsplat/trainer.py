@@ -26,7 +26,7 @@ from .compute.compile import compile_kernels, modules_to_compile
 from .compute.device import resolve_device
 from .config import PROCESS_OPTIONS, TrainConfig, to_jsonable
 from .data import Scene, View
-from .distributed import SingleProcess, Team, scaled_for_processes, threads_per_process
+from .distributed import SingleProcess, Team, command_for, scaled_for_processes, threads_per_process
 from .errors import MCSplatError
 from .evaluation import Evaluation, evaluate, seen_in_views
 from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Listener, RefineDone, RunFinished,
@@ -280,7 +280,7 @@ class TrainingRun:
             if self._stop_now():
                 self.save_checkpoint()
                 raise MCSplatError(f"stopped at step {step:,}; the checkpoint is saved: continue with "
-                                   f"`mcsplat train {config.data} --out {self.run_dir} --resume`")
+                                   f"`{command_for(n)} train {config.data} --out {self.run_dir} --resume`")
             if self._save_now():
                 self.save_checkpoint()
 

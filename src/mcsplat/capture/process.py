@@ -9,8 +9,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
-import sys
+import signal
 import tempfile
 import time
 import warnings
@@ -19,12 +18,17 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from mcsplat.capture import frames
+from mcsplat.capture.child import run_worker, terminate_as_interrupt
 from mcsplat.capture.sfm import Matcher, describe_cameras
 from mcsplat.errors import MCSplatError
+from mcsplat.io.disk import writing_into
 
 MIN_SFM_SIZE = 1000  # long side in pixels under which SIFT starts to fragment the model (the cup at 200x150 did)
 SCENE_MARKERS = ("images", "sparse", "transforms.json", "transforms_train.json", "poses_bounds.npy")
 MANIFEST = "process.json"  # the summary of the run that made the scene, with the files it wrote
+# Disk space the work takes, roughly (the undistorted copies and a video's frames; the features' database): what
+# the error of a full disk says is needed.
+SPACE_PER_INPUT_BYTE, SPACE_PER_IMAGE = 3, 100_000
 
 
 @dataclass
@@ -84,14 +88,29 @@ def process(source: str | os.PathLike, out: str | os.PathLike, options: ProcessO
         raise MCSplatError(f"the input {source} is inside --out {out}; write the scene to another folder")
     _check_output(out, options.overwrite)
     photos = None if from_video else frames.list_photos(source)  # fail on a bad input before any work
-    out.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-    try:
-        return _process(source, out, work, photos, from_video, options)
-    except KeyboardInterrupt:  # while reading the video (the SfM child handles its own)
-        raise MCSplatError("interrupted: no scene was written (the partial work is removed)") from None
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+    needed = _space_needed(source, photos, options)
+    with writing_into(out.parent, needed):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, [])  # as it is now: _move_into_place blocks the signals
+    import pycolmap  # noqa: F401  (before our handlers: importing it installs glog's, which dumps a stack on SIGTERM)
+
+    with terminate_as_interrupt():
+        try:
+            with writing_into(out.parent, needed):
+                return _process(source, out, work, photos, from_video, options, needed)
+        except KeyboardInterrupt:  # while reading the video (the SfM child handles its own)
+            raise MCSplatError("interrupted: no scene was written (the partial work is removed)") from None
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a signal held back during the move arrives now
+
+
+def _space_needed(source: Path, photos: frames.Photos | None, options: ProcessOptions) -> int:
+    if photos is None:  # a video: its kept frames come to about its own size
+        return SPACE_PER_INPUT_BYTE * source.stat().st_size + SPACE_PER_IMAGE * (options.num_frames or 200)
+    return (SPACE_PER_INPUT_BYTE * sum((photos.folder / name).stat().st_size for name in photos.names)
+            + SPACE_PER_IMAGE * len(photos.names))
 
 
 def _check_output(out: Path, overwrite: bool) -> None:
@@ -133,35 +152,8 @@ def files_not_written_by_process(scene: Path) -> list[str]:
     return [name for name in files_in(scene) if name not in written]
 
 
-def _run_in_child(work: Path, photos: frames.Photos, from_video: bool, options: ProcessOptions) -> dict:
-    """Run SfM and undistortion in a child process (worker.py) and return what it reports (work/result.json).
-
-    A child, not a thread: Ctrl-C cannot interrupt the main thread inside a long pycolmap call, and cancelling
-    pycolmap from another thread left its threads running into interpreter shutdown (an abort). The child ignores
-    SIGINT; on Ctrl-C the parent stops it and the partial work is thrown away with the work folder.
-    """
-    job = {"folder": str(photos.folder), "names": photos.names, "sizes": photos.sizes, "from_video": from_video,
-           "options": asdict(options)}
-    (work / "job.json").write_text(json.dumps(job))
-    child = subprocess.Popen([sys.executable, "-m", "mcsplat.capture.worker", str(work)])
-    try:
-        child.wait()
-    except KeyboardInterrupt:
-        child.terminate()
-        child.wait()
-        raise MCSplatError("interrupted: no scene was written (the partial work is removed)") from None
-    result_file = work / "result.json"
-    if not result_file.is_file():
-        raise MCSplatError(f"structure from motion stopped unexpectedly (exit code {child.returncode}); run again, "
-                           "or with --threads 1 if it keeps failing")
-    result = json.loads(result_file.read_text())
-    if "error" in result:
-        raise MCSplatError(result["error"])
-    return result
-
-
-def _process(source: Path, out: Path, work: Path, photos, from_video: bool, options: ProcessOptions
-             ) -> ProcessSummary:
+def _process(source: Path, out: Path, work: Path, photos, from_video: bool, options: ProcessOptions,
+             space_needed: int) -> ProcessSummary:
     import pycolmap
 
     seconds: dict[str, float] = {}
@@ -176,7 +168,9 @@ def _process(source: Path, out: Path, work: Path, photos, from_video: bool, opti
     if len(photos.names) < 3:
         raise MCSplatError(f"{len(photos.names)} image(s) in {source}: structure from motion needs at least 3 "
                            "overlapping views (20 or more for a good scene)")
-    result = _run_in_child(work, photos, from_video, options)
+    job = {"folder": str(photos.folder), "names": photos.names, "sizes": photos.sizes, "from_video": from_video,
+           "options": asdict(options)}
+    result = run_worker(work, job, space_needed)
     seconds.update(result["seconds"])
 
     scene = work / "scene"
@@ -200,7 +194,11 @@ def _count_sizes(sizes: list[tuple[int, int]]) -> dict[str, int]:
 
 
 def _move_into_place(scene: Path, out: Path, work: Path) -> None:
-    """One rename makes the scene appear complete; an old scene (--overwrite) is moved aside first, then removed."""
+    """One rename makes the scene appear complete; an old scene (--overwrite) is moved aside first, then removed.
+
+    No signal may stop it between the two renames (the old scene aside, the new one not yet in place, both in the
+    work folder that is removed next): they are held back until process() has finished."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
     if out.exists() and not any(out.iterdir()):
         out.rmdir()
     old = None

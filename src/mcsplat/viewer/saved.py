@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import warnings
 from pathlib import Path
+from typing import Sequence
 
 import torch
 
@@ -12,6 +13,7 @@ from .. import run_dir
 from ..errors import MCSplatError
 from ..gaussians import GaussianModel
 from ..io.ply import read_ply
+from .access import check_listen_address
 from .server import ViewerServer
 
 
@@ -52,13 +54,14 @@ def initial_pose_for(model, radius: float):
 
 
 def view_saved(path: Path, host: str, port: int, device: torch.device, stop: threading.Event | None = None,
-               quiet: bool = False) -> ViewerServer:
+               quiet: bool = False, origins: Sequence[str] = ()) -> ViewerServer:
     """Serve the viewer until `stop` is set (Ctrl-C from the CLI); returns the stopped server."""
+    check_listen_address(host, port)  # before the model is loaded
     model, cameras, background, radius = load_for_viewing(Path(path), device)
     with torch.no_grad():
         model.requires_grad_(False)
     server = ViewerServer(host, port, lock=threading.RLock(), scene_radius=radius, background=background,
-                          max_sh_degree=model.sh_degree, training=False, quiet=quiet)
+                          max_sh_degree=model.sh_degree, training=False, quiet=quiet, origins=origins)
     try:
         if cameras:
             server.add_cameras(cameras)
