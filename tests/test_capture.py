@@ -128,7 +128,7 @@ def test_an_input_inside_the_output_is_refused_and_kept(cup_photos, tmp_path):
     photos = copy_photos(cup_photos, scene / "images", 2)
     (scene / "sparse").mkdir()
     for source in (photos, scene):
-        with pytest.raises(MCSplatError, match="inside") as info:
+        with pytest.raises(MCSplatError, match="is inside (--out|the input folder)") as info:
             process(source, scene, ProcessOptions(threads=1, progress=False, overwrite=True))
         assert "\n" not in str(info.value)
     assert sorted(p.name for p in photos.iterdir()) == sorted(p.name for p in cup_photos.glob("*.jpg"))[:2]

@@ -20,7 +20,7 @@ from mcsplat.io.checkpoint import load_checkpoint, save_checkpoint
 from mcsplat.run_dir import render_file
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
 from mcsplat.train import train
-from test_train_e2e import DEMO, small_config
+from test_train_e2e import small_config
 
 HOLD_LOCK = """
 import sys, time
@@ -46,22 +46,8 @@ class LockHolder:
         self.process.wait()
 
 
-@pytest.fixture(scope="module")
-def mini_demo(tmp_path_factory) -> Path:
-    """The demo scene cut to 12 training and 3 test views: the runs here end (evaluation, report) in a second."""
-    root = tmp_path_factory.mktemp("mini") / "lego"
-    for split, count in (("train", 12), ("test", 3)):
-        meta = json.loads((DEMO / f"transforms_{split}.json").read_text())
-        meta["frames"] = meta["frames"][:count]
-        (root / split).mkdir(parents=True)
-        for frame in meta["frames"]:
-            name = Path(frame["file_path"]).name + ".png"
-            shutil.copyfile(DEMO / split / name, root / split / name)
-        (root / f"transforms_{split}.json").write_text(json.dumps(meta))
-    return root
-
-
 def mini_config(scene: Path, out: Path, **overrides):
+    """small_config (test_train_e2e.py) on the mini demo scene (conftest.py)."""
     return small_config(out, data=scene, **overrides)
 
 
@@ -84,6 +70,7 @@ def test_a_second_writer_of_a_run_folder_gets_a_one_line_error(tmp_path, run_cop
     train(mini_config(mini_demo, run, steps=5))
     assert (run / "checkpoint.pt").is_file() and not (run / ".lock").exists()
 
+    (run_copy / "point_cloud.spz").unlink(missing_ok=True)  # another test may have exported one into tiny_run
     holder = LockHolder(run_copy)
     try:
         for command in (["eval", str(run_copy)], ["export", str(run_copy), "--format", "spz"],
@@ -230,3 +217,32 @@ def test_a_cap_below_the_initial_points_is_kept_from_the_start(tmp_path, mini_de
                     subscribers=[lambda event: notes.append(getattr(event, "init_note", None))])
     assert metrics["num_gaussians"] == 500
     assert "random (3,000 points, 500 of them kept at random to stay within --cap-max)" in notes
+
+
+def test_a_hand_edited_config_is_refused_on_resume_in_one_line(tmp_path, mini_demo, capsys):
+    run = tmp_path / "run"
+    train(mini_config(mini_demo, run, steps=10))
+    written = json.loads((run / "config.json").read_text())
+    edits = [({"steps": "300"}, 'config.json: steps is "300", not a whole number'),
+             ({"mcmc": {**written["mcmc"], "cap_max": "many"}}, 'config.json: mcmc.cap_max is "many"'),
+             ({"optim": {**written["optim"], "betas": [0.9]}}, "config.json: optim.betas is [0.9], not a list of 2 values"),
+             ({"mcmc": {**written["mcmc"], "cap_max": -5}}, "config.json: mcmc.cap_max must be a whole number"),
+             ({"strategy": "adc"}, 'config.json: strategy is "adc", but checkpoint.pt was trained with "mcmc"'),
+             ({"model": {**written["model"], "sh_degree": 1}}, "config.json: model.sh_degree is 1, but checkpoint.pt")]
+    for edit, expected in edits:
+        (run / "config.json").write_text(json.dumps({**written, **edit}))
+        capsys.readouterr()
+        assert main(["train", str(mini_demo), "--out", str(run), "--resume", "--quiet"]) == 2, edit
+        error = capsys.readouterr().err
+        assert error.startswith("mcsplat: error:") and expected in error and error.count("\n") == 1, error
+
+
+def test_a_scene_folder_is_never_a_run_folder(tmp_path, mini_demo):
+    scene = Path(shutil.copytree(mini_demo, tmp_path / "scene"))
+    other = Path(shutil.copytree(mini_demo, tmp_path / "other"))
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    for out, expected in ((scene, "is inside the scene folder"), (scene / "runs" / "a", "is inside the scene folder"),
+                          (other, "holds a blender scene")):
+        with pytest.raises(MCSplatError, match=expected):
+            train(mini_config(scene, out, steps=5))
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before, "nothing written into a scene"

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 import torch
 
+from mcsplat.cli import main
 from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.errors import MCSplatError
 from mcsplat.events import Control
@@ -269,3 +270,17 @@ def test_a_bad_port_or_host_is_one_line_not_a_hang(tiny_run, tmp_path):
     for error, (_, expected) in zip(errors, cases):
         assert error.startswith(f"mcsplat: error: {expected}"), error
     assert not (tmp_path / "run").exists()
+
+
+def test_a_ply_without_gaussians_is_one_line(tmp_path, capsys):
+    pytest.importorskip("viser")
+    from plyfile import PlyData, PlyElement
+
+    names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1",
+             "rot_2", "rot_3"]
+    empty = np.empty(0, dtype=[(name, "f4") for name in names])
+    PlyData([PlyElement.describe(empty, "vertex")]).write(str(tmp_path / "empty.ply"))
+    assert main(["view", str(tmp_path / "empty.ply"), "--port", str(free_port())]) == 2
+    error = capsys.readouterr().err
+    assert error == f"mcsplat: error: {tmp_path / 'empty.ply'}: holds no Gaussians (0 vertices), so there is nothing " \
+        "to show\n"

@@ -10,6 +10,7 @@ from typing import Annotated, Any, Literal
 
 import tyro
 
+from .config_types import describe, fits, option_types
 from .errors import MCSplatError
 from .optim import OptimConfig
 from .strategy.adc import ADCConfig
@@ -146,22 +147,31 @@ def to_jsonable(config: Any) -> Any:
 
 
 def from_jsonable(data: dict) -> TrainConfig:
-    """Rebuild a TrainConfig from config.json (unknown keys are an error: the file belongs to another version)."""
-    def build(cls, values):
+    """Rebuild a TrainConfig from config.json (unknown keys are an error: the file belongs to another version; so is
+    a value of the wrong type or out of range: the file was edited by hand)."""
+    def build(cls, values, prefix=""):
         kwargs = {}
-        hints = {f.name: f for f in dataclasses.fields(cls)}
+        hints = option_types(cls)
+        if not isinstance(values, dict):
+            raise MCSplatError(f"config.json: {prefix.rstrip('.') or 'the file'} must be an object {{...}}")
         for key, value in values.items():
             if key not in hints:
                 raise MCSplatError(f"config.json: unknown option {key!r} (written by another mcsplat version?)")
             nested = {"model": ModelConfig, "optim": OptimConfig, "mcmc": MCMCConfig, "adc": ADCConfig}
             if cls is TrainConfig and key in nested:
-                value = build(nested[key], value)
+                value = build(nested[key], value, f"{key}.")
+            elif not fits(value, hints[key]):
+                raise MCSplatError(f"config.json: {prefix}{key} is {json.dumps(value)}, not {describe(hints[key])}; "
+                                   f"put back the value mcsplat wrote there")
             elif key in ("data", "out") and value is not None:
                 value = Path(value)
             elif isinstance(value, list):
                 value = tuple(value)
             kwargs[key] = value
-        return cls(**kwargs)
+        try:
+            return cls(**kwargs)
+        except (ValueError, TypeError) as error:  # MCSplatError (TrainConfig's own checks) passes through
+            raise MCSplatError(f"config.json: {prefix}{error}; put back the value mcsplat wrote there") from None
     return build(TrainConfig, data)
 
 

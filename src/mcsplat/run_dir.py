@@ -27,12 +27,13 @@ from typing import Any
 
 import torch
 
-from .config import PROCESS_OPTIONS, TrainConfig, load_config, save_config
-from .data import Scene, load_scene
-from .errors import MCSplatError
+from .config import PROCESS_OPTIONS, TrainConfig, load_config, save_config, to_jsonable
+from .data import Scene, detect_kind, load_scene
+from .errors import DataError, MCSplatError
 from .gaussians import DEAD_OPACITY, GaussianModel
 from .io.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
 from .io.checkpoint import DamagedCheckpoint, load_checkpoint, save_checkpoint
+from .io.disk import writing_into
 from .io.lock import FolderLock
 from .io.ply import write_ply
 from .schedule import final_sh_degree
@@ -48,6 +49,8 @@ REPORT = "report.html"
 PLOTS = "plots"
 LOCK = ".lock"
 MARKERS = (CONFIG, CHECKPOINT, METRICS, SPLATS)  # any of them: the folder holds a run
+# What --resume may change: the process options, and where the scene and the run folder now are.
+RESUME_MAY_CHANGE = frozenset(PROCESS_OPTIONS) | {"data", "out", "resume", "overwrite"}
 
 Background = tuple[float, float, float]
 
@@ -123,6 +126,18 @@ class RunDir:
                 advice = "there is no older checkpoint to go back to; start again with --overwrite"
             raise MCSplatError(f"{error}; {advice}") from None
 
+    def read_checkpoint_of(self, config: TrainConfig) -> dict[str, Any]:
+        """The checkpoint that `config` (config.json) resumes from; refused when config.json no longer says what the
+        checkpoint was trained with (edited by hand: another strategy, another SH degree...)."""
+        state = self.read_checkpoint()
+        trained, now = _flat(state.get("config") or {}), _flat(to_jsonable(config))
+        for key in sorted(trained.keys() & now.keys()):
+            if key.split(".")[0] not in RESUME_MAY_CHANGE and trained[key] != now[key]:
+                raise MCSplatError(f"{self.config_file}: {key} is {json.dumps(now[key])}, but {CHECKPOINT} was trained "
+                                   f"with {json.dumps(trained[key])}; put that value back, or start a new run with "
+                                   f"--overwrite")
+        return state
+
     def read_metrics(self) -> dict[str, Any]:
         """metrics.json, or {} before the run has finished once."""
         if not self.metrics_file.is_file():
@@ -179,6 +194,17 @@ class RunDir:
         return write_ply(self.splats_file, dict(model.params.items()), keep=alive(model))
 
 
+def _flat(options: dict, prefix: str = "") -> dict[str, Any]:
+    """{"mcmc": {"cap_max": 5}} -> {"mcmc.cap_max": 5}."""
+    flat = {}
+    for key, value in options.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
 def _logged_step(line: str) -> float:
     """The step of a log record; infinity for a line that is not one (so that cutting the log drops it)."""
     try:
@@ -227,10 +253,13 @@ def prepare(config: TrainConfig, lock: FolderLock) -> TrainConfig:
     if config.resume:
         if not run.checkpoint_file.is_file():
             raise MCSplatError(f"--resume: {run.path} has no {CHECKPOINT} to continue from")
-    elif run.holds_run() and not config.overwrite:
-        raise MCSplatError(f"{run.path} already holds a run; pass --resume to continue it, --overwrite to replace "
-                           f"its files, or --out to choose another directory")
-    run.path.mkdir(parents=True, exist_ok=True)
+    else:
+        refuse_scene_folder(run.path, Path(config.data))
+        if run.holds_run() and not config.overwrite:
+            raise MCSplatError(f"{run.path} already holds a run; pass --resume to continue it, --overwrite to "
+                               f"replace its files, or --out to choose another directory")
+    with writing_into(run.path.parent):
+        run.path.mkdir(parents=True, exist_ok=True)
     lock.acquire()
     if config.resume:
         # A run killed while writing its checkpoint leaves the half-written temporary beside it.
@@ -243,6 +272,21 @@ def prepare(config: TrainConfig, lock: FolderLock) -> TrainConfig:
         setattr(saved, key, getattr(config, key))
     saved.out, saved.resume = run.path, True  # where the run is now (the folder may have been moved)
     return saved
+
+
+def refuse_scene_folder(out: Path, data: Path) -> None:
+    """A run folder is never a scene folder, nor inside the scene it trains on: mcsplat writes nothing there."""
+    out, data = out.resolve(), data.resolve()
+    if out == data or out.is_relative_to(data):
+        raise MCSplatError(f"--out {out} is inside the scene folder {data}, which mcsplat never writes into; give "
+                           f"a run folder elsewhere (the default is runs/{data.name} in the current folder)")
+    if out.is_dir():
+        try:
+            kind = detect_kind(out)
+        except DataError:
+            return
+        raise MCSplatError(f"--out {out} holds a {kind} scene, which mcsplat never writes into; give another run "
+                           f"folder")
 
 
 def check_resumable(config: TrainConfig, world_size: int) -> None:

@@ -13,6 +13,7 @@ from typing import Callable
 from tqdm import tqdm
 
 from .events import CheckpointWritten, EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
+from .io.disk import writing_into
 from .metrics import LPIPS_HINT
 from .run_dir import RunDir
 from .visibility import describe
@@ -115,7 +116,7 @@ class LogWriter(Subscriber):
             record.update(test_psnr=round(self.evaluation.psnr, 3), test_ssim=round(self.evaluation.ssim, 4))
             self.evaluation = None
         if record is not None:
-            with open(self.path, "a") as f:
+            with writing_into(self.path.parent), open(self.path, "a") as f:
                 f.write(json.dumps(record) + "\n")
 
 

@@ -178,7 +178,7 @@ class TrainingRun:
         self.scene: Scene = run_dir.scene_of(config)
         team.check_same_setup(_scene_summary(self.scene))
         self.background = run_dir.background_of(config, self.scene)
-        checkpoint = team.on_main(self.folder.read_checkpoint) if config.resume else None
+        checkpoint = team.on_main(lambda: self.folder.read_checkpoint_of(config)) if config.resume else None
         self.state, self.init_note = start(config, self.scene, self.device, team, checkpoint)
         if team.is_main:
             self.folder.begin(config, self.state.step)

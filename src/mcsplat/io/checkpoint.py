@@ -27,8 +27,10 @@ class DamagedCheckpoint(MCSplatError):
 
 def save_checkpoint(path: str | os.PathLike, state: dict[str, Any]) -> None:
     """Save `state` (tensors, numbers, strings, lists and dicts of them) so that a kill never corrupts `path`."""
-    payload = {"version": CHECKPOINT_VERSION, **state, "checksum": payload_checksum(state)}
-    atomic_write(path, lambda tmp: torch.save(payload, tmp))
+    digest = hashlib.blake2b(digest_size=16)
+    size = _feed(digest, state)
+    payload = {"version": CHECKPOINT_VERSION, **state, "checksum": digest.hexdigest()}
+    atomic_write(path, lambda tmp: torch.save(payload, tmp), size_hint=size)
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
@@ -55,19 +57,18 @@ def payload_checksum(value: Any) -> str:
     return digest.hexdigest()
 
 
-def _feed(digest, value: Any) -> None:
+def _feed(digest, value: Any) -> int:
+    """Hash `value` into `digest`; returns the bytes of its tensors (about the size of the file torch writes)."""
     if isinstance(value, torch.Tensor):
         data = value.detach().cpu().contiguous().reshape(-1)
         digest.update(f"tensor {data.dtype} {tuple(value.shape)};".encode())
         digest.update(memoryview(data.view(torch.uint8).numpy()))
-    elif isinstance(value, dict):
+        return data.numel() * data.element_size()
+    if isinstance(value, dict):
         digest.update(f"dict {len(value)};".encode())
-        for key, item in value.items():
-            _feed(digest, key)
-            _feed(digest, item)
-    elif isinstance(value, (list, tuple)):  # a tuple may come back as a list: the same value to the hash
+        return sum(_feed(digest, key) + _feed(digest, item) for key, item in value.items())
+    if isinstance(value, (list, tuple)):  # a tuple may come back as a list: the same value to the hash
         digest.update(f"list {len(value)};".encode())
-        for item in value:
-            _feed(digest, item)
-    else:
-        digest.update(f"{type(value).__name__} {value!r};".encode())
+        return sum(_feed(digest, item) for item in value)
+    digest.update(f"{type(value).__name__} {value!r};".encode())
+    return 0

@@ -38,12 +38,13 @@ def size_text(count: float) -> str:
     return ""
 
 
-def no_space(folder: str | os.PathLike, needed: str, freed: int = 0) -> MCSplatError:
-    """`needed`: what the write needed, in words ("about 1.2 GB"); `freed`: bytes that the failed command is about
-    to free (its partial work), counted as free."""
+def no_space(folder: str | os.PathLike, needed: str = "", freed: int = 0) -> MCSplatError:
+    """`needed`: what the write needed, in words ("about 1.2 GB"; empty when unknown); `freed`: bytes that the
+    failed command is about to free (its partial work), counted as free."""
     free = free_bytes(folder)
-    left = f", {size_text(free + freed)} free" if free is not None else ""
-    return MCSplatError(f"no space left on the device of {folder}: {needed} needed{left}; free some space (or "
+    amounts = ([f"{needed} needed"] if needed else []) + ([f"{size_text(free + freed)} free"] if free is not None
+                                                         else [])
+    return MCSplatError(f"no space left on the device of {folder} ({', '.join(amounts)}); free some space (or "
                         f"write elsewhere) and run again")
 
 
@@ -62,7 +63,7 @@ def refused_write(error: BaseException, folder: str | os.PathLike, needed: int |
     if code in (errno.EACCES, errno.EPERM):
         return MCSplatError(f"cannot write to {folder}: permission denied; write elsewhere or change its "
                             f"permissions")
-    amount = f"about {size_text(needed)}" if needed else f"more than {size_text(written)}"
+    amount = f"about {size_text(needed)}" if needed else f"more than {size_text(written)}" if written else ""
     if code in NO_SPACE:
         return no_space(folder, amount)
     if isinstance(error, OSError) or not isinstance(error, Exception):

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from ..errors import MCSplatError
+from .disk import writing_into
 
 try:
     import fcntl
@@ -46,17 +47,21 @@ class FolderLock:
     def acquire(self) -> FolderLock:
         if self._fd is not None:
             return self
-        for _ in range(10):  # a release between our open and our flock removes the file: open it again
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
-            try:
-                if self._lock(fd) and self._still_the_file(fd):
-                    self._write_owner(fd)
-                    self._fd = fd
-                    return self
-            except BaseException:
+        with writing_into(self.path.parent):
+            for _ in range(10):  # a release between our open and our flock removes the file: open it again
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+                try:
+                    if self._lock(fd) and self._still_the_file(fd):
+                        self._fd = fd
+                        self._write_owner(fd)
+                        return self
+                except BaseException:
+                    if self._fd is not None:  # ours, but its owner could not be written (a full disk)
+                        self.release()
+                    else:
+                        os.close(fd)
+                    raise
                 os.close(fd)
-                raise
-            os.close(fd)
         raise FolderBusy(f"{self.path.parent}: could not take its lock {self.path.name}; run again")
 
     def release(self) -> None:

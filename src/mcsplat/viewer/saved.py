@@ -30,6 +30,8 @@ def load_for_viewing(path: Path, device: torch.device):
     if path.suffix.lower() != ".ply":
         raise MCSplatError(f"{path}: give a run directory or a 3DGS .ply file")
     model = GaussianModel(**read_ply(path)).to(device)
+    if model.num_gaussians == 0:
+        raise MCSplatError(f"{path}: holds no Gaussians (0 vertices), so there is nothing to show")
     return model, [], (0.0, 0.0, 0.0), _radius_of(model)
 
 
