@@ -70,12 +70,12 @@ def test_a_full_disk_ends_each_command_in_one_line_and_loses_nothing(disk, mini_
     """3 MB: room for the first checkpoint (2.2 MB) and not for the second; then the disk is filled."""
     train = ["train", str(mini_demo), "--out", f"{disk}/run", "--steps", "30", "--save-every", "10", "--quiet",
              "--model.num-init-points", "3000", "--lpips-net", "alex", "--save-every-minutes", "0"]
+    cup = photos(shared_data / "colmap_cup" / "images", tmp_path / "photos")
     results = run_commands(disk, "size=3m", [
         ["train", train],
         ["fill", []], ["export", ["export", str(tiny_run), "--out", f"{disk}/x.ply"]],
         ["fill", []], ["eval", ["eval", f"{disk}/run", "--save-renders"]],
-        ["fill", []], ["process", ["process", str(photos(shared_data / "colmap_cup" / "images", tmp_path / "photos")), "--out",
-                     f"{disk}/scene", "--threads", "1"]]])
+        ["fill", []], ["process", ["process", str(cup), "--out", f"{disk}/scene", "--threads", "1"]]])
     assert_one_line_error(results["train"], f"no space left on the device of {disk}/run (about 2.")
     assert results["checkpoint step"] == 10, "the first checkpoint is kept whole"
     for name in ("export", "eval", "process"):

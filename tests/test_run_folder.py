@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Callable
 
 import pytest
 
@@ -132,15 +133,30 @@ def sigterm_reaches_no_default():
     signal.signal(signal.SIGTERM, previous)
 
 
-def test_sigterm_saves_a_checkpoint_then_stops(tmp_path, mini_demo, monkeypatch, sigterm_reaches_no_default):
+def before_each_step(monkeypatch, action: Callable[[int], None]) -> None:
+    """Call action(step) in every training step, before MCMC's refinement (to crash, send a signal, move a clock)."""
     original = MCMCStrategy.step_post_optimizer
 
-    def terminated(self, step, *args, **kwargs):
-        if step == 37:
-            signal.raise_signal(signal.SIGTERM)
+    def patched(self, step, *args, **kwargs):
+        action(step)
         return original(self, step, *args, **kwargs)
 
-    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", terminated)
+    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", patched)
+
+
+def crash_at(step_to_fail: int) -> Callable[[int], None]:
+    def crash(step: int) -> None:
+        if step == step_to_fail:
+            raise RuntimeError("simulated crash")
+    return crash
+
+
+def test_sigterm_saves_a_checkpoint_then_stops(tmp_path, mini_demo, monkeypatch, sigterm_reaches_no_default):
+    def terminate(step: int) -> None:
+        if step == 37:
+            signal.raise_signal(signal.SIGTERM)
+
+    before_each_step(monkeypatch, terminate)
     with pytest.raises(MCSplatError, match="stopped at step 38.*--resume"):
         train(mini_config(mini_demo, tmp_path / "run", steps=200))
     assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == 38
@@ -148,17 +164,14 @@ def test_sigterm_saves_a_checkpoint_then_stops(tmp_path, mini_demo, monkeypatch,
 
 
 def test_checkpoints_are_also_written_by_time(tmp_path, mini_demo, monkeypatch):
-    original = MCMCStrategy.step_post_optimizer
     clock = {"now": 0.0}
     monkeypatch.setattr(subscribers, "time", SimpleNamespace(monotonic=lambda: clock["now"]))
 
-    def slow_steps(self, step, *args, **kwargs):
+    def slow_step(step: int) -> None:
         clock["now"] += 7.0  # seconds per step
-        if step == 45:
-            raise RuntimeError("simulated crash")
-        return original(self, step, *args, **kwargs)
+        crash_at(45)(step)
 
-    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", slow_steps)
+    before_each_step(monkeypatch, slow_step)
     with pytest.raises(RuntimeError, match="simulated crash"):
         train(mini_config(mini_demo, tmp_path / "run", steps=200, save_every=0, save_every_minutes=2.0))
     # 2 minutes are 18 steps of 7 s: a checkpoint at step 18 and at step 36.
@@ -182,21 +195,14 @@ def test_the_log_matches_the_run_after_overwrite_and_after_a_resume(tmp_path, mi
 
     # Killed at step 50, after the evaluation of step 40 was logged but with the checkpoint of step 30: the resumed
     # run logs step 40 again, once.
-    original = MCMCStrategy.step_post_optimizer
-
-    def crash(self, step, *args, **kwargs):
-        if step == 50:
-            raise RuntimeError("simulated crash")
-        return original(self, step, *args, **kwargs)
-
-    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", crash)
+    before_each_step(monkeypatch, crash_at(50))
     config = dict(steps=60, eval_every=40, save_every=30)
     with pytest.raises(RuntimeError, match="simulated crash"):
         train(mini_config(mini_demo, tmp_path / "killed", **config))
     assert logged_steps(tmp_path / "killed") == [40]
     with (tmp_path / "killed" / "log.jsonl").open("a") as log:
         log.write('{"step": 41, "loss"')  # a record cut short by the kill
-    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", original)
+    monkeypatch.undo()
     train(mini_config(mini_demo, tmp_path / "killed", resume=True, **config))
     assert logged_steps(tmp_path / "killed") == [40, 60]
 
@@ -225,7 +231,7 @@ def test_a_hand_edited_config_is_refused_on_resume_in_one_line(tmp_path, mini_de
     written = json.loads((run / "config.json").read_text())
     edits = [({"steps": "300"}, 'config.json: steps is "300", not a whole number'),
              ({"mcmc": {**written["mcmc"], "cap_max": "many"}}, 'config.json: mcmc.cap_max is "many"'),
-             ({"optim": {**written["optim"], "betas": [0.9]}}, "config.json: optim.betas is [0.9], not a list of 2 values"),
+             ({"optim": {**written["optim"], "betas": [0.9]}}, "optim.betas is [0.9], not a list of 2 values"),
              ({"mcmc": {**written["mcmc"], "cap_max": -5}}, "config.json: mcmc.cap_max must be a whole number"),
              ({"strategy": "adc"}, 'config.json: strategy is "adc", but checkpoint.pt was trained with "mcmc"'),
              ({"model": {**written["model"], "sh_degree": 1}}, "config.json: model.sh_degree is 1, but checkpoint.pt")]

@@ -196,8 +196,9 @@ class Export:
         params = {k: v.detach().cpu().numpy() for k, v in model.params.items()}
         broken = [k for k, v in params.items() if not np.isfinite(v).all()]
         if broken:
-            raise MCSplatError(f"{folder.checkpoint_file}: NaN or infinite values in {', '.join(broken)}; nothing "
-                               f"exported (the run diverged: train it again, or resume from an earlier checkpoint)")
+            raise MCSplatError(f"{folder.checkpoint_file}: NaN or infinite values in {', '.join(broken)}, so nothing "
+                               f"is exported; the run diverged: train it again, or go back to "
+                               f"{folder.previous_checkpoint_file.name}")
         candidates = np.arange(model.num_gaussians)
         if self.prune:
             candidates = np.flatnonzero(self._seen(run).cpu().numpy())

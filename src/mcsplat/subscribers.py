@@ -130,7 +130,7 @@ class Checkpointer(Subscriber):
     def __init__(self, every: int, minutes: float = 0.0):
         self.every, self.minutes = every, minutes
         self.run = None
-        self.last_save = time.monotonic()
+        self.last_save = 0.0  # time.monotonic() of the last checkpoint (or of the start)
 
     def on_run_started(self, event: RunStarted) -> None:
         self.run = event.run

@@ -1,4 +1,4 @@
-"""The SfM worker (worker.py) as a child process of `process`: started, watched, stopped on any signal, and its
+"""The SfM worker (worker.py) as a child process of `process`: started, watched, stopped by a signal, and its
 failures turned into one line.
 
 A child, not a thread: Ctrl-C cannot interrupt the main thread inside a long pycolmap call, and cancelling pycolmap

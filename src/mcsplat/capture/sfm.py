@@ -67,7 +67,7 @@ def run_sfm(image_dir: Path, names: list[str], sizes: list[tuple[int, int]], wor
     start = time.perf_counter()
     with tqdm(total=len(names), desc="features", unit="image", disable=not progress, leave=False) as bar:
         # One camera per image size: one phone or one video, so its intrinsics are shared and well constrained.
-        # (pycolmap's single camera skips, without a word, every image of another size than the first.)
+        # (pycolmap's single camera skips every image of another size than the first, with a log line easily missed.)
         for group in by_size(names, sizes).values():
             reader.existing_camera_id = -1  # the group's first chunk makes its camera
             for first in range(0, len(group), EXTRACT_CHUNK):
