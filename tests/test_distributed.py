@@ -164,16 +164,16 @@ def is_loopback(proc_address: str) -> bool:
     return host in ("00000000000000000000000001000000", "0000000000000000FFFF00000100007F")
 
 
-def test_sigterm_stops_every_process_with_a_checkpoint_and_the_torchrun_command(tmp_path):
+def test_sigterm_stops_every_process_with_a_checkpoint_and_the_torchrun_command(tmp_path, mini_demo):
     """torchrun passes SIGTERM on to its processes (kill, timeout, SLURM, Kubernetes); here rank 0 alone gets it."""
-    outcomes = launch(tmp_path / "comm", [demo_config(tmp_path / "run", steps=400, save_every=0)] * 2,
-                      crash={"rank": 0, "step": 30, "how": "sigterm"})
+    config = demo_config(tmp_path / "run", data=mini_demo, steps=400, save_every=0)
+    outcomes = launch(tmp_path / "comm", [config] * 2, crash={"rank": 0, "step": 10, "how": "sigterm"})
     for outcome in outcomes:
         assert "stopped at step" in outcome.get("error", ""), outcomes
-        assert f"`torchrun --nproc-per-node 2 -m mcsplat train {DEMO} --out {tmp_path / 'run'} --resume`" in \
+        assert f"`torchrun --nproc-per-node 2 -m mcsplat train {mini_demo} --out {tmp_path / 'run'} --resume`" in \
             outcome["error"], outcome
     stopped = int(outcomes[0]["error"].split("stopped at step ")[1].split(";")[0])
-    assert 31 <= stopped <= 33 and load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == stopped
+    assert 11 <= stopped <= 13 and load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == stopped
 
 
 def test_the_readme_says_how_to_keep_the_rendezvous_off_the_network():
