@@ -10,6 +10,7 @@ from typing import Annotated, Any, Literal
 
 import tyro
 
+from .config_types import describe, fits, option_types
 from .errors import MCSplatError
 from .optim import OptimConfig
 from .strategy.adc import ADCConfig
@@ -17,7 +18,8 @@ from .strategy.mcmc import MCMCConfig
 
 # Options that only affect how this process runs: on --resume they come from the command line, the rest from
 # the run's saved configuration (steps included: the learning-rate schedule depends on it).
-PROCESS_OPTIONS = ("eval_every", "save_every", "quiet", "threads", "device", "viewer", "port", "host", "dist_timeout")
+PROCESS_OPTIONS = ("eval_every", "save_every", "save_every_minutes", "quiet", "threads", "device", "viewer", "port",
+                   "host", "viewer_origin", "dist_timeout")
 
 
 @dataclass
@@ -81,7 +83,9 @@ class TrainConfig:
     eval_every: int = 0
     """Evaluate on the test views every N steps (0: only at the end)."""
     save_every: int = 5000
-    """Write a checkpoint every N steps (and on Ctrl-C)."""
+    """Write a checkpoint every N steps (and on Ctrl-C or SIGTERM)."""
+    save_every_minutes: float = 10.0
+    """Also write one when this many minutes have passed since the last (0: off)."""
     resume: bool = False
     """Continue from the run directory's checkpoint."""
     overwrite: bool = False
@@ -102,6 +106,9 @@ class TrainConfig:
     """Port of the live viewer."""
     host: str = "127.0.0.1"
     """Address the live viewer listens on; 0.0.0.0 exposes it to the network."""
+    viewer_origin: tuple[str, ...] = ()
+    """Web pages (host names or origins such as http://myhost:8080) allowed to connect to the viewer besides its own
+    page: where it is reached under a name, or through a proxy."""
     dist_timeout: float = 600.0
     """Under torchrun: seconds a process waits for the others before it stops with an error (a process died or
     hangs)."""
@@ -122,6 +129,7 @@ class TrainConfig:
                   (self.downscale >= 1, "--downscale must be at least 1"),
                   (self.eval_every >= 0, "--eval-every must be 0 (off) or positive"),
                   (self.save_every >= 0, "--save-every must be 0 (off) or positive"),
+                  (self.save_every_minutes >= 0, "--save-every-minutes must be 0 (off) or positive"),
                   (self.cap_max in (None, "auto") or self.cap_max >= 1, "--cap-max must be at least 1 or auto"),
                   (self.cap_max != "auto" or self.strategy == "mcmc",
                    "--cap-max auto is for the MCMC strategy (ADC's growth has its own rule); give ADC a number"),
@@ -185,22 +193,31 @@ def to_jsonable(config: Any) -> Any:
 
 
 def from_jsonable(data: dict) -> TrainConfig:
-    """Rebuild a TrainConfig from config.json (unknown keys are an error: the file belongs to another version)."""
-    def build(cls, values):
+    """Rebuild a TrainConfig from config.json (unknown keys are an error: the file belongs to another version; so is
+    a value of the wrong type or out of range: the file was edited by hand)."""
+    def build(cls, values, prefix=""):
         kwargs = {}
-        hints = {f.name: f for f in dataclasses.fields(cls)}
+        hints = option_types(cls)
+        if not isinstance(values, dict):
+            raise MCSplatError(f"config.json: {prefix.rstrip('.') or 'the file'} must be an object {{...}}")
         for key, value in values.items():
             if key not in hints:
                 raise MCSplatError(f"config.json: unknown option {key!r} (written by another mcsplat version?)")
             nested = {"model": ModelConfig, "optim": OptimConfig, "mcmc": MCMCConfig, "adc": ADCConfig}
             if cls is TrainConfig and key in nested:
-                value = build(nested[key], value)
+                value = build(nested[key], value, f"{key}.")
+            elif not fits(value, hints[key]):
+                raise MCSplatError(f"config.json: {prefix}{key} is {json.dumps(value)}, not {describe(hints[key])}; "
+                                   f"put back the value mcsplat wrote there")
             elif key in ("data", "out") and value is not None:
                 value = Path(value)
             elif isinstance(value, list):
                 value = tuple(value)
             kwargs[key] = value
-        return cls(**kwargs)
+        try:
+            return cls(**kwargs)
+        except (ValueError, TypeError) as error:  # MCSplatError (TrainConfig's own checks) passes through
+            raise MCSplatError(f"config.json: {prefix}{error}; put back the value mcsplat wrote there") from None
     return build(TrainConfig, data)
 
 

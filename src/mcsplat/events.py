@@ -142,6 +142,7 @@ class Control:
     lock: threading.RLock = field(default_factory=threading.RLock)
     _running: threading.Event = field(default_factory=threading.Event)
     _stop: threading.Event = field(default_factory=threading.Event)
+    _checkpoint: threading.Event = field(default_factory=threading.Event)
 
     def __post_init__(self) -> None:
         self._running.set()
@@ -156,6 +157,18 @@ class Control:
         """Ask the loop to stop after the current step (it saves a checkpoint and says how to resume)."""
         self._stop.set()
         self._running.set()
+
+    def request_checkpoint(self) -> None:
+        """Ask the loop to write a checkpoint after a coming step (with several processes: the step after the
+        request reaches the others with the gradients)."""
+        self._checkpoint.set()
+
+    def checkpoint_done(self) -> None:
+        self._checkpoint.clear()
+
+    @property
+    def checkpoint_requested(self) -> bool:
+        return self._checkpoint.is_set()
 
     @property
     def paused(self) -> bool:

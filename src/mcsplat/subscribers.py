@@ -6,12 +6,14 @@ Each is small and knows only the events it listens to; train.train() subscribes 
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Callable
 
 from tqdm import tqdm
 
-from .events import EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
+from .events import CheckpointWritten, EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
+from .io.disk import writing_into
 from .metrics import LPIPS_HINT
 from .run_dir import RunDir
 from .visibility import describe
@@ -122,20 +124,33 @@ class LogWriter(Subscriber):
             record.update(test_psnr=round(self.evaluation.psnr, 3), test_ssim=round(self.evaluation.ssim, 4))
             self.evaluation = None
         if record is not None:
-            with open(self.path, "a") as f:
+            with writing_into(self.path.parent), open(self.path, "a") as f:
                 f.write(json.dumps(record) + "\n")
 
 
 class Checkpointer(Subscriber):
-    """Saves the run's checkpoint every `every` steps (0 = only at the end and on stop, which the run does itself)."""
+    """Saves the run's checkpoint every `every` steps, and asks for one when `minutes` have passed since the last
+    (0 = never; the run saves at the end and on stop itself).
 
-    def __init__(self, every: int):
-        self.every = every
+    Steps are the same on every process, so each saves at once; time is not, so a save by time is asked for through
+    the run's Control and agreed between the processes with the next step (trainer.TrainingRun)."""
+
+    def __init__(self, every: int, minutes: float = 0.0):
+        self.every, self.minutes = every, minutes
         self.run = None
+        self.last_save = 0.0  # time.monotonic() of the last checkpoint (or of the start)
 
     def on_run_started(self, event: RunStarted) -> None:
         self.run = event.run
+        self.last_save = time.monotonic()
+
+    def on_checkpoint_written(self, event: CheckpointWritten) -> None:
+        self.last_save = time.monotonic()
 
     def on_step_done(self, event: StepDone) -> None:
-        if self.every and event.step % self.every == 0 and event.step < event.total_steps:
+        if event.step >= event.total_steps:
+            return
+        if self.every and event.step % self.every == 0:
             self.run.save_checkpoint()
+        elif self.minutes and time.monotonic() - self.last_save >= 60.0 * self.minutes:
+            self.run.control.request_checkpoint()

@@ -28,12 +28,13 @@ from .compute.compile import compile_kernels, modules_to_compile
 from .compute.device import resolve_device
 from .config import PROCESS_OPTIONS, TrainConfig, to_jsonable
 from .data import Scene, View
-from .distributed import SingleProcess, Team, scaled_for_processes, threads_per_process
+from .distributed import SingleProcess, Team, command_for, scaled_for_processes, threads_per_process
 from .errors import MCSplatError
 from .evaluation import Evaluation, evaluate, seen_in_views
 from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Listener, RefineDone, RunFinished,
                      RunStarted, StepDone)
 from .gaussians import PARAM_KEYS, GaussianModel
+from .io.lock import FolderLock
 from .losses import photometric_loss
 from .metrics import psnr
 from .optim import make_optimizers, means_lr_at, set_means_lr
@@ -120,11 +121,14 @@ def step_kernels(device: torch.device) -> list:
 
 
 class _CtrlC:
-    """Ctrl-C asks the run to stop at the end of the current step (a second Ctrl-C stops at once)."""
+    """Ctrl-C, and SIGTERM (what `kill`, `timeout`, docker, SLURM and Kubernetes send), ask the run to stop at the
+    end of the current step, which saves a checkpoint (a second signal stops at once)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self, control: Control) -> None:
         self.control = control
-        self._previous = None
+        self._previous: dict = {}
 
     def __enter__(self):
         def handler(signum, frame):
@@ -132,14 +136,17 @@ class _CtrlC:
                 raise KeyboardInterrupt
             self.control.stop()
         try:
-            self._previous = signal.signal(signal.SIGINT, handler)
-        except ValueError:  # not the main thread: leave Ctrl-C alone
-            self._previous = None
+            for number in self.SIGNALS:
+                self._previous[number] = signal.signal(number, handler)
+        except ValueError:  # not the main thread: leave the signals alone
+            pass
         return self
 
     def __exit__(self, *exc) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
+        for number, previous in self._previous.items():
+            if previous is not None:  # None: a handler set outside Python, which cannot be put back
+                signal.signal(number, previous)
+        self._previous = {}
 
 
 class TrainingRun:
@@ -149,11 +156,13 @@ class TrainingRun:
     With several processes (`team`, see mcsplat.distributed) every process runs this same loop on its own views;
     rank 0 alone reads and writes the run directory and has subscribers."""
 
-    def __init__(self, config: TrainConfig, control: Control | None = None, team: Team | None = None):
+    def __init__(self, config: TrainConfig, control: Control | None = None, team: Team | None = None,
+                 lock: FolderLock | None = None):
         self.team = team = team or SingleProcess()
         team.check_same_setup(_setup_of(config))
         local = config
-        config = team.on_main(lambda: run_dir.prepare(local))
+        self.lock = lock or run_dir.train_lock(config)  # rank 0 takes it in prepare; run() releases it
+        config = team.on_main(lambda: run_dir.prepare(local, self.lock))
         # This process's own options. The data path is its own too (it may differ between machines; the scenes are
         # compared below), except that a resumed run in one process trains on the data it started with.
         for key in PROCESS_OPTIONS + (() if config.resume and team.is_main else ("data",)):
@@ -174,15 +183,17 @@ class TrainingRun:
         self.scene: Scene = run_dir.scene_of(config)
         team.check_same_setup(_scene_summary(self.scene))
         self.background = run_dir.background_of(config, self.scene)
-        checkpoint = team.on_main(self.folder.read_checkpoint) if config.resume else None
+        checkpoint = team.on_main(lambda: self.folder.read_checkpoint_of(config)) if config.resume else None
         self.state, self.init_note = start(config, self.scene, self.device, team, checkpoint,
                                            progress=not config.quiet and team.is_main)
         self.planner = self._budget_planner()
         if not config.resume:
             self._plan_growth()
-            if team.is_main:
-                self.folder.write_config(config)
-        self._stop_vote = False  # several processes: whether any of them asked to stop, agreed with the gradients
+        if team.is_main:
+            self.folder.begin(config, self.state.step)
+        # Several processes: whether any of them asked to stop / for a checkpoint, agreed with the gradients.
+        self._stop_vote = self._save_vote = False
+        self._saved_at = -1  # the step of the last checkpoint written
         self._emit: Listener = lambda event: None
 
     @property
@@ -194,9 +205,10 @@ class TrainingRun:
         return self.team.world_size
 
     def _plan_growth(self) -> None:
-        """MCMC grows fast enough to reach its cap (or the automatic cap's ceiling) by growth_share of the run
-        (under --budget the planner sets the rate as it plans the cap)."""
-        if self.config.strategy == "mcmc" and self.planner is None:
+        """With --cap-max, MCMC grows fast enough to reach that cap (or the automatic cap's ceiling) by growth_share
+        of the run; the default cap (the paper's 1M) is a ceiling, not a target. Under --budget the planner sets the
+        rate as it plans the cap."""
+        if self.config.strategy == "mcmc" and self.config.cap_max is not None and self.planner is None:
             self.config.mcmc.grow_rate = planned_growth_rate(self.config, self.state.model.num_gaussians,
                                                              self.state.strategy.ceiling)
 
@@ -219,8 +231,6 @@ class TrainingRun:
         self.planner.start(state.step, state.wall_seconds, state.model.num_gaussians)
         if self.config.strategy == "mcmc" and state.step == 0:
             prune_to_cap(state.model, state.optimizers, self.config.mcmc.cap_max)
-        if self.team.is_main:
-            self.folder.write_config(self.config)
 
     def _calibrate(self) -> None:
         """Time steps of throwaway copies of the model, small and large, at full size and at the starting size, so
@@ -245,10 +255,15 @@ class TrainingRun:
     def save_checkpoint(self) -> None:
         """Rank 0 writes the checkpoint; every process calls this at the same steps, for the strategy's state
         differs between them (ADC's statistics of each process's own views) and rank 0 keeps them all."""
+        self._saved_at = self.state.step
         strategies = self.team.gather_on_main(self.state.strategy.state_dict())
         if not self.team.is_main:
             return
+        if self.planner is not None:  # --budget: config.json keeps the plan the checkpoint continues
+            self.config.budget_plan = self.planner.record()
+            self.folder.write_config(self.config)
         self.folder.write_checkpoint(self.state.checkpoint(self.config, strategies))
+        self.control.checkpoint_done()
         self._emit(CheckpointWritten(step=self.state.step, path=self.folder.checkpoint_file))
 
     def run(self, subscribers: Sequence[Listener]) -> dict[str, Any]:
@@ -269,6 +284,7 @@ class TrainingRun:
         finally:
             self._emit = lambda event: None
             _close_all(subscribers)
+            self.lock.release()
 
     def _compile_kernels(self, emit: Listener) -> None:
         """Compile (first run on a machine) or load the kernels before the first step, saying so when it compiles."""
@@ -280,14 +296,22 @@ class TrainingRun:
 
     def _reduce(self, model: GaussianModel, values: list[float]) -> list[float]:
         """The step's reduce (train_step): the stop requests of all processes travel with the gradients."""
-        *averaged, stop = self.team.reduce_step(model, values + [float(self.control.stop_requested)])
-        self._stop_vote = stop > 0
+        control = self.control
+        *averaged, stop, save = self.team.reduce_step(
+            model, values + [float(control.stop_requested), float(control.checkpoint_requested)])
+        self._stop_vote, self._save_vote = stop > 0, save > 0
         return averaged
 
     def _stop_now(self) -> bool:
         # Alone, a stop asked for during this step's events counts at once; together, only what every process
         # agreed on in the step's all-reduce (or one would stop while the others wait for it).
         return self.control.stop_requested if self.team.world_size == 1 else self._stop_vote
+
+    def _save_now(self) -> bool:
+        """A checkpoint asked for through Control (by time, see subscribers.Checkpointer), agreed as a stop is."""
+        if self._saved_at == self.state.step:  # the periodic checkpoint of this very step was written already
+            return False
+        return self.control.checkpoint_requested if self.team.world_size == 1 else self._save_vote
 
     def _done(self) -> bool:
         if self.planner is not None:
@@ -329,7 +353,9 @@ class TrainingRun:
             if self._stop_now():
                 self.save_checkpoint()
                 raise MCSplatError(f"stopped at step {step:,}; the checkpoint is saved: continue with "
-                                   f"`mcsplat train {config.data} --out {self.run_dir} --resume`")
+                                   f"`{command_for(n)} train {config.data} --out {self.run_dir} --resume`")
+            if self._save_now():
+                self.save_checkpoint()
 
     def _follow_budget(self, step_seconds: float, count: int, scale: float) -> None:
         """--budget: measure the step, plan again when due (config.json keeps the plan)."""
@@ -337,7 +363,6 @@ class TrainingRun:
         planner.observe(step_seconds, count, scale)
         if planner.due(state.step, state.wall_seconds):
             planner.replan(state.step, state.wall_seconds, state.model.num_gaussians)
-            self.folder.write_config(self.config)
 
     def _evaluate(self, sh_degree: int, lpips_net: str | None = None, save_renders: bool = False,
                   progress: bool = False) -> Evaluation:
@@ -350,8 +375,6 @@ class TrainingRun:
         config, state, team = self.config, self.state, self.team
         if self.planner is not None:  # the run ends at the step it reached: what the last plan said, or fewer
             config.steps = state.step
-            config.budget_plan = self.planner.record()
-            self.folder.write_config(config)
         self.save_checkpoint()
         final_degree = final_sh_degree(config, state.step)
         evaluation = self._evaluate(final_degree, lpips_net=config.lpips_net, save_renders=config.save_renders,

@@ -108,7 +108,7 @@ def _triangulate(views: list[View], threads: int, progress: bool) -> Triangulate
         database = work / "database.db"
         gpu = uses_gpu(True)
         with _quiet_colmap():
-            extract_features(database, images, names, camera_model="PINHOLE", single_camera=False,
+            extract_features(database, images, [names], camera_model="PINHOLE", per_image=True,
                              max_size=SIFT_MAX_SIZE, threads=threads, gpu=gpu, progress=progress,
                              max_features=MAX_FEATURES)
             match_features(database, "exhaustive", overlap=0, threads=threads, gpu=gpu, progress=progress)

@@ -25,7 +25,30 @@ from .frustum import points_in_frustums
 
 def initial_model(config: TrainConfig, scene: Scene, device: torch.device, generator: torch.Generator,
                   progress: bool = False) -> tuple[GaussianModel, str]:
-    """(model, a note saying which initialisation was used and why)."""
+    """(model, a note saying which initialisation was used and why), within the run's cap: a random subset of
+    the points when there are more (gsplat issue 516: a run would otherwise train above its cap until its first
+    refine step)."""
+    model, note = _initial_model(config, scene, device, generator, progress)
+    return within_cap(model, note, cap_of(config), generator)
+
+
+def cap_of(config: TrainConfig) -> int | None:
+    """The most Gaussians the run may hold (MCMC's cap, ADC's optional budget)."""
+    return config.mcmc.cap_max if config.strategy == "mcmc" else config.adc.cap_max
+
+
+def within_cap(model: GaussianModel, note: str, cap: int | None, generator: torch.Generator
+               ) -> tuple[GaussianModel, str]:
+    """(the model, or a random `cap` of its Gaussians when it has more; the note, saying so)."""
+    n = model.num_gaussians
+    if cap is None or n <= cap:
+        return model, note
+    keep = torch.randperm(n, generator=generator, device=generator.device)[:cap].sort().values
+    return model.subset(keep), f"{note}; {cap:,} of the {n:,} kept at random to stay within --cap-max"
+
+
+def _initial_model(config: TrainConfig, scene: Scene, device: torch.device, generator: torch.Generator,
+                   progress: bool) -> tuple[GaussianModel, str]:
     m = config.model
     method = m.init
     if method == "auto":
@@ -56,8 +79,8 @@ def initial_model(config: TrainConfig, scene: Scene, device: torch.device, gener
     model = GaussianModel.random_init(scene.radius, blender=scene.object_centric, num_points=m.num_init_points,
                                       extent=m.init_extent, init_scale=m.init_scale, init_opacity=m.init_opacity,
                                       sh_degree=m.sh_degree, generator=generator, device=device)
-    why = " (a synthetic scene, as the official code)" if m.init == "auto" else ""
-    return model, f"random ({model.num_gaussians:,} points){why}"
+    why = ", a synthetic scene, as the official code" if m.init == "auto" else ""
+    return model, f"random ({model.num_gaussians:,} points{why})"
 
 
 def _from_points(config: TrainConfig, points: torch.Tensor, colors: torch.Tensor, device: torch.device

@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import warnings
 from pathlib import Path
+from typing import Sequence
 
 import torch
 
@@ -12,6 +13,7 @@ from .. import run_dir
 from ..errors import MCSplatError
 from ..gaussians import GaussianModel
 from ..io.ply import read_ply
+from .access import check_listen_address
 from .server import ViewerServer
 
 
@@ -28,6 +30,8 @@ def load_for_viewing(path: Path, device: torch.device):
     if path.suffix.lower() != ".ply":
         raise MCSplatError(f"{path}: give a run directory or a 3DGS .ply file")
     model = GaussianModel(**read_ply(path)).to(device)
+    if model.num_gaussians == 0:
+        raise MCSplatError(f"{path}: holds no Gaussians (0 vertices), so there is nothing to show")
     return model, [], (0.0, 0.0, 0.0), _radius_of(model)
 
 
@@ -52,13 +56,14 @@ def initial_pose_for(model, radius: float):
 
 
 def view_saved(path: Path, host: str, port: int, device: torch.device, stop: threading.Event | None = None,
-               quiet: bool = False) -> ViewerServer:
+               quiet: bool = False, origins: Sequence[str] = ()) -> ViewerServer:
     """Serve the viewer until `stop` is set (Ctrl-C from the CLI); returns the stopped server."""
+    check_listen_address(host, port)  # before the model is loaded
     model, cameras, background, radius = load_for_viewing(Path(path), device)
     with torch.no_grad():
         model.requires_grad_(False)
     server = ViewerServer(host, port, lock=threading.RLock(), scene_radius=radius, background=background,
-                          max_sh_degree=model.sh_degree, training=False, quiet=quiet)
+                          max_sh_degree=model.sh_degree, training=False, quiet=quiet, origins=origins)
     try:
         if cameras:
             server.add_cameras(cameras)
