@@ -65,15 +65,15 @@ def test_growth_is_planned_to_reach_the_cap_in_time():
     assert planned_growth_rate(fitted_to_steps(TrainConfig(data=DEMO)), 100_000, 1_000_000) == 1.05
 
 
-def test_a_short_run_grows_to_its_cap(tmp_path):
-    """A 1,000-step run (schedules / 30: refinement every 3 steps from step 17) from 300 points reaches its cap of
-    3,000 by 40% of the run; with the paper's schedule taken literally it would refine 4 times and not get there."""
-    metrics = train(TrainConfig(data=DEMO, out=tmp_path / "run", steps=1000, downscale=4, cap_max=3000, quiet=True,
-                                save_every=0, save_renders=False, lpips_net="alex",
+def test_a_short_run_grows_to_its_cap(tmp_path, mini_demo):
+    """A 600-step run (schedules / 50: refinement every 2 steps from step 10) from 300 points reaches its cap of
+    3,000 by 40% of the run; with the paper's schedule taken literally it would refine once and not get there."""
+    metrics = train(TrainConfig(data=mini_demo, out=tmp_path / "run", steps=600, downscale=4, cap_max=3000,
+                                quiet=True, save_every=0, save_renders=False, lpips_net="alex",
                                 model=ModelConfig(num_init_points=300)))
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     reached = next(record["step"] for record in log if record["num_gaussians"] == 3000)
-    assert metrics["num_gaussians"] == 3000 and reached <= 0.4 * 1000, log
+    assert metrics["num_gaussians"] == 3000 and reached <= 0.4 * 600, log
 
 
 # ---------------------------------------------------------------------------------------------------- --budget
@@ -112,8 +112,8 @@ def test_the_step_cost_model_recovers_known_costs():
     np.testing.assert_allclose(cost.coefficients, [0.005, 0.08, 0.01, 0.03], rtol=0.05, atol=1e-4)
 
 
-def test_a_budget_run_stops_on_time_and_records_its_plan(tmp_path):
-    metrics = train(TrainConfig(data=DEMO, out=tmp_path / "run", budget="8s", downscale=2, quiet=True,
+def test_a_budget_run_stops_on_time_and_records_its_plan(tmp_path, mini_demo):
+    metrics = train(TrainConfig(data=mini_demo, out=tmp_path / "run", budget="8s", downscale=2, quiet=True,
                                 save_every=0, save_renders=False, lpips_net="alex"))
     assert metrics["budget_seconds"] == 8.0 and abs(metrics["wall_seconds"] - 8.0) <= 0.05 * 8.0, metrics
     config = json.loads((tmp_path / "run" / "config.json").read_text())
@@ -122,6 +122,7 @@ def test_a_budget_run_stops_on_time_and_records_its_plan(tmp_path):
     assert plan["history"][-1]["at_seconds"] > 0.8 * 8.0, "planned again until near the end"
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert log[-1]["resolution"] == 1.0, "full size at the end"
+    assert "planned as it ran" in (tmp_path / "run" / "report.html").read_text(), "the report shows the plan"
 
 
 def test_budget_errors_are_one_line(tmp_path):
