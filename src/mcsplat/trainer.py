@@ -344,12 +344,14 @@ class TrainingRun:
                     result = self._evaluate(sh_degree_at(config, step - 1))
                     emit(EvalDone(step=step, psnr=result.psnr, ssim=result.ssim,
                                   num_gaussians=state.model.num_gaussians))
+            state.wall_seconds += time.perf_counter() - started
+            if self.planner is not None:  # before StepDone, so that it carries the plan's steps
+                self._follow_budget(seconds, count, scale)
+            emitted = time.perf_counter()
             emit(StepDone(step=step, total_steps=config.steps, loss=done.loss, train_psnr=done.train_psnr,
                           num_gaussians=state.model.num_gaussians, sh_degree=sh_degree_at(config, step - 1),
                           train_seconds=state.train_seconds, refine=done.refine, resolution=scale))
-            state.wall_seconds += time.perf_counter() - started
-            if self.planner is not None:
-                self._follow_budget(seconds, count, scale)
+            state.wall_seconds += time.perf_counter() - emitted
             if self._stop_now():
                 self.save_checkpoint()
                 raise MCSplatError(f"stopped at step {step:,}; the checkpoint is saved: continue with "
@@ -363,6 +365,8 @@ class TrainingRun:
         planner.observe(step_seconds, count, scale)
         if planner.due(state.step, state.wall_seconds):
             planner.replan(state.step, state.wall_seconds, state.model.num_gaussians)
+        if planner.finished(state.step, state.wall_seconds):  # the time is up: this step is the last one
+            self.config.steps = state.step
 
     def _evaluate(self, sh_degree: int, lpips_net: str | None = None, save_renders: bool = False,
                   progress: bool = False) -> Evaluation:
