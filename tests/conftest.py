@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import mcsplat  # noqa: F401  (before torch: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+import json
 import os
 import shutil
 from pathlib import Path
@@ -50,9 +51,24 @@ def tiny_run(tmp_path_factory) -> Path:
 
     run = tmp_path_factory.mktemp("tiny") / "run"
     train(TrainConfig(data=REPO / "data" / "lego_demo", out=run, steps=60, quiet=True, lpips_net="alex",
-                      eval_every=30, save_every=0, model=ModelConfig(num_init_points=2000),
+                      eval_every=30, save_every=0, model=ModelConfig(num_init_points=2000), scale_schedule=False,
                       mcmc=MCMCConfig(cap_max=2400, refine_start=20, refine_every=20)))
     return run
+
+
+@pytest.fixture(scope="session")
+def mini_demo(tmp_path_factory) -> Path:
+    """The demo scene cut to 12 training and 3 test views: a short run of it ends (evaluation, report) in seconds."""
+    root, demo = tmp_path_factory.mktemp("mini") / "lego", REPO / "data" / "lego_demo"
+    for split, count in (("train", 12), ("test", 3)):
+        meta = json.loads((demo / f"transforms_{split}.json").read_text())
+        meta["frames"] = meta["frames"][:count]
+        (root / split).mkdir(parents=True)
+        for frame in meta["frames"]:
+            name = Path(frame["file_path"]).name + ".png"
+            shutil.copyfile(demo / split / name, root / split / name)
+        (root / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return root
 
 
 def pytest_addoption(parser):

@@ -10,6 +10,7 @@ import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep)
 
 import json
 import os
+import signal
 from datetime import timedelta
 from pathlib import Path
 
@@ -25,8 +26,9 @@ from mcsplat import train, trainer
 
 def run(rank: int, world_size: int, init_file: str, results: str, configs: list[TrainConfig],
         crash: dict | None = None, timeout: float = 60.0) -> None:
-    """`configs[rank]` is this process's configuration. `crash`: {"rank": r, "step": s, "how": "raise" | "exit"}
-    makes rank r (-1: every rank) fail at step s, by an exception or by dying on the spot."""
+    """`configs[rank]` is this process's configuration. `crash`: {"rank": r, "step": s, "how": "raise" | "exit" |
+    "sigterm"} makes rank r (-1: every rank) fail at step s, by an exception, by dying on the spot, or by being sent
+    SIGTERM (what torchrun passes on to its processes when it is stopped)."""
     os.environ["GLOO_SOCKET_IFNAME"] = "lo"  # gloo's connections between the processes stay on this machine
     dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world_size,
                             timeout=timedelta(seconds=timeout))
@@ -60,6 +62,9 @@ def _fail_at(strategy, step_to_fail: int, how: str) -> None:
         if step == step_to_fail:
             if how == "exit":
                 os._exit(3)  # a process that dies without a word (killed, out of memory)
+            if how == "sigterm":
+                signal.raise_signal(signal.SIGTERM)
+                return original(self, step, *args, **kwargs)
             raise RuntimeError("simulated crash")
         return original(self, step, *args, **kwargs)
 
@@ -84,7 +89,27 @@ def reduce_once(rank: int, world_size: int, init_file: str, results: str) -> Non
                 p.grad = torch.arange(p.numel(), dtype=p.dtype).reshape(p.shape) * (rank + 1)
         values = team.reduce_step(model, [10.0 * (rank + 1), 1.0 if rank == 1 else 0.0])
         grads = {key: p.grad.reshape(-1).tolist() for key, p in model.params.items()}
-        (Path(results) / f"rank{rank}.json").write_text(json.dumps({"values": values, "grads": grads}))
+        (Path(results) / f"rank{rank}.json").write_text(json.dumps({"values": values, "grads": grads,
+                                                                   "listening": listening_addresses()}))
     finally:
         dist.barrier()
         dist.destroy_process_group()
+
+
+def listening_addresses() -> list[str]:
+    """The local addresses of this process's listening TCP sockets (Linux: /proc), e.g. "7F000001:9C40"."""
+    sockets = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            target = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            sockets.add(target[len("socket:["):-1])
+    found = []
+    for table in ("/proc/self/net/tcp", "/proc/self/net/tcp6"):
+        for line in Path(table).read_text().splitlines()[1:]:
+            fields = line.split()
+            if fields[3] == "0A" and fields[9] in sockets:  # LISTEN
+                found.append(fields[1])
+    return found

@@ -5,6 +5,7 @@ One SfM reconstruction of the cup is shared by the tests that need it (module fi
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -114,8 +115,62 @@ class _nothing:
         return False
 
 
-def test_ctrl_c_leaves_no_scene(cup_photos, tmp_path):
-    """SIGINT once feature extraction has started: exit status 2, a one-line message, and nothing on disk."""
+def copy_photos(cup_photos: Path, folder: Path, count: int) -> Path:
+    folder.mkdir(parents=True)
+    for path in sorted(cup_photos.glob("*.jpg"))[:count]:
+        (folder / path.name).write_bytes(path.read_bytes())
+    return folder
+
+
+def test_an_input_inside_the_output_is_refused_and_kept(cup_photos, tmp_path):
+    """`process SCENE/images --out SCENE --overwrite` would replace the folder that holds the photos."""
+    scene = tmp_path / "scene"
+    photos = copy_photos(cup_photos, scene / "images", 2)
+    (scene / "sparse").mkdir()
+    for source in (photos, scene):
+        with pytest.raises(MCSplatError, match="is inside (--out|the input folder)") as info:
+            process(source, scene, ProcessOptions(threads=1, progress=False, overwrite=True))
+        assert "\n" not in str(info.value)
+    assert sorted(p.name for p in photos.iterdir()) == sorted(p.name for p in cup_photos.glob("*.jpg"))[:2]
+
+
+def test_overwrite_replaces_only_what_process_wrote(cup_photos, tmp_path):
+    """A scene is replaced only while it holds nothing but the files its process.json lists."""
+    two = copy_photos(cup_photos, tmp_path / "two", 2)  # fails ("at least 3") after the check of --out
+    scene = tmp_path / "scene"
+    copy_photos(cup_photos, scene / "images", 3)
+    (scene / "sparse" / "0").mkdir(parents=True)
+    (scene / "sparse" / "0" / "cameras.bin").write_bytes(b"made elsewhere")
+    options = ProcessOptions(threads=1, progress=False, overwrite=True)
+    with pytest.raises(MCSplatError, match="did not make"):
+        process(two, scene, options)
+    listed = sorted(str(p.relative_to(scene)) for p in scene.rglob("*") if p.is_file())
+    (scene / "process.json").write_text(json.dumps({"files": listed + ["process.json"]}))
+    (scene / "notes.txt").write_text("mine")
+    with pytest.raises(MCSplatError, match=r"did not write \(notes.txt\)"):
+        process(two, scene, options)
+    (scene / "notes.txt").unlink()
+    with pytest.raises(MCSplatError, match="at least 3"), pytest.warns(UserWarning):
+        process(two, scene, options)  # past the check: the scene would have been replaced
+    assert len(list((scene / "images").iterdir())) == 3, "a failed run replaces nothing"
+
+
+def processes_mentioning(text: str) -> list[int]:
+    """The pids of the processes whose command line contains `text` (the worker names its work folder)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            if entry.name.isdigit() and text.encode() in (entry / "cmdline").read_bytes():
+                found.append(int(entry.name))
+        except OSError:
+            continue
+    return found
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_signal_leaves_no_scene_and_no_worker(cup_photos, tmp_path, sig):
+    """SIGINT (Ctrl-C) or SIGTERM (kill, timeout, docker) once feature extraction has started: exit status 2, a
+    one-line message, the SfM worker stopped, and nothing on disk."""
     out = tmp_path / "scene"
     command = [sys.executable, "-m", "mcsplat.cli", "process", str(cup_photos), "--out", str(out), "--threads", "1"]
     # SIGINT as a terminal delivers it (a parent started in the background may have left it ignored).
@@ -131,7 +186,8 @@ def test_ctrl_c_leaves_no_scene(cup_photos, tmp_path):
             seen += chunk
         assert b"features:" in seen, seen[-2000:]
         time.sleep(1.0)
-        child.send_signal(signal.SIGINT)
+        assert processes_mentioning(str(tmp_path / ".scene.partial-")), "the SfM worker runs"
+        child.send_signal(sig)
         stderr = (seen + child.communicate(timeout=60)[1]).decode(errors="replace")
     finally:
         if child.poll() is None:
@@ -139,6 +195,10 @@ def test_ctrl_c_leaves_no_scene(cup_photos, tmp_path):
             child.wait()
     assert child.returncode == 2, stderr[-3000:]
     assert "mcsplat: error: interrupted: no scene was written" in stderr
+    deadline = time.monotonic() + 10  # the worker is stopped (and waited for) before the parent exits
+    while processes_mentioning(str(tmp_path / ".scene.partial-")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert processes_mentioning(str(tmp_path / ".scene.partial-")) == [], "the SfM worker was left running"
     assert list(tmp_path.iterdir()) == []
 
 
@@ -167,3 +227,22 @@ def test_video_path_keeps_the_sharp_frames_and_registers_them(shared_data, tmp_p
     kept = [sharpness(np.asarray(Image.open(p).convert("RGB"))) for p in frames]
     threshold = 3 * max(blurred)
     assert min(originals) > threshold and min(kept) > threshold, (min(kept), threshold)
+
+
+def test_photos_of_two_sizes_get_a_camera_each_and_all_register(cup_photos, tmp_path):
+    """pycolmap's single camera silently skips the images of any other size than the first."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i, path in enumerate(sorted(cup_photos.glob("*.jpg"))[:24]):
+        image = Image.open(path)
+        (image if i % 2 else image.resize((360, 270), Image.Resampling.BOX)).save(photos / path.name, quality=95)
+    out = tmp_path / "scene"
+    with pytest.warns(UserWarning):
+        summary = process(photos, out, ProcessOptions(threads=2, progress=False))
+    assert summary.images == 24 and summary.registered >= 20, summary
+    assert summary.image_sizes == {"400x300": 12, "360x270": 12}
+    assert any(line.startswith("sizes:") and "one camera per size" in line for line in summary.lines())
+    model = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    sizes = {model.cameras[image.camera_id].width for image in model.images.values()}
+    assert len(model.cameras) == 2 and len(sizes) == 2, "both sizes registered, each under its own camera"
+    assert len(load_scene(out).train) > 0

@@ -15,6 +15,7 @@ from distributed_worker import run as worker
 from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.distributed import scaled_for_processes
 from mcsplat.errors import MCSplatError
+from mcsplat.io.checkpoint import load_checkpoint
 from mcsplat.strategy.adc import ADCConfig
 from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.train import train
@@ -28,7 +29,7 @@ VIEWS = 2400
 
 def demo_config(out: Path, **overrides) -> TrainConfig:
     options = dict(data=DEMO, out=out, steps=VIEWS, downscale=2, quiet=True, lpips_net="alex", save_renders=False,
-                   save_every=500, threads=1, model=ModelConfig(num_init_points=3000),
+                   save_every=500, threads=1, model=ModelConfig(num_init_points=3000), scale_schedule=False,
                    mcmc=MCMCConfig(cap_max=3400, refine_start=50, refine_every=50))
     options.update(overrides)
     return TrainConfig(**options)
@@ -74,7 +75,8 @@ def test_two_processes_train_one_model_and_rank_0_alone_writes(together, tmp_pat
     assert "checksum" in rank0 and "checksum" in rank1, (rank0, rank1)
     assert rank0["checksum"] == rank1["checksum"], "both processes must end with bitwise identical parameters"
     metrics = rank0["metrics"]
-    assert {**rank1["metrics"], "train_seconds": 0} == {**metrics, "train_seconds": 0}, \
+    clocks = {"train_seconds": 0, "wall_seconds": 0}  # each process times itself
+    assert {**rank1["metrics"], **clocks} == {**metrics, **clocks}, \
         "the evaluation is gathered: every process reports the same scores"
     assert metrics["steps"] == VIEWS // 2 and metrics["processes"] == 2 and metrics["num_gaussians"] == 3400
 
@@ -84,7 +86,7 @@ def test_two_processes_train_one_model_and_rank_0_alone_writes(together, tmp_pat
         assert (run / name).is_file(), name
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log if "test_psnr" in r] == [600], "the periodic evaluation, split and gathered"
-    renders = sorted(p.name for p in (run / "renders" / "test").iterdir())
+    renders = sorted(p.name for p in (run / "renders" / "test").rglob("*") if p.is_file())
     assert len(renders) == 25 and all(name.endswith(".png") for name in renders), "every test view, from both ranks"
     saved = json.loads((run / "config.json").read_text())
     assert saved["world_size"] == 2 and saved["steps"] == VIEWS // 2 and saved["mcmc"]["refine_every"] == 25
@@ -146,11 +148,41 @@ def test_processes_started_differently_stop_at_once(tmp_path):
 
 def test_the_reduce_averages_every_gradient_and_the_values(tmp_path):
     rank0, rank1 = spawn(tmp_path / "comm", 2, reduce_once)
+    for rank in (rank0, rank1):  # the tests' processes meet through a file and talk over the loopback only
+        assert all(is_loopback(address) for address in rank.pop("listening")), rank
     assert rank0 == rank1, "every process gets the same bytes back"
     assert rank0["values"] == [15.0, 0.5], "the loss is averaged; a stop vote from one process shows as > 0"
     for key, grad in rank0["grads"].items():
         expected = [0.0] * len(grad) if key == "quats" else [1.5 * i for i in range(len(grad))]
         assert grad == expected, key
+
+
+def is_loopback(proc_address: str) -> bool:
+    """An address of /proc/net/tcp{,6} ("0100007F:9C40": 127.0.0.1 in the kernel's byte order) on the loopback."""
+    host = proc_address.split(":")[0]
+    if len(host) == 8:
+        return host.endswith("7F")
+    return host in ("00000000000000000000000001000000", "0000000000000000FFFF00000100007F")
+
+
+def test_sigterm_stops_every_process_with_a_checkpoint_and_the_torchrun_command(tmp_path, mini_demo):
+    """torchrun passes SIGTERM on to its processes (kill, timeout, SLURM, Kubernetes); here rank 0 alone gets it."""
+    config = demo_config(tmp_path / "run", data=mini_demo, steps=400, save_every=0)
+    outcomes = launch(tmp_path / "comm", [config] * 2, crash={"rank": 0, "step": 10, "how": "sigterm"})
+    for outcome in outcomes:
+        assert "stopped at step" in outcome.get("error", ""), outcomes
+        assert f"`torchrun --nproc-per-node 2 -m mcsplat train {mini_demo} --out {tmp_path / 'run'} --resume`" in \
+            outcome["error"], outcome
+    stopped = int(outcomes[0]["error"].split("stopped at step ")[1].split(";")[0])
+    assert 11 <= stopped <= 13 and load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == stopped
+
+
+def test_the_readme_says_how_to_keep_the_rendezvous_off_the_network():
+    """torchrun's store listens on every interface whatever --master-addr says, without authentication."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = readme.split("### Several processes or machines (torchrun)")[1].split("\n### ")[0]
+    assert "every network interface" in section and "--master-addr" in section
+    assert "unshare --net" in section, "the safe way on a shared network"
 
 
 def test_the_schedule_rule_for_n_processes():

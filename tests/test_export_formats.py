@@ -148,3 +148,25 @@ def test_cli_export_each_format_with_pruning(tiny_run, tmp_path, capsys):
     assert main(["export", str(tiny_run), "--format", "spz", "--min-opacity", "0.9999"]) == 2
     error = capsys.readouterr().err
     assert error.startswith("mcsplat: error:") and "--min-opacity" in error and error.count("\n") == 1
+
+
+def test_export_never_replaces_a_run_file_and_the_format_follows_the_name(tiny_run, tmp_path, capsys):
+    checkpoint = (tiny_run / "checkpoint.pt").read_bytes()
+    folder = tmp_path / "a_folder"
+    folder.mkdir()
+    refused = [(["--out", str(tiny_run / "checkpoint.pt")], "would replace the run's own checkpoint.pt"),
+               (["--out", str(tiny_run / "config.json")], "would replace the run's own config.json"),
+               (["--format", "spz", "--out", str(tmp_path / "x.ply")], "names a ply file but --format is spz"),
+               (["--out", str(tmp_path / "x.bin")], "must end in"),
+               (["--out", str(folder)], "is a folder")]
+    for args, expected in refused:
+        capsys.readouterr()
+        assert main(["export", str(tiny_run), *args]) == 2, args
+        error = capsys.readouterr().err
+        assert expected in error and error.count("\n") == 1, (args, error)
+    assert (tiny_run / "checkpoint.pt").read_bytes() == checkpoint
+    assert list(folder.iterdir()) == [] and not (tmp_path / "x.ply").exists()
+    # Without --format the name decides: an .spz is written as spz, a .compressed.ply as compressed-ply.
+    for name, format_name in (("y.spz", "spz"), ("y.compressed.ply", "compressed-ply"), ("y.splat", "splat")):
+        assert main(["export", str(tiny_run), "--out", str(tmp_path / name)]) == 0
+        assert read_gaussians(format_name, tmp_path / name)["means"].shape[0] > 0, name

@@ -14,7 +14,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from mcsplat.errors import MCSplatError
-from mcsplat.io.atomic import atomic_path, remove_stale_temporaries
+from mcsplat.io.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
 from mcsplat.io.checkpoint import load_checkpoint, save_checkpoint
 from mcsplat.io.ply import read_ply, write_ply
 
@@ -136,3 +136,15 @@ def test_stale_temporaries_are_removed_and_nothing_else(tmp_path):
         path.write_bytes(b"x")
     assert sorted(remove_stale_temporaries(target)) == sorted(stale)
     assert sorted(tmp_path.iterdir()) == sorted(kept)
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077, 0o002])
+def test_written_files_follow_the_umask(tmp_path, umask):
+    previous = os.umask(umask)
+    try:
+        atomic_write_text(tmp_path / "a.json", "{}")
+        save_checkpoint(tmp_path / "b.pt", {"step": 1})
+    finally:
+        os.umask(previous)
+    for name in ("a.json", "b.pt"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o666 & ~umask, name

@@ -16,7 +16,7 @@ LAYERS = [
     ("consumers", {"viewer", "report"}),
     ("loop", {"trainer", "subscribers"}),
     ("run", {"run_dir", "state", "evaluation", "events"}),
-    ("set-up", {"distributed", "initialization", "schedule", "config"}),
+    ("set-up", {"distributed", "initialization", "schedule", "budget", "config", "config_types"}),
     ("method", {"strategy", "visibility", "metrics", "optim", "mesh"}),
     ("building blocks", {"render", "data", "losses", "ssim_cpu", "io", "capture", "camera_path"}),
     ("model", {"gaussians"}),

@@ -29,8 +29,8 @@ DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
 def small_config(out: Path, **overrides) -> TrainConfig:
     options = dict(data=DEMO, out=out, steps=300, quiet=True, lpips_net="alex", save_renders=False, save_every=0,
                    model=ModelConfig(num_init_points=3000),
-                   # Refine early so relocation and growth happen within a short test run.
-                   mcmc=MCMCConfig(cap_max=3400, refine_start=50, refine_every=50))
+                   # Refine early so relocation and growth happen within a short test run (steps, not scaled).
+                   scale_schedule=False, mcmc=MCMCConfig(cap_max=3400, refine_start=50, refine_every=50))
     options.update(overrides)
     return TrainConfig(**options)
 

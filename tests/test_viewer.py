@@ -7,9 +7,12 @@ The browser test skips, with the reason, where viser or a headless Chromium is m
 from __future__ import annotations
 
 import importlib.util
+import json
 import os
 import re
 import socket
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -18,6 +21,7 @@ import numpy as np
 import pytest
 import torch
 
+from mcsplat.cli import main
 from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.errors import MCSplatError
 from mcsplat.events import Control
@@ -101,7 +105,8 @@ def test_live_viewer_in_a_browser_and_the_report(browser, tiny_run, tmp_path):
 
     viewer, control = TrainingViewer(port=free_port(), quiet=True), Control()
     config = TrainConfig(data=DEMO, out=tmp_path / "live", steps=100_000, quiet=True, save_every=0, eval_every=0,
-                         model=ModelConfig(num_init_points=2000), mcmc=MCMCConfig(cap_max=3000, refine_start=50))
+                         model=ModelConfig(num_init_points=2000), mcmc=MCMCConfig(cap_max=3000, refine_start=50),
+                         scale_schedule=False)
     failure: list[BaseException] = []
 
     def run() -> None:
@@ -219,3 +224,88 @@ def test_a_mesh_in_a_browser(browser, tmp_path):
     pixels = np.asarray(Image.open(tmp_path / "page.png").convert("RGB")).astype(int)
     red = (pixels[..., 0] > 100) & (pixels[..., 0] > pixels[..., 1] + 60)
     assert red.mean() > 0.02, f"the red ball covers {red.mean():.1%} of the page"
+
+
+@pytest.fixture
+def saved_viewer(tiny_run):
+    """`mcsplat view RUN` on a free port, in a thread, stopped by the test."""
+    pytest.importorskip("viser")
+    from mcsplat.viewer.saved import view_saved
+
+    port, stop = free_port(), threading.Event()
+    thread = threading.Thread(target=view_saved, args=(tiny_run, "127.0.0.1", port, torch.device("cpu"), stop, True),
+                              daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            break
+        except OSError:
+            time.sleep(0.2)
+    try:
+        yield port
+    finally:
+        stop.set()
+        thread.join(timeout=30)
+
+
+def test_the_viewer_accepts_its_own_page_only(saved_viewer):
+    """A web page of another site, open in the same browser, must not read the scene through the WebSocket."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    port = saved_viewer
+    url = f"ws://127.0.0.1:{port}"
+    for origin in ("https://evil.example", f"http://rebinding.example:{port}", f"http://192.0.2.7:{port}"):
+        with pytest.raises(InvalidStatus) as refused:
+            connect(url, origin=origin, open_timeout=20).close()
+        assert refused.value.response.status_code == 403, origin
+    for origin in (None, f"http://127.0.0.1:{port}", f"http://localhost:{port}", "http://localhost:9000"):
+        connect(url, origin=origin, open_timeout=20).close()  # its own page (or through an SSH tunnel), or no browser
+
+
+def test_origin_rules_for_a_viewer_on_the_network():
+    from mcsplat.viewer.access import OriginPolicy
+
+    everywhere = OriginPolicy("0.0.0.0", allowed=["myhost.lan"])
+    assert everywhere.accepts("http://192.168.1.5:8080", "192.168.1.5:8080", 8080), "the address the user typed"
+    assert not everywhere.accepts("http://evil.example:8080", "evil.example:8080", 8080), "a name may rebind"
+    assert not everywhere.accepts("http://192.168.1.9:8080", "192.168.1.5:8080", 8080), "another machine's page"
+    assert everywhere.accepts("http://myhost.lan:8080", "myhost.lan:8080", 8080), "--viewer-origin"
+    named = OriginPolicy("myhost.lan")
+    assert named.accepts("http://myhost.lan:8080", "myhost.lan:8080", 8080) and \
+        not named.accepts("http://myhost.lan:9999", "myhost.lan:8080", 8080)
+
+
+def test_a_bad_port_or_host_is_one_line_not_a_hang(tiny_run, tmp_path):
+    pytest.importorskip("viser")
+    cases = [(["view", str(tiny_run), "--port", "70000"], "--port 70000"),
+             (["view", str(tiny_run), "--host", "192.0.2.1"], "--host 192.0.2.1: cannot listen there"),
+             (["view", str(tiny_run), "--host", "no-such-host.invalid"], "--host no-such-host.invalid: not a known"),
+             (["train", str(DEMO), "--out", str(tmp_path / "run"), "--viewer", "--port", "-1"], "--port -1")]
+    # In one process, whose alarm ends it if a command hangs instead of failing (what viser does with these).
+    script = ("import json, signal, sys; signal.alarm(60); from mcsplat.cli import main; "
+              "print(json.dumps([main(args) for args in json.loads(sys.argv[1])]))")
+    done = subprocess.run([sys.executable, "-c", script, json.dumps([args for args, _ in cases])],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and json.loads(done.stdout) == [2] * len(cases), done.stderr[-2000:]
+    errors = done.stderr.splitlines()
+    assert len(errors) == len(cases), errors
+    for error, (_, expected) in zip(errors, cases):
+        assert error.startswith(f"mcsplat: error: {expected}"), error
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_ply_without_gaussians_is_one_line(tmp_path, capsys):
+    pytest.importorskip("viser")
+    from plyfile import PlyData, PlyElement
+
+    names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1",
+             "rot_2", "rot_3"]
+    empty = np.empty(0, dtype=[(name, "f4") for name in names])
+    PlyData([PlyElement.describe(empty, "vertex")]).write(str(tmp_path / "empty.ply"))
+    assert main(["view", str(tmp_path / "empty.ply"), "--port", str(free_port())]) == 2
+    error = capsys.readouterr().err
+    assert error == f"mcsplat: error: {tmp_path / 'empty.ply'}: holds no Gaussians (0 vertices), so there is nothing " \
+        "to show\n"

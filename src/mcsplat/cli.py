@@ -71,13 +71,14 @@ class Eval:
         from mcsplat.compute.device import resolve_device
         from mcsplat.evaluation import evaluate
 
-        run = run_dir.load(self.run, resolve_device(self.device))
-        net = self.lpips_net or run.config.lpips_net
-        render_file = (lambda name: run.folder.render_file("test", name)) if self.save_renders else None
-        result = evaluate(run.model, run.scene.test, run.background, run.sh_degree, run.device, lpips_net=net,
-                          render_file=render_file, progress=True)
-        run.folder.update_metrics(psnr=result.psnr, ssim=result.ssim, lpips=result.lpips, lpips_net=net,
-                                  steps=run.step, num_gaussians=run.model.num_gaussians, test_views=result.views)
+        with run_dir.RunDir(self.run).lock("mcsplat eval"):
+            run = run_dir.load(self.run, resolve_device(self.device))
+            net = self.lpips_net or run.config.lpips_net
+            render_file = (lambda name: run.folder.render_file("test", name)) if self.save_renders else None
+            result = evaluate(run.model, run.scene.test, run.background, run.sh_degree, run.device, lpips_net=net,
+                              render_file=render_file, progress=True)
+            run.folder.update_metrics(psnr=result.psnr, ssim=result.ssim, lpips=result.lpips, lpips_net=net,
+                                      steps=run.step, num_gaussians=run.model.num_gaussians, test_views=result.views)
         lpips = "n/a (weights not installed)" if result.lpips is None else f"{result.lpips:.4f}"
         print(f"PSNR {result.psnr:.3f} dB  SSIM {result.ssim:.4f}  LPIPS-{net} {lpips}  "
               f"({result.views} test views, {run.model.num_gaussians:,} Gaussians, step {run.step:,})")
@@ -110,44 +111,50 @@ class Render:
             return render(model, camera, background, degree).rgb
 
     def run_command(self) -> int:
-        from tqdm import tqdm
+        import contextlib
 
         from mcsplat import run_dir
-        from mcsplat.camera_path import loop_path
         from mcsplat.compute.device import resolve_device
-        from mcsplat.evaluation import save_png
 
         if self.frames < 2 or self.fps < 1:
             raise MCSplatError("--frames must be at least 2 and --fps at least 1")
         run = run_dir.load(self.run, resolve_device(self.device))
-        model, device, scene = run.model, run.device, run.scene
-        views = scene.test if self.split == "test" else scene.train
+        views = run.scene.test if self.split == "test" else run.scene.train
         if not views:
             raise MCSplatError(f"the scene has no {self.split} views to render")
-        background, degree = run.background, run.sh_degree
-        if not self.video:
-            folder = self.out or run.folder.renders_folder(self.split)
-            for view in tqdm(views, desc="rendering", unit="view"):
-                image = self._frame(model, view.camera.to(device), background, degree)
-                save_png(run_dir.render_file(folder, view.name), image)
-            print(f"wrote {len(views)} renders to {folder}")
-            return 0
-        import imageio.v2 as imageio
+        target = self.out or (run.folder.video_file if self.video else run.folder.renders_folder)(self.split)
+        if self.video and target.suffix.lower() != ".mp4":
+            raise MCSplatError(f"--out {target}: a video must be an .mp4 file")
+        with run.folder.lock("mcsplat render") if run.folder.contains(target) else contextlib.nullcontext():
+            (self._video if self.video else self._pngs)(run, views, target)
+        return 0
 
+    def _pngs(self, run, views, folder: Path) -> None:
+        from tqdm import tqdm
+
+        from mcsplat import run_dir
+        from mcsplat.evaluation import save_png
+
+        for view in tqdm(views, desc="rendering", unit="view"):
+            image = self._frame(run.model, view.camera.to(run.device), run.background, run.sh_degree)
+            save_png(run_dir.render_file(folder, view.name), image)
+        print(f"wrote {len(views)} renders to {folder}")
+
+    def _video(self, run, views, path: Path) -> None:
+        import imageio.v2 as imageio
+        from tqdm import tqdm
+
+        from mcsplat.camera_path import loop_path
         from mcsplat.io.atomic import atomic_path
 
-        path = self.out or run.folder.video_file(self.split)
-        if path.suffix.lower() != ".mp4":
-            raise MCSplatError(f"--out {path}: a video must be an .mp4 file")
         cameras = loop_path([v.camera for v in views], self.frames)
         with atomic_path(path) as tmp:
             with imageio.get_writer(tmp, format="FFMPEG", fps=self.fps, codec="libx264", quality=8,
                                     macro_block_size=1) as writer:
                 for camera in tqdm(cameras, desc="video", unit="frame"):
-                    image = self._frame(model, camera.to(device), background, degree)
+                    image = self._frame(run.model, camera.to(run.device), run.background, run.sh_degree)
                     writer.append_data((image.clamp(0, 1) * 255 + 0.5).byte().cpu().numpy())
         print(f"wrote {path} ({self.frames} frames at {self.fps} fps)")
-        return 0
 
 
 @dataclass
@@ -156,12 +163,13 @@ class Export:
     or Niantic .spz, leaving out near-transparent Gaussians; or its surface as a triangle mesh."""
 
     run: RunDir
-    format: Literal["ply", "splat", "compressed-ply", "spz", "mesh"] = "ply"
+    format: Literal["ply", "splat", "compressed-ply", "spz", "mesh"] | None = None
     """ply: every viewer, full SH. splat: 32 bytes each, no SH. compressed-ply: SuperSplat/PlayCanvas, ~4x smaller.
-    spz: Niantic's gzip format, ~10x smaller. mesh: the surface the training views see (median depth fused into a
-    signed distance volume, marching cubes), with vertex colours, as .ply, .glb or .obj by --out's ending."""
+    spz: Niantic's gzip format, ~10x smaller. Default: the one --out's name ends with, else ply. mesh: the surface the
+    training views see (median depth fused into a signed distance volume, marching cubes), with vertex colours."""
     out: Path | None = None
-    """Output file (default: RUN/point_cloud.ply, .splat, .compressed.ply, .spz, or RUN/mesh.ply)."""
+    """Output file, named .ply, .splat, .compressed.ply or .spz (default: RUN/point_cloud.<that ending>); with
+    --format mesh, .ply, .glb or .obj (default: RUN/mesh.ply)."""
     min_opacity: float = 0.005
     """Leave out Gaussians of this opacity or less (0.005: the dead ones MCMC relocates)."""
     max_gaussians: int | None = None
@@ -180,19 +188,29 @@ class Export:
     device: Device = "auto"
 
     def run_command(self) -> int:
+        import contextlib
+
         import numpy as np
         import torch
 
         from mcsplat import run_dir
         from mcsplat.compute.device import resolve_device
-        from mcsplat.io.formats import EXTENSIONS, select_gaussians, write_gaussians
+        from mcsplat.io.formats import select_gaussians, write_gaussians
         from mcsplat.io.ply import write_ply
 
+        folder = run_dir.RunDir(self.run)
+        folder.read_config()  # a run folder, or the one-line error, before any work
         if self.format == "mesh":
-            return self._export_mesh()
+            return self._export_mesh(folder)
+        path, format_name = self._output(folder)
         run = run_dir.load(self.run, resolve_device(self.device))
         model = run.model
         params = {k: v.detach().cpu().numpy() for k, v in model.params.items()}
+        broken = [k for k, v in params.items() if not np.isfinite(v).all()]
+        if broken:
+            raise MCSplatError(f"{folder.checkpoint_file}: NaN or infinite values in {', '.join(broken)}, so nothing "
+                               f"is exported; the run diverged: train it again, or go back to "
+                               f"{folder.previous_checkpoint_file.name}")
         candidates = np.arange(model.num_gaussians)
         if self.prune:
             candidates = np.flatnonzero(self._seen(run).cpu().numpy())
@@ -205,16 +223,16 @@ class Export:
         keep[torch.from_numpy(chosen)] = True
         if self.prune:
             self._compare_on_test_views(run, keep.to(run.device))
-        ending = ".ply" if self.format == "ply" else EXTENSIONS[self.format]
-        path = self.out or run.folder.export_file(ending)
-        if self.format == "ply":
-            write_ply(path, dict(model.params.items()), keep=keep)
-        else:
-            write_gaussians(self.format, path, {k: v[chosen] for k, v in params.items()})
+        with folder.lock("mcsplat export") if folder.contains(path) else contextlib.nullcontext():
+            if format_name == "ply":
+                write_ply(path, dict(model.params.items()), keep=keep)
+            else:
+                write_gaussians(format_name, path, {k: v[chosen] for k, v in params.items()})
         print(f"wrote {path} ({chosen.size:,} of {model.num_gaussians:,} Gaussians, {path.stat().st_size:,} bytes)")
         return 0
 
-    def _export_mesh(self) -> int:
+    def _export_mesh(self, folder) -> int:
+        import contextlib
         import time
 
         from mcsplat import run_dir
@@ -223,22 +241,48 @@ class Export:
 
         options = MeshOptions(voxel_size=self.voxel_size, voxel_budget=self.voxel_budget, alpha_min=self.alpha_min,
                               min_component=self.min_component)
-        if self.out is not None:
-            check_mesh_path(self.out)
+        path = folder.mesh_file if self.out is None else self._checked_out(folder)
+        check_mesh_path(path)
         run = run_dir.load(self.run, resolve_device(self.device))
-        path = self.out or run.folder.mesh_file
         started = time.perf_counter()
         mesh = extract(run.model, run.scene.train, options, sh_degree=run.sh_degree, progress=True)
-        write_mesh(path, mesh)
+        with folder.lock("mcsplat export") if folder.contains(path) else contextlib.nullcontext():
+            write_mesh(path, mesh)
         made = mesh.metadata["mcsplat"]
         print(f"wrote {path} ({len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces; {made['views']} views fused "
               f"in {made['grid'].describe()}, {time.perf_counter() - started:.0f} s)")
-        if path == run.folder.mesh_file and run.folder.report_file.is_file():
+        if path == folder.mesh_file and folder.report_file.is_file():
             from mcsplat.report import make_report
 
-            test_views, render_view = _test_views_and_renderer(run.folder.path, self.device)
-            print(f"wrote {make_report([run.folder.path], test_views=test_views, render_view=render_view)}")
+            test_views, render_view = _test_views_and_renderer(folder.path, self.device)
+            with folder.lock("mcsplat export"):
+                print(f"wrote {make_report([folder.path], test_views=test_views, render_view=render_view)}")
         return 0
+
+    def _checked_out(self, folder) -> Path:
+        """--out, unless it is a folder or one of the run's own files."""
+        if self.out.is_dir():
+            raise MCSplatError(f"--out {self.out} is a folder; give the file to write")
+        if folder.is_own_file(self.out):
+            raise MCSplatError(f"--out {self.out} would replace the run's own {self.out.name}; choose another name")
+        return self.out
+
+    def _output(self, folder) -> tuple[Path, str]:
+        """(the file to write, its format): the format follows --out's name; a run's own files are refused."""
+        from mcsplat.io.formats import ENDINGS, format_named_by
+
+        endings = ", ".join(sorted(set(ENDINGS.values())))
+        if self.out is None:
+            name = self.format or "ply"
+            return folder.export_file(ENDINGS[name]), name
+        named = format_named_by(self._checked_out(folder))
+        if named is None:
+            hint = " (a mesh: --format mesh)" if self.out.suffix.lower() in (".glb", ".obj") else ""
+            raise MCSplatError(f"--out {self.out}: the name must end in {endings}, which says the format{hint}")
+        if self.format is not None and self.format != named:
+            raise MCSplatError(f"--out {self.out} names a {named} file but --format is {self.format}; name it "
+                               f"*{ENDINGS[self.format]} or leave --format out")
+        return self.out, named
 
     @staticmethod
     def _seen(run):
@@ -274,10 +318,16 @@ class Report:
     def run_command(self) -> int:
         from mcsplat.report import make_report
 
-        test_views, render_view = (), None
-        if len(self.runs) == 1:
-            test_views, render_view = _test_views_and_renderer(self.runs[0], self.device)
-        page = make_report(self.runs, out=self.out, test_views=test_views, render_view=render_view)
+        import contextlib
+
+        from mcsplat.run_dir import RunDir
+
+        target = RunDir(self.out or self.runs[0])
+        with target.lock("mcsplat report") if target.config_file.is_file() else contextlib.nullcontext():
+            test_views, render_view = (), None
+            if len(self.runs) == 1:
+                test_views, render_view = _test_views_and_renderer(self.runs[0], self.device)
+            page = make_report(self.runs, out=self.out, test_views=test_views, render_view=render_view)
         print(f"wrote {page}")
         return 0
 
@@ -293,6 +343,9 @@ class ViewSaved:
     port: int = 8080
     host: str = "127.0.0.1"
     """Address to listen on; 0.0.0.0 exposes the viewer to the network."""
+    viewer_origin: tuple[str, ...] = ()
+    """Web pages (host names or origins such as http://myhost:8080) allowed to connect besides the viewer's own page:
+    where it is reached under a name, or through a proxy."""
     device: Device = "auto"
 
     def run_command(self) -> int:
@@ -305,7 +358,7 @@ class ViewSaved:
         if not self.path.exists():
             raise MCSplatError(f"{self.path}: no such run directory or .ply file")
         try:
-            view_saved(self.path, self.host, self.port, resolve_device(self.device))
+            view_saved(self.path, self.host, self.port, resolve_device(self.device), origins=self.viewer_origin)
         except KeyboardInterrupt:
             print("mcsplat: viewer stopped", file=sys.stderr)
         return 0

@@ -10,6 +10,7 @@ from typing import Annotated, Any, Literal
 
 import tyro
 
+from .config_types import describe, fits, option_types
 from .errors import MCSplatError
 from .optim import OptimConfig
 from .strategy.adc import ADCConfig
@@ -17,17 +18,20 @@ from .strategy.mcmc import MCMCConfig
 
 # Options that only affect how this process runs: on --resume they come from the command line, the rest from
 # the run's saved configuration (steps included: the learning-rate schedule depends on it).
-PROCESS_OPTIONS = ("eval_every", "save_every", "quiet", "threads", "device", "viewer", "port", "host", "dist_timeout")
+PROCESS_OPTIONS = ("eval_every", "save_every", "save_every_minutes", "quiet", "threads", "device", "viewer", "port",
+                   "host", "viewer_origin", "dist_timeout")
 
 
 @dataclass
 class ModelConfig:
     """Initial Gaussians."""
 
-    init: Literal["auto", "random", "sfm"] = "auto"
-    """auto: SfM points when the scene has them, else random. The official code defaults to random."""
+    init: Literal["auto", "sfm", "triangulate", "frustum", "random"] = "auto"
+    """auto: the scene's SfM points; else random in a cube for a synthetic scene (images with alpha), and points
+    triangulated from the known poses for a real capture (random in the cameras' frustums where that fails).
+    random: the paper's "Ours (Random)" (the official code's default)."""
     num_init_points: int = 100_000
-    """Points of the random initialisation."""
+    """Points of a random (cube or frustum) initialisation."""
     init_extent: float = 3.0
     """Random init fills [-extent R, extent R]^3 around the world origin (Blender scenes: [-1.3, 1.3]^3)."""
     init_scale: float = 0.1
@@ -50,7 +54,20 @@ class TrainConfig:
     """Maximum number of Gaussians (sets --mcmc.cap-max, or --adc.cap-max for the budgeted baseline). auto (MCMC):
     grow only while the screen gradients ask for more Gaussians, up to --mcmc.cap-max (see the README)."""
     steps: int = 30_000
-    """Training steps (the paper: 30,000)."""
+    """Training steps (the paper: 30,000). The step schedules follow it (--scale-schedule)."""
+    budget: str | None = None
+    """Train for this much time on this machine instead of a number of steps: '10m', '90s', '1.5h' or minutes
+    ('10'). The steps, the cap and the coarse-to-fine resolution are planned from the step time measured as the run
+    goes (set-up, the final evaluation and the export are not counted); see the README."""
+    scale_schedule: bool = True
+    """Fit every step schedule (refinement, ADC's densification and opacity resets, the SH increase) to the run's
+    length: the options give the paper's values for 30,000 steps and a run of N steps multiplies them by N / 30,000
+    (gsplat's steps_scaler). --no-scale-schedule takes them as steps of this run."""
+    resolution_start: float | None = None
+    """Coarse to fine: the share of the full image size the first step trains at, rising to full size at
+    --resolution-full-at of the run (default: 0.25 with --budget, else 1, full size throughout)."""
+    resolution_full_at: float = 0.4
+    """The share of the run by which training reaches the full image size."""
     downscale: int = 1
     """Image downscale factor (uses images_N/ when the scene has it)."""
     test_every: int = 8
@@ -66,7 +83,9 @@ class TrainConfig:
     eval_every: int = 0
     """Evaluate on the test views every N steps (0: only at the end)."""
     save_every: int = 5000
-    """Write a checkpoint every N steps (and on Ctrl-C)."""
+    """Write a checkpoint every N steps (and on Ctrl-C or SIGTERM)."""
+    save_every_minutes: float = 10.0
+    """Also write one when this many minutes have passed since the last (0: off)."""
     resume: bool = False
     """Continue from the run directory's checkpoint."""
     overwrite: bool = False
@@ -87,11 +106,19 @@ class TrainConfig:
     """Port of the live viewer."""
     host: str = "127.0.0.1"
     """Address the live viewer listens on; 0.0.0.0 exposes it to the network."""
+    viewer_origin: tuple[str, ...] = ()
+    """Web pages (host names or origins such as http://myhost:8080) allowed to connect to the viewer besides its own
+    page: where it is reached under a name, or through a proxy."""
     dist_timeout: float = 600.0
     """Under torchrun: seconds a process waits for the others before it stops with an error (a process died or
     hangs)."""
     world_size: Annotated[int, tyro.conf.Suppress] = 1
     """Processes the run trains with (set under torchrun: the schedules and learning rates are already scaled)."""
+    schedule_fitted: Annotated[bool, tyro.conf.Suppress] = False
+    """Whether the step schedules are already fitted to --steps (a started run's saved configuration)."""
+    budget_plan: Annotated[dict | None, tyro.conf.Suppress] = None
+    """--budget: the plan as it stands (steps, cap, resolution, measured step times), for config.json and the
+    report."""
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)
@@ -102,6 +129,7 @@ class TrainConfig:
                   (self.downscale >= 1, "--downscale must be at least 1"),
                   (self.eval_every >= 0, "--eval-every must be 0 (off) or positive"),
                   (self.save_every >= 0, "--save-every must be 0 (off) or positive"),
+                  (self.save_every_minutes >= 0, "--save-every-minutes must be 0 (off) or positive"),
                   (self.cap_max in (None, "auto") or self.cap_max >= 1, "--cap-max must be at least 1 or auto"),
                   (self.cap_max != "auto" or self.strategy == "mcmc",
                    "--cap-max auto is for the MCMC strategy (ADC's growth has its own rule); give ADC a number"),
@@ -109,6 +137,9 @@ class TrainConfig:
                   (self.sh_increase_every >= 1, "--sh-increase-every must be at least 1"),
                   (self.dist_timeout > 0, "--dist-timeout must be positive"),
                   (0.0 <= self.ssim_weight <= 1.0, "--ssim-weight must be in [0, 1]"),
+                  (self.resolution_start is None or 0.0 < self.resolution_start <= 1.0,
+                   "--resolution-start must be in (0, 1] (1: full size from the first step)"),
+                  (0.0 < self.resolution_full_at <= 1.0, "--resolution-full-at must be in (0, 1]"),
                   (0 <= self.model.sh_degree <= 3, "--model.sh-degree must be 0..3"),
                   (self.model.num_init_points >= 1, "--model.num-init-points must be at least 1"),
                   (0.0 < self.model.init_opacity < 1.0, "--model.init-opacity must be in (0, 1)"),
@@ -117,6 +148,10 @@ class TrainConfig:
         for ok, message in checks:
             if not ok:
                 raise MCSplatError(message)
+        if self.budget is not None:
+            budget_seconds(self.budget)  # a one-line error for a budget it cannot read
+        if self.resolution_start is None:
+            self.resolution_start = BUDGET_RESOLUTION_START if self.budget is not None else 1.0
         if self.cap_max == "auto":
             self.mcmc.auto_cap = True
         elif self.cap_max is not None:
@@ -126,6 +161,25 @@ class TrainConfig:
     @property
     def run_dir(self) -> Path:
         return self.out if self.out is not None else Path("runs") / Path(self.data).resolve().name
+
+
+BUDGET_RESOLUTION_START = 0.25  # --budget trains coarse to fine from a quarter of the image size
+_UNITS = {"s": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
+
+
+def budget_seconds(text: str) -> float:
+    """Seconds of a --budget: '10m', '90s', '1.5h', '2min' or a plain number of minutes."""
+    value = str(text).strip().lower()
+    unit = next((u for u in sorted(_UNITS, key=len, reverse=True) if value.endswith(u)), None)
+    number = value[:-len(unit)] if unit else value
+    try:
+        seconds = float(number) * _UNITS[unit or "m"]
+    except ValueError:
+        seconds = float("nan")
+    if not (seconds > 0 and seconds < float("inf")):
+        raise MCSplatError(f"--budget {text!r} is not a duration: give minutes ('10'), or a number with s, m or h "
+                           "('90s', '10m', '1.5h')")
+    return seconds
 
 
 def to_jsonable(config: Any) -> Any:
@@ -139,22 +193,31 @@ def to_jsonable(config: Any) -> Any:
 
 
 def from_jsonable(data: dict) -> TrainConfig:
-    """Rebuild a TrainConfig from config.json (unknown keys are an error: the file belongs to another version)."""
-    def build(cls, values):
+    """Rebuild a TrainConfig from config.json (unknown keys are an error: the file belongs to another version; so is
+    a value of the wrong type or out of range: the file was edited by hand)."""
+    def build(cls, values, prefix=""):
         kwargs = {}
-        hints = {f.name: f for f in dataclasses.fields(cls)}
+        hints = option_types(cls)
+        if not isinstance(values, dict):
+            raise MCSplatError(f"config.json: {prefix.rstrip('.') or 'the file'} must be an object {{...}}")
         for key, value in values.items():
             if key not in hints:
                 raise MCSplatError(f"config.json: unknown option {key!r} (written by another mcsplat version?)")
             nested = {"model": ModelConfig, "optim": OptimConfig, "mcmc": MCMCConfig, "adc": ADCConfig}
             if cls is TrainConfig and key in nested:
-                value = build(nested[key], value)
+                value = build(nested[key], value, f"{key}.")
+            elif not fits(value, hints[key]):
+                raise MCSplatError(f"config.json: {prefix}{key} is {json.dumps(value)}, not {describe(hints[key])}; "
+                                   f"put back the value mcsplat wrote there")
             elif key in ("data", "out") and value is not None:
                 value = Path(value)
             elif isinstance(value, list):
                 value = tuple(value)
             kwargs[key] = value
-        return cls(**kwargs)
+        try:
+            return cls(**kwargs)
+        except (ValueError, TypeError) as error:  # MCSplatError (TrainConfig's own checks) passes through
+            raise MCSplatError(f"config.json: {prefix}{error}; put back the value mcsplat wrote there") from None
     return build(TrainConfig, data)
 
 

@@ -100,6 +100,7 @@ class StepDone:
     sh_degree: int
     train_seconds: float  # training time so far, pauses and consumers not counted
     refine: RefineReport | None = None  # what the strategy did after this step's optimizer step
+    resolution: float = 1.0  # the share of the image size the step trained at (coarse to fine)
 
 
 @dataclass(frozen=True)
@@ -141,6 +142,7 @@ class Control:
     lock: threading.RLock = field(default_factory=threading.RLock)
     _running: threading.Event = field(default_factory=threading.Event)
     _stop: threading.Event = field(default_factory=threading.Event)
+    _checkpoint: threading.Event = field(default_factory=threading.Event)
 
     def __post_init__(self) -> None:
         self._running.set()
@@ -155,6 +157,18 @@ class Control:
         """Ask the loop to stop after the current step (it saves a checkpoint and says how to resume)."""
         self._stop.set()
         self._running.set()
+
+    def request_checkpoint(self) -> None:
+        """Ask the loop to write a checkpoint after a coming step (with several processes: the step after the
+        request reaches the others with the gradients)."""
+        self._checkpoint.set()
+
+    def checkpoint_done(self) -> None:
+        self._checkpoint.clear()
+
+    @property
+    def checkpoint_requested(self) -> bool:
+        return self._checkpoint.is_set()
 
     @property
     def paused(self) -> bool:

@@ -2,13 +2,15 @@
 reads a trained run back (`load`).
 
     RUN/config.json          the resolved configuration (what --resume continues with)
-    RUN/checkpoint.pt        model, Adam state, strategy state, RNG states, step (written atomically)
+    RUN/checkpoint.pt        model, Adam state, strategy state, RNG states, step (written atomically, checksummed)
+    RUN/checkpoint.prev.pt   the checkpoint before it (what to fall back to when checkpoint.pt is damaged)
     RUN/log.jsonl            a record every 100 steps and at each periodic evaluation
     RUN/metrics.json         the final (or last `mcsplat eval`) scores and counts
     RUN/point_cloud.ply      the trained Gaussians, dead ones left out
     RUN/mesh.ply             `mcsplat export --format mesh`'s surface (the report shows it when it is there)
     RUN/renders/<split>/     the test renders as PNG (and `mcsplat render`'s output; <split>.mp4 its video)
     RUN/report.html, plots/  the run report
+    RUN/.lock                while a command writes the folder: who it is (io/lock.py)
 
 Only this module spells out these names; everything else asks a RunDir for them.
 """
@@ -17,23 +19,30 @@ from __future__ import annotations
 
 import functools
 import json
+import math
+import os
+import shutil
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import torch
 
-from .config import PROCESS_OPTIONS, TrainConfig, load_config, save_config
-from .data import Scene, load_scene
-from .errors import MCSplatError
+from .budget import SCHEDULE_KEYS
+from .config import PROCESS_OPTIONS, TrainConfig, load_config, save_config, to_jsonable
+from .data import Scene, detect_kind, load_scene
+from .errors import DataError, MCSplatError
 from .gaussians import DEAD_OPACITY, GaussianModel
-from .io.atomic import atomic_write_text, remove_stale_temporaries
-from .io.checkpoint import load_checkpoint, save_checkpoint
+from .io.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
+from .io.checkpoint import DamagedCheckpoint, load_checkpoint, save_checkpoint
+from .io.disk import writing_into
+from .io.lock import FolderLock
 from .io.ply import write_ply
 from .schedule import final_sh_degree
 
 CONFIG = "config.json"
 CHECKPOINT = "checkpoint.pt"
+PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"
 LOG = "log.jsonl"
 METRICS = "metrics.json"
 SPLATS = "point_cloud.ply"
@@ -41,7 +50,11 @@ MESH = "mesh.ply"
 RENDERS = "renders"
 REPORT = "report.html"
 PLOTS = "plots"
+LOCK = ".lock"
 MARKERS = (CONFIG, CHECKPOINT, METRICS, SPLATS)  # any of them: the folder holds a run
+# What --resume may change: the process options, and where the scene and the run folder now are.
+RESUME_MAY_CHANGE = frozenset(PROCESS_OPTIONS) | {"data", "out", "resume", "overwrite"}
+PLANNED = frozenset(("steps", "mcmc.cap_max", "adc.cap_max") + SCHEDULE_KEYS)  # --budget's (budget.py)
 
 Background = tuple[float, float, float]
 
@@ -53,12 +66,14 @@ class RunDir:
         self.path = Path(path)
         self.config_file = self.path / CONFIG
         self.checkpoint_file = self.path / CHECKPOINT
+        self.previous_checkpoint_file = self.path / PREVIOUS_CHECKPOINT
         self.log_file = self.path / LOG
         self.metrics_file = self.path / METRICS
         self.splats_file = self.path / SPLATS
         self.mesh_file = self.path / MESH
         self.report_file = self.path / REPORT
         self.plots_folder = self.path / PLOTS
+        self.lock_file = self.path / LOCK
 
     def __repr__(self) -> str:
         return f"RunDir({str(self.path)!r})"
@@ -75,11 +90,29 @@ class RunDir:
         return self.path / RENDERS / f"{split}.mp4"
 
     def render_file(self, split: str, view_name: str) -> Path:
-        """Where a view's render is written: RUN/renders/<split>/<view's file stem>.png."""
+        """Where a view's render is written: RUN/renders/<split>/<view's name>.png."""
         return render_file(self.renders_folder(split), view_name)
 
     def holds_run(self) -> bool:
         return self.path.is_dir() and any((self.path / marker).exists() for marker in MARKERS)
+
+    def own_files(self) -> list[Path]:
+        """The files that hold the run's state and records: no command's output may replace them."""
+        return [self.config_file, self.checkpoint_file, self.previous_checkpoint_file, self.log_file,
+                self.metrics_file, self.report_file, self.lock_file]
+
+    def is_own_file(self, path: str | Path) -> bool:
+        return Path(path).resolve() in {own.resolve() for own in self.own_files()}
+
+    def contains(self, path: str | Path) -> bool:
+        return Path(path).resolve().is_relative_to(self.path.resolve())
+
+    def lock(self, command: str) -> FolderLock:
+        """The folder's writer lock for `command` (`with run.lock("mcsplat eval"): ...`); only for a folder that
+        holds a run (a new run's folder is locked by `prepare`)."""
+        if not self.config_file.is_file():
+            self.read_config()  # the one-line "not a run directory" error
+        return FolderLock(self.lock_file, command)
 
     # --------------------------------------------------------------------------------------------- reading
     def read_config(self) -> TrainConfig:
@@ -88,7 +121,31 @@ class RunDir:
         return load_config(self.config_file)
 
     def read_checkpoint(self) -> dict[str, Any]:
-        return load_checkpoint(self.checkpoint_file)
+        try:
+            return load_checkpoint(self.checkpoint_file)
+        except DamagedCheckpoint as error:
+            if self.previous_checkpoint_file.is_file():
+                advice = (f"go back to the checkpoint before it with `mv {self.previous_checkpoint_file} "
+                          f"{self.checkpoint_file}`, or start again with --overwrite")
+            else:
+                advice = "there is no older checkpoint to go back to; start again with --overwrite"
+            raise MCSplatError(f"{error}; {advice}") from None
+
+    def read_checkpoint_of(self, config: TrainConfig) -> dict[str, Any]:
+        """The checkpoint that `config` (config.json) resumes from; refused when config.json no longer says what the
+        checkpoint was trained with (edited by hand: another strategy, another SH degree...)."""
+        state = self.read_checkpoint()
+        trained, now = _flat(state.get("config") or {}), _flat(to_jsonable(config))
+        # --budget plans these as it goes and plans them again on resume: config.json may be a plan behind.
+        planned = PLANNED if config.budget is not None else ()
+        for key in sorted(trained.keys() & now.keys()):
+            if key.split(".")[0] in RESUME_MAY_CHANGE or key in planned or key.startswith("budget_plan."):
+                continue
+            if trained[key] != now[key]:
+                raise MCSplatError(f"{self.config_file}: {key} is {json.dumps(now[key])}, but {CHECKPOINT} was trained "
+                                   f"with {json.dumps(trained[key])}; put that value back, or start a new run with "
+                                   f"--overwrite")
+        return state
 
     def read_metrics(self) -> dict[str, Any]:
         """metrics.json, or {} before the run has finished once."""
@@ -104,7 +161,32 @@ class RunDir:
     def write_config(self, config: TrainConfig) -> None:
         save_config(config, self.config_file)
 
+    def begin(self, config: TrainConfig, step: int) -> None:
+        """The run's files as training starts at `step`, once its set-up has succeeded. A new run writes its
+        configuration and empties the log; with --overwrite it also removes the old run's checkpoints, which a
+        --resume of the new configuration must not continue from. A resumed run cuts the log back to its
+        checkpoint's step (a run killed between two checkpoints logged steps that will now be trained again)."""
+        if config.resume:
+            self.cut_log(step)
+            return
+        self.write_config(config)
+        self.cut_log(0)
+        for old in (self.checkpoint_file, self.previous_checkpoint_file):
+            old.unlink(missing_ok=True)
+
+    def cut_log(self, step: int) -> None:
+        """Keep the log's records up to `step` (and drop a line cut short by a kill)."""
+        if not self.log_file.is_file():
+            return
+        kept = [line for line in self.log_file.read_text().splitlines(keepends=True)
+                if line.endswith("\n") and _logged_step(line) <= step]
+        atomic_write_text(self.log_file, "".join(kept))
+
     def write_checkpoint(self, state: dict[str, Any]) -> None:
+        """checkpoint.pt, the one it replaces kept as checkpoint.prev.pt (a hard link made before the write, so that
+        checkpoint.pt never stops existing)."""
+        if self.checkpoint_file.is_file():
+            keep_as_previous(self.checkpoint_file, self.previous_checkpoint_file)
         save_checkpoint(self.checkpoint_file, state)
 
     def write_metrics(self, metrics: dict[str, Any]) -> None:
@@ -121,9 +203,42 @@ class RunDir:
         return write_ply(self.splats_file, dict(model.params.items()), keep=alive(model))
 
 
+def _flat(options: dict, prefix: str = "") -> dict[str, Any]:
+    """{"mcmc": {"cap_max": 5}} -> {"mcmc.cap_max": 5}."""
+    flat = {}
+    for key, value in options.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def _logged_step(line: str) -> float:
+    """The step of a log record; infinity for a line that is not one (so that cutting the log drops it)."""
+    try:
+        return float(json.loads(line)["step"])
+    except (ValueError, KeyError, TypeError):
+        return math.inf
+
+
+def keep_as_previous(current: Path, previous: Path) -> None:
+    """Make `previous` the same file as `current` (replacing it in one step), or a copy where links are not
+    allowed."""
+    with atomic_path(previous) as tmp:
+        tmp.unlink()
+        try:
+            os.link(current, tmp)
+        except OSError:
+            shutil.copyfile(current, tmp)
+
+
 def render_file(folder: Path, view_name: str) -> Path:
-    """A view's render inside `folder`: the view's file stem as a PNG."""
-    return folder / f"{Path(view_name).stem}.png"
+    """A view's render inside `folder`: the view's name (its image's path in the scene, without the extension) as a
+    PNG, sub-folders kept, so that two images of one name in two sub-folders keep two renders. Parts that would lead
+    out of `folder` are left out."""
+    parts = [part for part in PurePosixPath(view_name.replace("\\", "/")).parts if part not in ("/", ".", "..")]
+    return folder.joinpath(*parts[:-1], f"{parts[-1] if parts else 'view'}.png")
 
 
 def alive(model: GaussianModel) -> torch.Tensor:
@@ -132,22 +247,33 @@ def alive(model: GaussianModel) -> torch.Tensor:
 
 
 # --------------------------------------------------------------------------------------------- starting a run
-def prepare(config: TrainConfig) -> TrainConfig:
-    """Make the run folder ready for `config` and return the configuration to train with: `config` itself for a
-    new run; on --resume the run's saved configuration with this command line's process options. A folder holding
-    a run is refused without --resume or --overwrite."""
+def train_lock(config: TrainConfig) -> FolderLock:
+    """The lock a training run holds on its folder from `prepare` to its end (the caller releases it)."""
+    return FolderLock(RunDir(config.run_dir).lock_file, "mcsplat train")
+
+
+def prepare(config: TrainConfig, lock: FolderLock) -> TrainConfig:
+    """Make the run folder ready for `config`, take its `lock`, and return the configuration to train with:
+    `config` itself for a new run; on --resume the run's saved configuration with this command line's process
+    options. A folder holding a run is refused without --resume or --overwrite."""
     run = RunDir(config.run_dir)
     if run.path.exists() and not run.path.is_dir():
         raise MCSplatError(f"--out {run.path}: exists and is not a directory")
     if config.resume:
         if not run.checkpoint_file.is_file():
             raise MCSplatError(f"--resume: {run.path} has no {CHECKPOINT} to continue from")
+    else:
+        refuse_scene_folder(run.path, Path(config.data))
+        if run.holds_run() and not config.overwrite:
+            raise MCSplatError(f"{run.path} already holds a run; pass --resume to continue it, --overwrite to "
+                               f"replace its files, or --out to choose another directory")
+    with writing_into(run.path.parent):
+        run.path.mkdir(parents=True, exist_ok=True)
+    lock.acquire()
+    if config.resume:
         # A run killed while writing its checkpoint leaves the half-written temporary beside it.
         remove_stale_temporaries(run.checkpoint_file)
-    elif run.holds_run() and not config.overwrite:
-        raise MCSplatError(f"{run.path} already holds a run; pass --resume to continue it, --overwrite to replace "
-                           f"its files, or --out to choose another directory")
-    run.path.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(run.previous_checkpoint_file)
     if not config.resume:
         return config
     saved = run.read_config()
@@ -155,6 +281,21 @@ def prepare(config: TrainConfig) -> TrainConfig:
         setattr(saved, key, getattr(config, key))
     saved.out, saved.resume = run.path, True  # where the run is now (the folder may have been moved)
     return saved
+
+
+def refuse_scene_folder(out: Path, data: Path) -> None:
+    """A run folder is never a scene folder, nor inside the scene it trains on: mcsplat writes nothing there."""
+    out, data = out.resolve(), data.resolve()
+    if out == data or out.is_relative_to(data):
+        raise MCSplatError(f"--out {out} is inside the scene folder {data}, which mcsplat never writes into; give "
+                           f"a run folder elsewhere (the default is runs/{data.name} in the current folder)")
+    if out.is_dir():
+        try:
+            kind = detect_kind(out)
+        except DataError:
+            return
+        raise MCSplatError(f"--out {out} holds a {kind} scene, which mcsplat never writes into; give another run "
+                           f"folder")
 
 
 def check_resumable(config: TrainConfig, world_size: int) -> None:

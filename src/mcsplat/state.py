@@ -74,10 +74,12 @@ class TrainingState:
     sampler: ViewSampler
     step: int = 0  # steps done
     train_seconds: float = 0.0  # time spent in steps (pauses, evaluations and consumers not counted)
+    wall_seconds: float = 0.0  # time spent in the training loop, pauses not counted (what --budget counts)
 
     def checkpoint(self, config: TrainConfig, strategies: list[dict]) -> dict[str, Any]:
         """What checkpoint.pt holds; `strategies` is every process's strategy state (rank 0's first)."""
-        return {"step": self.step, "train_seconds": self.train_seconds, "model": self.model.state_dict(),
+        return {"step": self.step, "train_seconds": self.train_seconds, "wall_seconds": self.wall_seconds,
+                "model": self.model.state_dict(),
                 "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
                 "strategy": strategies[0], "strategy_per_process": strategies if len(strategies) > 1 else None,
                 "generator": self.generator.get_state(), "sampler": self.sampler.state_dict(),
@@ -85,7 +87,7 @@ class TrainingState:
 
 
 def start(config: TrainConfig, scene: Scene, device: torch.device, team: Team,
-          checkpoint: dict[str, Any] | None = None) -> tuple[TrainingState, str]:
+          checkpoint: dict[str, Any] | None = None, progress: bool = False) -> tuple[TrainingState, str]:
     """(the state of step 0, or the one `checkpoint` holds; a note on where it came from). Every process calls it;
     a fresh model is rank 0's on all of them."""
     torch.manual_seed(config.seed)
@@ -93,7 +95,7 @@ def start(config: TrainConfig, scene: Scene, device: torch.device, team: Team,
     sampler = ViewSampler(len(scene.train), config.seed)
     radius, pixels = scene.radius, training_image_pixels(scene)
     if checkpoint is None:
-        model, note = initial_model(config, scene, device, generator)
+        model, note = initial_model(config, scene, device, generator, progress)
         team.share_parameters(model)
         optimizers = make_optimizers(model, config.optim, radius)
         strategy = make_strategy(config, radius, generator, pixels)
@@ -108,7 +110,8 @@ def start(config: TrainConfig, scene: Scene, device: torch.device, team: Team,
         generator.set_state(checkpoint["generator"])
         sampler.load_state_dict(checkpoint["sampler"])
         state = TrainingState(model, optimizers, strategy, generator, sampler, step=checkpoint["step"],
-                              train_seconds=checkpoint["train_seconds"])
+                              train_seconds=checkpoint["train_seconds"],
+                              wall_seconds=checkpoint.get("wall_seconds", checkpoint["train_seconds"]))
         note = f"resumed at step {state.step:,}"
     strategy.collective = team.collective
     return state, note

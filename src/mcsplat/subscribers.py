@@ -6,12 +6,14 @@ Each is small and knows only the events it listens to; train.train() subscribes 
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Callable
 
 from tqdm import tqdm
 
-from .events import EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
+from .events import CheckpointWritten, EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
+from .io.disk import writing_into
 from .metrics import LPIPS_HINT
 from .run_dir import RunDir
 from .visibility import describe
@@ -31,6 +33,8 @@ class ProgressBar(Subscriber):
                         dynamic_ncols=True, unit="step", mininterval=0.5)
 
     def on_step_done(self, event: StepDone) -> None:
+        if self.bar.total != event.total_steps:  # --budget plans the steps as it goes
+            self.bar.total = event.total_steps
         self.bar.update(1)
         if event.step % 10 == 0 or event.step == event.total_steps:
             self.bar.set_postfix(loss=f"{event.loss:.4f}", psnr=f"{event.train_psnr:.2f}",
@@ -55,6 +59,8 @@ class ConsoleLog(Subscriber):
         scene, config = run.scene, run.config
         processes = run.world_size
         steps = f"{config.steps:,} steps" + (f" of {processes} views ({processes} processes)" if processes > 1 else "")
+        if config.budget is not None:
+            steps = f"a {config.budget} budget (steps, cap and resolution planned as it runs)"
         self.write(f"mcsplat: {scene.kind} scene {scene.root.name}: {len(scene.train)} train / {len(scene.test)} "
                    f"test views, {config.strategy} strategy, init {event.init_note}, {steps} on {run.device}")
 
@@ -72,6 +78,9 @@ class ConsoleLog(Subscriber):
         self.write(f"test PSNR {evaluation.psnr:.2f} dB, SSIM {evaluation.ssim:.4f}, LPIPS-{m['lpips_net']} "
                    f"{lpips_text} on {evaluation.views} views; {m['num_gaussians']:,} Gaussians, "
                    f"{m['train_seconds']:.0f} s of training")
+        if "budget_seconds" in m:
+            self.write(f"budget: {m['steps']:,} steps in {m['wall_seconds']:.0f} s of the {m['budget_seconds']:.0f} s "
+                       "budget (set-up, the final evaluation and the export not counted)")
         if evaluation.lpips is None:
             self.write(f"hint: {LPIPS_HINT}")
         run_dir = RunDir(event.run.run_dir)
@@ -105,7 +114,8 @@ class LogWriter(Subscriber):
         record = None
         if event.step % LOG_EVERY == 0 or event.step == event.total_steps:
             record = {"step": event.step, "loss": round(event.loss, 6), "train_psnr": round(event.train_psnr, 3),
-                      "num_gaussians": event.num_gaussians, "elapsed_seconds": round(event.train_seconds, 2)}
+                      "num_gaussians": event.num_gaussians, "elapsed_seconds": round(event.train_seconds, 2),
+                      "resolution": round(event.resolution, 4)}
             record.update(self.counts)
             self.counts = {}
         if self.evaluation is not None and self.evaluation.step == event.step:
@@ -114,20 +124,33 @@ class LogWriter(Subscriber):
             record.update(test_psnr=round(self.evaluation.psnr, 3), test_ssim=round(self.evaluation.ssim, 4))
             self.evaluation = None
         if record is not None:
-            with open(self.path, "a") as f:
+            with writing_into(self.path.parent), open(self.path, "a") as f:
                 f.write(json.dumps(record) + "\n")
 
 
 class Checkpointer(Subscriber):
-    """Saves the run's checkpoint every `every` steps (0 = only at the end and on stop, which the run does itself)."""
+    """Saves the run's checkpoint every `every` steps, and asks for one when `minutes` have passed since the last
+    (0 = never; the run saves at the end and on stop itself).
 
-    def __init__(self, every: int):
-        self.every = every
+    Steps are the same on every process, so each saves at once; time is not, so a save by time is asked for through
+    the run's Control and agreed between the processes with the next step (trainer.TrainingRun)."""
+
+    def __init__(self, every: int, minutes: float = 0.0):
+        self.every, self.minutes = every, minutes
         self.run = None
+        self.last_save = 0.0  # time.monotonic() of the last checkpoint (or of the start)
 
     def on_run_started(self, event: RunStarted) -> None:
         self.run = event.run
+        self.last_save = time.monotonic()
+
+    def on_checkpoint_written(self, event: CheckpointWritten) -> None:
+        self.last_save = time.monotonic()
 
     def on_step_done(self, event: StepDone) -> None:
-        if self.every and event.step % self.every == 0 and event.step < event.total_steps:
+        if event.step >= event.total_steps:
+            return
+        if self.every and event.step % self.every == 0:
             self.run.save_checkpoint()
+        elif self.minutes and time.monotonic() - self.last_save >= 60.0 * self.minutes:
+            self.run.control.request_checkpoint()

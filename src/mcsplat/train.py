@@ -10,7 +10,7 @@ from .config import TrainConfig
 from .distributed import join
 from .errors import MCSplatError
 from .events import Control, Listener
-from .run_dir import RunDir
+from .run_dir import RunDir, train_lock
 from .subscribers import Checkpointer, ConsoleLog, LogWriter, ProgressBar
 from .trainer import TrainingRun
 
@@ -21,11 +21,12 @@ def standard_subscribers(config: TrainConfig, run_dir: Path) -> list[Listener]:
     from .report import ReportWriter  # matplotlib: loaded only when training
 
     subscribers = [ProgressBar(config.quiet), ConsoleLog(config.quiet), LogWriter(RunDir(run_dir).log_file),
-                   Checkpointer(config.save_every), ReportWriter(config.quiet)]
+                   Checkpointer(config.save_every, config.save_every_minutes), ReportWriter(config.quiet)]
     if config.viewer:
         from .viewer import TrainingViewer
 
-        subscribers.append(TrainingViewer(host=config.host, port=config.port, quiet=config.quiet))
+        subscribers.append(TrainingViewer(host=config.host, port=config.port, quiet=config.quiet,
+                                          origins=config.viewer_origin))
     return subscribers
 
 
@@ -34,15 +35,18 @@ def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Co
     """Run the whole job with the standard consumers plus `subscribers`; returns the final metrics."""
     if config.viewer:
         from .viewer import require_viser
+        from .viewer.access import check_listen_address
 
         require_viser()  # before the run directory is made: a missing extra must not leave a half-started run
+        check_listen_address(config.host, config.port)
     team = join(config.device, config.dist_timeout)
+    lock = train_lock(config)
     finished = False
     try:
         if config.viewer and team.world_size > 1:
             raise MCSplatError("--viewer does not work with several training processes yet (pausing one would "
                                "stall the others); watch the run's checkpoints with `mcsplat view RUN` instead")
-        run = TrainingRun(config, control, team)
+        run = TrainingRun(config, control, team, lock)
         # The other processes take part in each checkpoint (save_checkpoint), without writing anything.
         consumers = standard_subscribers(run.config, run.run_dir) + list(subscribers) if team.is_main else \
             [Checkpointer(run.config.save_every)]
@@ -50,4 +54,5 @@ def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Co
         finished = True
         return metrics
     finally:
+        lock.release()  # when the run could not start (it releases the lock itself once started)
         team.close(finished)

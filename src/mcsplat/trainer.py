@@ -12,6 +12,7 @@ scoring evaluation.py's; train.py puts a run together with its consumers.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import signal
 import time
@@ -22,26 +23,31 @@ from typing import Any, Callable, Protocol, Sequence
 import torch
 
 from . import __version__, losses, render, run_dir
+from .budget import BudgetPlanner
 from .compute.compile import compile_kernels, modules_to_compile
 from .compute.device import resolve_device
 from .config import PROCESS_OPTIONS, TrainConfig, to_jsonable
 from .data import Scene, View
-from .distributed import SingleProcess, Team, scaled_for_processes, threads_per_process
+from .distributed import SingleProcess, Team, command_for, scaled_for_processes, threads_per_process
 from .errors import MCSplatError
 from .evaluation import Evaluation, evaluate, seen_in_views
 from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Listener, RefineDone, RunFinished,
                      RunStarted, StepDone)
-from .gaussians import GaussianModel
+from .gaussians import PARAM_KEYS, GaussianModel
+from .io.lock import FolderLock
 from .losses import photometric_loss
 from .metrics import psnr
-from .optim import means_lr_at, set_means_lr
+from .optim import make_optimizers, means_lr_at, set_means_lr
 from .render import RenderResult, set_cpu_threads
-from .schedule import final_sh_degree, sh_degree_at
-from .state import start
+from .schedule import final_sh_degree, fitted_to_steps, planned_growth_rate, resolution_at, sh_degree_at
+from .state import make_strategy, start, training_image_pixels
+from .strategy.auto_cap import pixel_ceiling
 from .strategy.base import RefineReport, changed
+from .strategy.mcmc import prune_to_cap
 from .visibility import count_invisible
 
 PREFETCH_VIEWS = 2  # images decoded in the background ahead of their step (a no-op when all are in memory)
+CALIBRATION_SMALL, CALIBRATION_LARGE = 2000, 3  # --budget times models of 2,000 and of 3x the starting Gaussians
 
 
 @dataclass
@@ -80,8 +86,8 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
     the gradients (and the two values) over them (distributed/team.py)."""
     lap = phases.lap if phases is not None else (lambda phase: None)
     set_means_lr(optimizers, means_lr_at(step, config.steps, config.optim, scene_radius))
-    target = view.image_float(device)
-    camera = view.camera.to(device)
+    camera = view.camera_at(resolution_at(config, step)).to(device)  # coarse to fine, when configured
+    target = view.image_float(device, size=(camera.width, camera.height))
     lap("other")
     result = render.render(model, camera, background, sh_degree_at(config, step))
     lap("render")
@@ -115,11 +121,14 @@ def step_kernels(device: torch.device) -> list:
 
 
 class _CtrlC:
-    """Ctrl-C asks the run to stop at the end of the current step (a second Ctrl-C stops at once)."""
+    """Ctrl-C, and SIGTERM (what `kill`, `timeout`, docker, SLURM and Kubernetes send), ask the run to stop at the
+    end of the current step, which saves a checkpoint (a second signal stops at once)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self, control: Control) -> None:
         self.control = control
-        self._previous = None
+        self._previous: dict = {}
 
     def __enter__(self):
         def handler(signum, frame):
@@ -127,14 +136,17 @@ class _CtrlC:
                 raise KeyboardInterrupt
             self.control.stop()
         try:
-            self._previous = signal.signal(signal.SIGINT, handler)
-        except ValueError:  # not the main thread: leave Ctrl-C alone
-            self._previous = None
+            for number in self.SIGNALS:
+                self._previous[number] = signal.signal(number, handler)
+        except ValueError:  # not the main thread: leave the signals alone
+            pass
         return self
 
     def __exit__(self, *exc) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
+        for number, previous in self._previous.items():
+            if previous is not None:  # None: a handler set outside Python, which cannot be put back
+                signal.signal(number, previous)
+        self._previous = {}
 
 
 class TrainingRun:
@@ -144,19 +156,21 @@ class TrainingRun:
     With several processes (`team`, see mcsplat.distributed) every process runs this same loop on its own views;
     rank 0 alone reads and writes the run directory and has subscribers."""
 
-    def __init__(self, config: TrainConfig, control: Control | None = None, team: Team | None = None):
+    def __init__(self, config: TrainConfig, control: Control | None = None, team: Team | None = None,
+                 lock: FolderLock | None = None):
         self.team = team = team or SingleProcess()
         team.check_same_setup(_setup_of(config))
         local = config
-        config = team.on_main(lambda: run_dir.prepare(local))
+        self.lock = lock or run_dir.train_lock(config)  # rank 0 takes it in prepare; run() releases it
+        config = team.on_main(lambda: run_dir.prepare(local, self.lock))
         # This process's own options. The data path is its own too (it may differ between machines; the scenes are
         # compared below), except that a resumed run in one process trains on the data it started with.
         for key in PROCESS_OPTIONS + (() if config.resume and team.is_main else ("data",)):
             setattr(config, key, getattr(local, key))
         if config.resume:
             run_dir.check_resumable(config, team.world_size)
-        else:
-            config = scaled_for_processes(config, team.world_size)
+        else:  # a fixed number of steps gets its schedules fitted here; --budget fits them as it plans
+            config = scaled_for_processes(config if config.budget else fitted_to_steps(config), team.world_size)
         self.config = config
         self.folder = run_dir.RunDir(config.run_dir)
         self.run_dir = self.folder.path
@@ -169,11 +183,17 @@ class TrainingRun:
         self.scene: Scene = run_dir.scene_of(config)
         team.check_same_setup(_scene_summary(self.scene))
         self.background = run_dir.background_of(config, self.scene)
-        checkpoint = team.on_main(self.folder.read_checkpoint) if config.resume else None
-        self.state, self.init_note = start(config, self.scene, self.device, team, checkpoint)
-        if not config.resume and team.is_main:
-            self.folder.write_config(config)
-        self._stop_vote = False  # several processes: whether any of them asked to stop, agreed with the gradients
+        checkpoint = team.on_main(lambda: self.folder.read_checkpoint_of(config)) if config.resume else None
+        self.state, self.init_note = start(config, self.scene, self.device, team, checkpoint,
+                                           progress=not config.quiet and team.is_main)
+        self.planner = self._budget_planner()
+        if not config.resume:
+            self._plan_growth()
+        if team.is_main:
+            self.folder.begin(config, self.state.step)
+        # Several processes: whether any of them asked to stop / for a checkpoint, agreed with the gradients.
+        self._stop_vote = self._save_vote = False
+        self._saved_at = -1  # the step of the last checkpoint written
         self._emit: Listener = lambda event: None
 
     @property
@@ -184,13 +204,66 @@ class TrainingRun:
     def world_size(self) -> int:
         return self.team.world_size
 
+    def _plan_growth(self) -> None:
+        """With --cap-max, MCMC grows fast enough to reach that cap (or the automatic cap's ceiling) by growth_share
+        of the run; the default cap (the paper's 1M) is a ceiling, not a target. Under --budget the planner sets the
+        rate as it plans the cap."""
+        if self.config.strategy == "mcmc" and self.config.cap_max is not None and self.planner is None:
+            self.config.mcmc.grow_rate = planned_growth_rate(self.config, self.state.model.num_gaussians,
+                                                             self.state.strategy.ceiling)
+
+    def _budget_planner(self) -> BudgetPlanner | None:
+        """--budget: the planner, bounded by --cap-max and the automatic cap's 3 Gaussians per pixel."""
+        config = self.config
+        if config.budget is None:
+            return None
+        if self.team.world_size > 1:
+            raise MCSplatError("--budget does not work with several training processes yet (each would plan its own "
+                               "steps); give --steps instead")
+        cap = config.mcmc.cap_max if config.strategy == "mcmc" else (config.adc.cap_max or config.mcmc.cap_max)
+        ceiling = pixel_ceiling(cap, training_image_pixels(self.scene), config.mcmc.gaussians_per_pixel)
+        return BudgetPlanner(config, ceiling)
+
+    def _start_budget(self) -> None:
+        """Time a few steps, make the first plan, and cut an initialisation larger than it affords."""
+        state = self.state
+        self._calibrate()
+        self.planner.start(state.step, state.wall_seconds, state.model.num_gaussians)
+        if self.config.strategy == "mcmc" and state.step == 0:
+            prune_to_cap(state.model, state.optimizers, self.config.mcmc.cap_max)
+
+    def _calibrate(self) -> None:
+        """Time steps of throwaway copies of the model, small and large, at full size and at the starting size, so
+        that the first plan knows what pixels and Gaussians cost (not counted in the budget)."""
+        config, state = self.config, self.state
+        count = state.model.num_gaussians
+        small = min(count, CALIBRATION_SMALL)
+        views = self.scene.train[:2]
+        for gaussians, scale in ((small, 1.0), (small, config.resolution_start), (count, 1.0),
+                                 (CALIBRATION_LARGE * count, 1.0), (CALIBRATION_LARGE * count, config.resolution_start)):
+            probe = dataclasses.replace(config, resolution_start=scale, resolution_full_at=1.0, steps=10**9)
+            model = _resized(state.model, gaussians)
+            optimizers = make_optimizers(model, config.optim, self.scene.radius)
+            strategy = make_strategy(probe, self.scene.radius, torch.Generator(self.device).manual_seed(0))
+            for i, view in enumerate(views):
+                tick = time.perf_counter()
+                train_step(0, model, optimizers, strategy, view, config=probe, scene_radius=self.scene.radius,
+                           background=self.background, device=self.device)
+                if i:  # the first is a warm-up
+                    self.planner.calibrate(time.perf_counter() - tick, model.num_gaussians, scale)
+
     def save_checkpoint(self) -> None:
         """Rank 0 writes the checkpoint; every process calls this at the same steps, for the strategy's state
         differs between them (ADC's statistics of each process's own views) and rank 0 keeps them all."""
+        self._saved_at = self.state.step
         strategies = self.team.gather_on_main(self.state.strategy.state_dict())
         if not self.team.is_main:
             return
+        if self.planner is not None:  # --budget: config.json keeps the plan the checkpoint continues
+            self.config.budget_plan = self.planner.record()
+            self.folder.write_config(self.config)
         self.folder.write_checkpoint(self.state.checkpoint(self.config, strategies))
+        self.control.checkpoint_done()
         self._emit(CheckpointWritten(step=self.state.step, path=self.folder.checkpoint_file))
 
     def run(self, subscribers: Sequence[Listener]) -> dict[str, Any]:
@@ -203,12 +276,15 @@ class TrainingRun:
         try:
             emit(RunStarted(run=self, start_step=self.state.step, init_note=self.init_note))
             self.team.first_on_each_machine(lambda: self._compile_kernels(emit))
+            if self.planner is not None:
+                self._start_budget()
             with _CtrlC(self.control):
                 self._steps(emit)
             return self._finish(emit)
         finally:
             self._emit = lambda event: None
             _close_all(subscribers)
+            self.lock.release()
 
     def _compile_kernels(self, emit: Listener) -> None:
         """Compile (first run on a machine) or load the kernels before the first step, saying so when it compiles."""
@@ -220,8 +296,10 @@ class TrainingRun:
 
     def _reduce(self, model: GaussianModel, values: list[float]) -> list[float]:
         """The step's reduce (train_step): the stop requests of all processes travel with the gradients."""
-        *averaged, stop = self.team.reduce_step(model, values + [float(self.control.stop_requested)])
-        self._stop_vote = stop > 0
+        control = self.control
+        *averaged, stop, save = self.team.reduce_step(
+            model, values + [float(control.stop_requested), float(control.checkpoint_requested)])
+        self._stop_vote, self._save_vote = stop > 0, save > 0
         return averaged
 
     def _stop_now(self) -> bool:
@@ -229,36 +307,66 @@ class TrainingRun:
         # agreed on in the step's all-reduce (or one would stop while the others wait for it).
         return self.control.stop_requested if self.team.world_size == 1 else self._stop_vote
 
+    def _save_now(self) -> bool:
+        """A checkpoint asked for through Control (by time, see subscribers.Checkpointer), agreed as a stop is."""
+        if self._saved_at == self.state.step:  # the periodic checkpoint of this very step was written already
+            return False
+        return self.control.checkpoint_requested if self.team.world_size == 1 else self._save_vote
+
+    def _done(self) -> bool:
+        if self.planner is not None:
+            return self.planner.finished(self.state.step, self.state.wall_seconds)
+        return self.state.step >= self.config.steps
+
     def _steps(self, emit: Listener) -> None:
         config, control, team, state = self.config, self.control, self.team, self.state
         n = team.world_size
-        while state.step < config.steps:
+        while not self._done():
             control.wait_while_paused()
+            started = time.perf_counter()
             with control.lock:
                 tick = time.perf_counter()
                 view = self.scene.train[team.pick(state.sampler.take(n))]
                 for index in state.sampler.upcoming(PREFETCH_VIEWS * n)[team.rank::n]:  # decode ahead when images
                     self.scene.train[index].prefetch()                                   # are not all in memory
+                count, scale = state.model.num_gaussians, resolution_at(config, state.step)
                 done = train_step(state.step, state.model, state.optimizers, state.strategy, view, config=config,
                                   scene_radius=self.scene.radius, background=self.background, device=self.device,
                                   reduce=self._reduce)
                 if changed(done.refine):
                     emit(RefineDone(step=state.step, report=done.refine))
                 state.step += 1
-                state.train_seconds += time.perf_counter() - tick
+                seconds = time.perf_counter() - tick
+                state.train_seconds += seconds
                 step = state.step
                 team.check_identical(state.model, step)
                 if config.eval_every and step % config.eval_every == 0 and step < config.steps:
                     result = self._evaluate(sh_degree_at(config, step - 1))
                     emit(EvalDone(step=step, psnr=result.psnr, ssim=result.ssim,
                                   num_gaussians=state.model.num_gaussians))
+            state.wall_seconds += time.perf_counter() - started
+            if self.planner is not None:  # before StepDone, so that it carries the plan's steps
+                self._follow_budget(seconds, count, scale)
+            emitted = time.perf_counter()
             emit(StepDone(step=step, total_steps=config.steps, loss=done.loss, train_psnr=done.train_psnr,
                           num_gaussians=state.model.num_gaussians, sh_degree=sh_degree_at(config, step - 1),
-                          train_seconds=state.train_seconds, refine=done.refine))
+                          train_seconds=state.train_seconds, refine=done.refine, resolution=scale))
+            state.wall_seconds += time.perf_counter() - emitted
             if self._stop_now():
                 self.save_checkpoint()
                 raise MCSplatError(f"stopped at step {step:,}; the checkpoint is saved: continue with "
-                                   f"`mcsplat train {config.data} --out {self.run_dir} --resume`")
+                                   f"`{command_for(n)} train {config.data} --out {self.run_dir} --resume`")
+            if self._save_now():
+                self.save_checkpoint()
+
+    def _follow_budget(self, step_seconds: float, count: int, scale: float) -> None:
+        """--budget: measure the step, plan again when due (config.json keeps the plan)."""
+        state, planner = self.state, self.planner
+        planner.observe(step_seconds, count, scale)
+        if planner.due(state.step, state.wall_seconds):
+            planner.replan(state.step, state.wall_seconds, state.model.num_gaussians)
+        if planner.finished(state.step, state.wall_seconds):  # the time is up: this step is the last one
+            self.config.steps = state.step
 
     def _evaluate(self, sh_degree: int, lpips_net: str | None = None, save_renders: bool = False,
                   progress: bool = False) -> Evaluation:
@@ -269,6 +377,8 @@ class TrainingRun:
 
     def _finish(self, emit: Listener) -> dict[str, Any]:
         config, state, team = self.config, self.state, self.team
+        if self.planner is not None:  # the run ends at the step it reached: what the last plan said, or fewer
+            config.steps = state.step
         self.save_checkpoint()
         final_degree = final_sh_degree(config, state.step)
         evaluation = self._evaluate(final_degree, lpips_net=config.lpips_net, save_renders=config.save_renders,
@@ -282,6 +392,8 @@ class TrainingRun:
                    "exported_gaussians": exported, "steps": state.step, "train_seconds": round(state.train_seconds, 2),
                    "device": str(self.device), "strategy": config.strategy, "test_views": evaluation.views,
                    "sh_degree": final_degree, "processes": team.world_size,
+                   "wall_seconds": round(state.wall_seconds, 2),
+                   **({"budget_seconds": self.planner.budget} if self.planner is not None else {}),
                    "invisible_gaussians": invisible.as_dict(),
                    # --cap-max auto: where growth stopped (None: the demand never fell, the ceiling decided)
                    **({"auto_cap": strategy.chosen_cap, "auto_cap_ceiling": strategy.ceiling}
@@ -291,6 +403,12 @@ class TrainingRun:
             self.folder.write_metrics(metrics)
         emit(RunFinished(run=self, metrics=metrics, evaluation=evaluation))
         return metrics
+
+
+def _resized(model: GaussianModel, count: int) -> GaussianModel:
+    """A detached model of `count` Gaussians: the first `count` of `model`, or copies of it side by side."""
+    copies = -(-count // max(model.num_gaussians, 1))
+    return GaussianModel(*(torch.cat([model.params[key].detach()] * copies)[:count] for key in PARAM_KEYS))
 
 
 def _setup_of(config: TrainConfig) -> dict[str, Any]:

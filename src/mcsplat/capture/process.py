@@ -9,20 +9,26 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
-import sys
+import signal
 import tempfile
 import time
 import warnings
+from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from mcsplat.capture import frames
-from mcsplat.capture.sfm import Matcher, describe_camera
+from mcsplat.capture.child import run_worker, terminate_as_interrupt
+from mcsplat.capture.sfm import Matcher, describe_cameras
 from mcsplat.errors import MCSplatError
+from mcsplat.io.disk import writing_into
 
 MIN_SFM_SIZE = 1000  # long side in pixels under which SIFT starts to fragment the model (the cup at 200x150 did)
 SCENE_MARKERS = ("images", "sparse", "transforms.json", "transforms_train.json", "poses_bounds.npy")
+MANIFEST = "process.json"  # the summary of the run that made the scene, with the files it wrote
+# Disk space the work takes, roughly (the undistorted copies and a video's frames; the features' database): what
+# the error of a full disk says is needed.
+SPACE_PER_INPUT_BYTE, SPACE_PER_IMAGE = 3, 100_000
 
 
 @dataclass
@@ -50,12 +56,16 @@ class ProcessSummary:
     models: int
     camera: str
     undistorted_camera: str
+    image_sizes: dict[str, int] = field(default_factory=dict)  # "WxH" -> how many input images have that size
     seconds: dict[str, float] = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         stages = ", ".join(f"{name} {value:.1f} s" for name, value in self.seconds.items())
+        sizes = ", ".join(f"{count} at {size}" for size, count in self.image_sizes.items())
         return [f"registered: {self.registered} of {self.images} images ({self.models} model"
                 f"{'s' if self.models != 1 else ''} found, the largest kept; {self.matcher} matching)",
+                *([f"sizes:      the images come in {len(self.image_sizes)} sizes ({sizes}): one camera per size"]
+                  if len(self.image_sizes) > 1 else []),
                 f"points:     {self.points:,}, mean reprojection error {self.mean_reprojection_error:.2f} px",
                 f"camera:     {self.camera} -> {self.undistorted_camera}",
                 f"time:       {stages} (total {sum(self.seconds.values()):.1f} s)",
@@ -74,16 +84,33 @@ def process(source: str | os.PathLike, out: str | os.PathLike, options: ProcessO
                            f"({', '.join(frames.VIDEO_SUFFIXES)})")
     if source.is_dir() and (out == source or out.is_relative_to(source)):
         raise MCSplatError(f"--out {out} is inside the input folder {source}; write the scene somewhere else")
+    if source.is_relative_to(out):  # --overwrite would replace the folder that holds the input
+        raise MCSplatError(f"the input {source} is inside --out {out}; write the scene to another folder")
     _check_output(out, options.overwrite)
     photos = None if from_video else frames.list_photos(source)  # fail on a bad input before any work
-    out.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-    try:
-        return _process(source, out, work, photos, from_video, options)
-    except KeyboardInterrupt:  # while reading the video (the SfM child handles its own)
-        raise MCSplatError("interrupted: no scene was written (the partial work is removed)") from None
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+    needed = _space_needed(source, photos, options)
+    with writing_into(out.parent, needed):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, [])  # as it is now: _move_into_place blocks the signals
+    import pycolmap  # noqa: F401  (before our handlers: importing it installs glog's, which dumps a stack on SIGTERM)
+
+    with terminate_as_interrupt():
+        try:
+            with writing_into(out.parent, needed):
+                return _process(source, out, work, photos, from_video, options, needed)
+        except KeyboardInterrupt:  # while reading the video (the SfM child handles its own)
+            raise MCSplatError("interrupted: no scene was written (the partial work is removed)") from None
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a signal held back during the move arrives now
+
+
+def _space_needed(source: Path, photos: frames.Photos | None, options: ProcessOptions) -> int:
+    if photos is None:  # a video: its kept frames come to about its own size
+        return SPACE_PER_INPUT_BYTE * source.stat().st_size + SPACE_PER_IMAGE * (options.num_frames or 200)
+    return (SPACE_PER_INPUT_BYTE * sum((photos.folder / name).stat().st_size for name in photos.names)
+            + SPACE_PER_IMAGE * len(photos.names))
 
 
 def _check_output(out: Path, overwrite: bool) -> None:
@@ -101,36 +128,32 @@ def _check_output(out: Path, overwrite: bool) -> None:
     if not holds_scene:
         raise MCSplatError(f"--out {out} is not empty and holds no scene ({', '.join(sorted(entries)[:3])} ...); "
                            "give a new or empty folder")
+    if not (out / MANIFEST).is_file():
+        raise MCSplatError(f"--overwrite: {out} holds a scene that mcsplat process did not make (it has no "
+                           f"{MANIFEST}), and --overwrite replaces only those; choose another folder")
+    foreign = files_not_written_by_process(out)
+    if foreign:
+        raise MCSplatError(f"--overwrite: {out} holds files that mcsplat process did not write "
+                           f"({', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}), which replacing it would "
+                           "delete; move them out of it, or choose another folder")
 
 
-def _run_in_child(work: Path, photos: frames.Photos, from_video: bool, options: ProcessOptions) -> dict:
-    """Run SfM and undistortion in a child process (worker.py) and return what it reports (work/result.json).
+def files_in(folder: Path) -> list[str]:
+    """Every file below `folder`, as sorted paths relative to it."""
+    return sorted(str(path.relative_to(folder)) for path in folder.rglob("*") if not path.is_dir())
 
-    A child, not a thread: Ctrl-C cannot interrupt the main thread inside a long pycolmap call, and cancelling
-    pycolmap from another thread left its threads running into interpreter shutdown (an abort). The child ignores
-    SIGINT; on Ctrl-C the parent stops it and the partial work is thrown away with the work folder.
-    """
-    job = {"folder": str(photos.folder), "names": photos.names, "from_video": from_video, "options": asdict(options)}
-    (work / "job.json").write_text(json.dumps(job))
-    child = subprocess.Popen([sys.executable, "-m", "mcsplat.capture.worker", str(work)])
+
+def files_not_written_by_process(scene: Path) -> list[str]:
+    """The files of `scene` that its MANIFEST does not list (all of them for a scene that process did not make)."""
     try:
-        child.wait()
-    except KeyboardInterrupt:
-        child.terminate()
-        child.wait()
-        raise MCSplatError("interrupted: no scene was written (the partial work is removed)") from None
-    result_file = work / "result.json"
-    if not result_file.is_file():
-        raise MCSplatError(f"structure from motion stopped unexpectedly (exit code {child.returncode}); run again, "
-                           "or with --threads 1 if it keeps failing")
-    result = json.loads(result_file.read_text())
-    if "error" in result:
-        raise MCSplatError(result["error"])
-    return result
+        written = set(json.loads((scene / MANIFEST).read_text()).get("files", []))
+    except (OSError, ValueError, AttributeError):
+        written = set()
+    return [name for name in files_in(scene) if name not in written]
 
 
-def _process(source: Path, out: Path, work: Path, photos, from_video: bool, options: ProcessOptions
-             ) -> ProcessSummary:
+def _process(source: Path, out: Path, work: Path, photos, from_video: bool, options: ProcessOptions,
+             space_needed: int) -> ProcessSummary:
     import pycolmap
 
     seconds: dict[str, float] = {}
@@ -145,7 +168,9 @@ def _process(source: Path, out: Path, work: Path, photos, from_video: bool, opti
     if len(photos.names) < 3:
         raise MCSplatError(f"{len(photos.names)} image(s) in {source}: structure from motion needs at least 3 "
                            "overlapping views (20 or more for a good scene)")
-    result = _run_in_child(work, photos, from_video, options)
+    job = {"folder": str(photos.folder), "names": photos.names, "sizes": photos.sizes, "from_video": from_video,
+           "options": asdict(options)}
+    result = run_worker(work, job, space_needed)
     seconds.update(result["seconds"])
 
     scene = work / "scene"
@@ -154,15 +179,26 @@ def _process(source: Path, out: Path, work: Path, photos, from_video: bool, opti
         scene=str(out), input=str(source), registered=model.num_reg_images(), images=len(photos.names),
         points=model.num_points3D(), mean_reprojection_error=float(model.compute_mean_reprojection_error()),
         matcher=result["matcher"], models=result["models"], camera=result["camera"],
-        undistorted_camera=describe_camera(next(iter(model.cameras.values()))),
+        undistorted_camera=describe_cameras(model), image_sizes=_count_sizes(photos.sizes),
         seconds={k: round(v, 2) for k, v in seconds.items()})
-    (scene / "process.json").write_text(json.dumps(asdict(summary), indent=2) + "\n")
+    # The summary, and the list of the files written: --overwrite replaces the scene only while that is all it holds.
+    files = sorted(files_in(scene) + [MANIFEST])
+    (scene / MANIFEST).write_text(json.dumps({**asdict(summary), "files": files}, indent=2) + "\n")
     _move_into_place(scene, out, work)
     return summary
 
 
+def _count_sizes(sizes: list[tuple[int, int]]) -> dict[str, int]:
+    """"WxH" -> how many images have that size, the most common first."""
+    return dict(Counter(f"{width}x{height}" for width, height in sizes).most_common())
+
+
 def _move_into_place(scene: Path, out: Path, work: Path) -> None:
-    """One rename makes the scene appear complete; an old scene (--overwrite) is moved aside first, then removed."""
+    """One rename makes the scene appear complete; an old scene (--overwrite) is moved aside first, then removed.
+
+    No signal may stop it between the two renames (the old scene aside, the new one not yet in place, both in the
+    work folder that is removed next): they are held back until process() has finished."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
     if out.exists() and not any(out.iterdir()):
         out.rmdir()
     old = None

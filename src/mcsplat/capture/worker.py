@@ -1,11 +1,13 @@
 """The child process of `process`: SfM, then undistortion of the largest model into WORK/scene.
 
 Run as `python -m mcsplat.capture.worker WORK` with WORK/job.json; writes WORK/result.json ({"error": ...} for a
-problem the user can fix). A separate process so that Ctrl-C in the parent can stop pycolmap at any point.
+problem the user can fix, {"crash": ...} for any other). A separate process so that Ctrl-C in the parent can stop
+pycolmap at any point (child.py).
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import signal
@@ -13,14 +15,15 @@ import sys
 import time
 from pathlib import Path
 
-from mcsplat.capture.sfm import SfmOptions, describe_camera, run_sfm
+from mcsplat.capture.sfm import SfmOptions, describe_cameras, run_sfm
 from mcsplat.errors import MCSplatError
 
 
-def reconstruct(work: Path, folder: Path, names: list[str], from_video: bool, options: dict) -> dict:
+def reconstruct(work: Path, folder: Path, names: list[str], sizes: list[tuple[int, int]], from_video: bool,
+                options: dict) -> dict:
     import pycolmap
 
-    sfm = run_sfm(folder, names, work,
+    sfm = run_sfm(folder, names, sizes, work,
                   SfmOptions(matcher=options["matcher"], camera_model=options["camera_model"],
                              max_size=options["sfm_max_size"], overlap=options["overlap"], threads=options["threads"]),
                   from_video, options["progress"])
@@ -36,20 +39,35 @@ def reconstruct(work: Path, folder: Path, names: list[str], from_video: bool, op
     for item in (undistorted / "sparse").iterdir():  # COLMAP writes sparse/*.bin; 3DGS tools expect sparse/0/
         os.replace(item, scene / "sparse" / "0" / item.name)
     seconds = dict(sfm.seconds, undistortion=time.perf_counter() - start)
-    camera = next(iter(sfm.reconstruction.cameras.values()))
-    return {"matcher": sfm.matcher, "models": sfm.models, "seconds": seconds, "camera": describe_camera(camera)}
+    return {"matcher": sfm.matcher, "models": sfm.models, "seconds": seconds,
+            "camera": describe_cameras(sfm.reconstruction)}
+
+
+def end_with_parent(parent: int) -> None:
+    """Linux: have the kernel kill this process when its parent dies, however it dies (a parent killed by SIGKILL
+    cannot stop it), so that no SfM work goes on for nobody."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # it died before the call above
+        os._exit(1)
 
 
 def main(work: Path) -> None:
     import pycolmap
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C by stopping this process
-    pycolmap.logging.minloglevel = 1  # COLMAP's per-image INFO lines would bury the progress bars
     job = json.loads((work / "job.json").read_text())
+    end_with_parent(job["parent"])
+    pycolmap.logging.minloglevel = 1  # COLMAP's per-image INFO lines would bury the progress bars
     try:
-        result = reconstruct(work, Path(job["folder"]), job["names"], job["from_video"], job["options"])
+        result = reconstruct(work, Path(job["folder"]), job["names"], [tuple(size) for size in job["sizes"]],
+                             job["from_video"], job["options"])
     except MCSplatError as error:
         result = {"error": str(error)}
+    except Exception as error:  # the parent tells a full disk from the rest (child.py)
+        result = {"crash": f"{type(error).__name__}: {' '.join(str(error).split())[:200]}"}
     (work / "result.json").write_text(json.dumps(result))
 
 

@@ -15,10 +15,10 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from mcsplat.data import undistort
+from mcsplat.data import images, undistort
 from mcsplat.data.image_store import ImageStore, store_note
 from mcsplat.data.poses import make_camera
-from mcsplat.data.scene import Background, Scene, View, make_scene, split_every
+from mcsplat.data.scene import NAMED_BACKGROUNDS, Background, Scene, View, make_scene, split_every
 
 
 @dataclass
@@ -42,11 +42,16 @@ class Points:
     source: str  # the file (or folder) named when points are dropped
 
 
-def assemble(frames: Sequence[Frame], *, kind: str, root: Path, background: Background, test_every: int = 8,
+def assemble(frames: Sequence[Frame], *, kind: str, root: Path, background: Background | None, test_every: int = 8,
              train_count: int | None = None, points: Points | None = None, notes: Sequence[str] = ()) -> Scene:
     """The Scene of `frames`: with `train_count`, the first train_count frames are the training views and the rest
-    the test views (a scene's own split); otherwise every `test_every`-th frame is a test view."""
+    the test views (a scene's own split); otherwise every `test_every`-th frame is a test view. Without a
+    `background`, images with an alpha channel (a synthetic object on a transparent background, NeRF-Synthetic's
+    convention) get white and the others black."""
     paths = [frame.path for frame in frames]
+    alpha = any(images.has_alpha(path) for path in paths)
+    if background is None:
+        background = NAMED_BACKGROUNDS["white" if alpha else "black"]
     jobs = [frame.undistort for frame in frames if frame.undistort is not None]
     notes = list(notes)
     if jobs:
@@ -64,7 +69,7 @@ def assemble(frames: Sequence[Frame], *, kind: str, root: Path, background: Back
         train, test = views[:train_count], views[train_count:]
     notes += store_note(store)
     xyz, rgb = _finite(points) if points is not None else (None, None)
-    return make_scene(train, test, xyz, rgb, background, kind, root, notes=notes)
+    return make_scene(train, test, xyz, rgb, background, kind, root, notes=notes, alpha=alpha)
 
 
 def _finite(points: Points) -> tuple[torch.Tensor, torch.Tensor]:

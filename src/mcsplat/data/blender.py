@@ -185,7 +185,7 @@ def _resolved(frames: list[_ListedFrame], sources: list[Path], downscale: int) -
     return resolved
 
 
-def load_blender(root: Path, downscale: int, background: Background, test_every: int) -> Scene:
+def load_blender(root: Path, downscale: int, background: Background | None, test_every: int) -> Scene:
     notes = []
     if (root / SPLIT_FILES[0]).is_file():
         train_file = root / SPLIT_FILES[0]

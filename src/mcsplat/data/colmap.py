@@ -91,7 +91,7 @@ def _fits(actual: tuple[int, int], camera_size: tuple[int, int], factor: int) ->
     return all(abs(a - c / factor) <= 1.0 for a, c in zip(actual, camera_size))
 
 
-def load_colmap(root: Path, downscale: int, background: Background, test_every: int) -> Scene:
+def load_colmap(root: Path, downscale: int, background: Background | None, test_every: int) -> Scene:
     found = find_model(root)
     if found is None:
         raise DataError(incomplete_model(root) or f"no COLMAP model in {root}")

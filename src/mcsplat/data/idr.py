@@ -101,7 +101,7 @@ def intrinsics_for(K: np.ndarray, image_size: tuple[int, int], where: str) -> tu
                     "the ones the cameras were calibrated for")
 
 
-def load_idr(root: Path, downscale: int, background: Background, test_every: int) -> Scene:
+def load_idr(root: Path, downscale: int, background: Background | None, test_every: int) -> Scene:
     paths = image_paths(root)
     cameras_file = root / CAMERAS_FILE
     if not paths:

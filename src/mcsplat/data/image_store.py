@@ -132,6 +132,10 @@ class LazyImage:
     def size(self) -> images.Size:
         return self.store.sizes[self.index]
 
+    @property
+    def path(self) -> Path:
+        return self.store.paths[self.index]
+
 
 def store_note(store: ImageStore) -> list[str]:
     """A line for Scene.notes when the images do not all stay in memory."""

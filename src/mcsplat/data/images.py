@@ -20,6 +20,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG", ".webp", ".b
 RESAMPLE = Image.Resampling.BOX
 
 Size = tuple[int, int]  # (width, height)
+ALPHA_MODES = ("RGBA", "LA", "La", "RGBa", "PA")
 
 
 def image_dirs(root: Path) -> dict[int, Path]:
@@ -82,6 +83,12 @@ def probe_size(path: Path) -> Size:
 
 def probe_sizes(paths: Sequence[Path]) -> list[Size]:
     return [probe_size(p) for p in paths]
+
+
+def has_alpha(path: Path) -> bool:
+    """Whether the image file carries an alpha channel (from its header: the pixels are not decoded)."""
+    with Image.open(path) as im:
+        return im.mode in ALPHA_MODES or (im.mode == "P" and "transparency" in im.info)
 
 
 def load_images(paths: Sequence[Path], sizes: Sequence[Size], background: Sequence[float],
@@ -161,7 +168,7 @@ def _to_rgb_or_rgba(im: Image.Image) -> Image.Image:
         grey = (np.asarray(im, dtype=np.float64) / (257.0 if mode != "I" else 1.0))
         grey = np.clip(np.rint(grey), 0, 255).astype(np.uint8)
         return Image.fromarray(np.repeat(grey[:, :, None], 3, axis=2), "RGB")
-    if mode in ("LA", "La", "RGBa", "PA") or (mode == "P" and "transparency" in im.info):
+    if mode in ALPHA_MODES or (mode == "P" and "transparency" in im.info):
         return im.convert("RGBA")
     return im.convert("RGB")
 

@@ -46,7 +46,7 @@ def _points(root: Path) -> Points | None:
     return None
 
 
-def load_llff(root: Path, downscale: int, background: Background, test_every: int) -> Scene:
+def load_llff(root: Path, downscale: int, background: Background | None, test_every: int) -> Scene:
     poses_file = root / POSES_FILE
     array = read_poses_bounds(poses_file)
     poses = array[:, :15].reshape(-1, 3, 5)

@@ -34,8 +34,8 @@ def load_scene(path: str | os.PathLike, downscale: int = 1, background: str | Se
     """Load a COLMAP, Blender/NeRF, LLFF or IDR (cameras.npz) scene folder (auto-detected).
 
     downscale: load images at 1/N resolution (images_N/ when the folder has it, else resized); K follows.
-    background: "white", "black" or an RGB triple in [0, 1]; default white for Blender, black otherwise. Images with
-        an alpha channel are composited on it.
+    background: "white", "black" or an RGB triple in [0, 1]; default white when the images have an alpha channel
+        (NeRF-Synthetic's convention), black otherwise. Images with an alpha channel are composited on it.
     test_every: every N-th view (sorted by name, starting with the first) is a test view; 0 = none. Blender scenes
         with transforms_test.json (or _val) keep their own split.
     Raises mcsplat.errors.DataError (one line: the file and what is wrong) for any problem with the data.
@@ -48,7 +48,7 @@ def load_scene(path: str | os.PathLike, downscale: int = 1, background: str | Se
         raise DataError(f"{root} is not a folder; give the scene folder (the one that holds sparse/, "
                         "transforms_*.json or poses_bounds.npy)")
     kind = detect_kind(root)
-    rgb = parse_background(background, NAMED_BACKGROUNDS["white" if kind == "blender" else "black"])
+    rgb = None if background is None else parse_background(background, NAMED_BACKGROUNDS["black"])
     loader = {"colmap": colmap.load_colmap, "blender": blender.load_blender, "llff": llff.load_llff,
               "idr": idr.load_idr}[kind]
     try:

@@ -13,8 +13,6 @@ from mcsplat.data.image_store import LazyImage
 from mcsplat.errors import MCSplatError
 
 KINDS = ("colmap", "blender", "llff", "idr")
-# Scenes normalised around one object (Blender's [-1.3, 1.3]^3, IDR's unit sphere): random init fills that box.
-OBJECT_CENTRIC_KINDS = ("blender", "idr")
 
 Background = tuple[float, float, float]
 NAMED_BACKGROUNDS: dict[str, Background] = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
@@ -40,9 +38,27 @@ class View:
         if not isinstance(self._image, torch.Tensor):
             self._image.prefetch()
 
-    def image_float(self, device: torch.device | str = "cpu") -> torch.Tensor:
-        """The image as float32 [H, W, 3] in [0, 1] on `device` (the uint8 tensor is moved first, then converted)."""
-        return self.image.to(device, non_blocking=True).to(torch.float32).div_(255.0)
+    @property
+    def image_file(self) -> Path | None:
+        """The file the pixels are decoded from (the undistorted copy in the cache for a distorted camera), or None
+        for an image given as a tensor."""
+        return None if isinstance(self._image, torch.Tensor) else self._image.path
+
+    def image_float(self, device: torch.device | str = "cpu", size: tuple[int, int] | None = None) -> torch.Tensor:
+        """The image as float32 [H, W, 3] in [0, 1] on `device` (the uint8 tensor is moved first, then converted);
+        with `size` (width, height) smaller than the image, area-averaged down to it on the device."""
+        image = self.image.to(device, non_blocking=True).to(torch.float32).div_(255.0)
+        if size is None or tuple(size) == (image.shape[1], image.shape[0]):
+            return image
+        chw = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(size[1], size[0]), mode="area")
+        return chw[0].permute(1, 2, 0).contiguous()
+
+    def camera_at(self, scale: float) -> Camera:
+        """The view's camera for its image shrunk to `scale` of its size (at least one pixel a side)."""
+        if scale >= 1.0:
+            return self.camera
+        width, height = self.camera.width, self.camera.height
+        return self.camera.scaled(max(1, round(width * scale)), max(1, round(height * scale)))
 
     def __repr__(self) -> str:
         return f"View(name={self.name!r}, {self.camera.width}x{self.camera.height})"
@@ -62,6 +78,14 @@ class Scene:
     root: Path
     notes: list[str] = field(default_factory=list)
     """Extra human-readable facts the loader found worth reporting (e.g. which image folder it used)."""
+    alpha: bool = False
+    """The images carry an alpha channel: a synthetic object on a transparent background (NeRF-Synthetic)."""
+
+    @property
+    def object_centric(self) -> bool:
+        """Normalised around one object: a synthetic Blender scene in [-1.3, 1.3]^3, or IDR's unit sphere (where
+        a random initialisation fills that box rather than a cube of scene radii)."""
+        return self.kind == "idr" or (self.kind == "blender" and self.alpha)
 
     def summary(self) -> str:
         """A few human lines: kind, counts, image size, points, radius."""
@@ -149,10 +173,11 @@ def camera_radius(cameras: Sequence[Camera]) -> float:
 
 
 def make_scene(train: list[View], test: list[View], points: torch.Tensor | None, colors: torch.Tensor | None,
-               background: Background, kind: str, root: Path, notes: list[str] | None = None) -> Scene:
+               background: Background, kind: str, root: Path, notes: list[str] | None = None,
+               alpha: bool = False) -> Scene:
     assert kind in KINDS
     if points is not None and points.shape[0] == 0:
         points, colors = None, None
     return Scene(train=train, test=test, points=points, point_colors=colors,
                  radius=camera_radius([v.camera for v in train]), background=background, kind=kind,
-                 root=root, notes=list(notes or []))
+                 root=root, notes=list(notes or []), alpha=alpha)

@@ -3,7 +3,8 @@
 The new camera is COLMAP's choice (pycolmap.undistort_camera with its default options): the focal length is kept and
 the image size changes so that the picture holds only valid pixels (no black borders for the loss to learn). The
 undistorted images are written as PNG to a cache folder outside the user's scene, under a key made of the image's
-bytes, the camera and the output size, so a changed image or model never meets a stale entry.
+bytes, the camera and the output size, so a changed image or model never meets a stale entry. Beside each entry lies
+a hash of its own bytes: an entry that was damaged or replaced since it was made is made again, never served.
 """
 
 from __future__ import annotations
@@ -96,9 +97,7 @@ class Job:
                      self.pinhole.height, np.asarray(self.pinhole.params, dtype=np.float64).tobytes().hex(),
                      self.size, tuple(background)):
             digest.update(repr(part).encode())
-        with open(self.source, "rb") as f:  # the bytes, not the date: a replaced file is always seen
-            for block in iter(lambda: f.read(1 << 20), b""):
-                digest.update(block)
+        _feed_file(digest, self.source)  # the bytes, not the date: a replaced file is always seen
         return digest.hexdigest()
 
 
@@ -110,7 +109,7 @@ def undistort_to_cache(jobs: Sequence[Job], background: Sequence[float], workers
     folder = cache_root() / "undistorted"
     keys = [job.key(background) for job in jobs]
     paths = [folder / key[:2] / f"{key}.png" for key in keys]
-    todo = [(job, path) for job, path in zip(jobs, paths) if not path.is_file()]
+    todo = [(job, path) for job, path in zip(jobs, paths) if not _intact(path)]
     if not todo:
         return paths
     try:
@@ -137,7 +136,7 @@ def undistort_to_cache(jobs: Sequence[Job], background: Sequence[float], workers
 def _undistort_one(job: Job, target: Path, background: np.ndarray) -> None:
     import pycolmap
 
-    from mcsplat.io.atomic import atomic_path
+    from mcsplat.io.atomic import atomic_path, atomic_write_text
 
     pixels = images._load_one(job.source, (job.camera.width, job.camera.height), background).numpy()
     bitmap, _ = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(), pycolmap.Bitmap.from_array(pixels),
@@ -151,3 +150,29 @@ def _undistort_one(job: Job, target: Path, background: np.ndarray) -> None:
     target.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(target) as tmp:
         Image.fromarray(out, "RGB").save(tmp, format="PNG", compress_level=1)
+        content = _content_hash(tmp)
+    atomic_write_text(_hash_file(target), content)
+
+
+def _hash_file(entry: Path) -> Path:
+    return entry.with_suffix(".blake2b")
+
+
+def _feed_file(digest, path: Path) -> None:
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+
+
+def _content_hash(path: Path) -> str:
+    digest = hashlib.blake2b(digest_size=20)
+    _feed_file(digest, path)
+    return digest.hexdigest()
+
+
+def _intact(entry: Path) -> bool:
+    """Whether the cache entry is there with the bytes it was made with."""
+    try:
+        return _hash_file(entry).read_text() == _content_hash(entry)
+    except OSError:
+        return False

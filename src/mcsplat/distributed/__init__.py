@@ -4,9 +4,10 @@
 """
 
 from .schedule import scaled_for_processes
-from .team import CHECK_EVERY, ProcessGroup, SingleProcess, join, parameter_checksum, threads_per_process
+from .team import (CHECK_EVERY, ProcessGroup, SingleProcess, command_for, join, parameter_checksum,
+                   threads_per_process)
 
 Team = SingleProcess | ProcessGroup  # the processes training one model (one, or torchrun's)
 
-__all__ = ["CHECK_EVERY", "ProcessGroup", "SingleProcess", "Team", "join", "parameter_checksum",
+__all__ = ["CHECK_EVERY", "ProcessGroup", "SingleProcess", "Team", "command_for", "join", "parameter_checksum",
            "scaled_for_processes", "threads_per_process"]

@@ -15,6 +15,7 @@ import copy
 import math
 
 from ..config import TrainConfig
+from ..schedule import scale_step_schedules
 
 LEARNING_RATES = ("means_lr", "means_lr_final", "sh0_lr", "shN_lr", "opacity_lr", "scales_lr", "quats_lr")
 
@@ -25,19 +26,8 @@ def scaled_for_processes(config: TrainConfig, world_size: int) -> TrainConfig:
         return config
     scaled = copy.deepcopy(config)
     scaled.world_size = world_size
-
-    def every(steps: int) -> int:  # an interval: at least 1
-        return max(1, round(steps / world_size))
-
-    def at(step: int) -> int:  # a point in the run
-        return round(step / world_size)
-
     scaled.steps = math.ceil(config.steps / world_size)  # at least the views asked for
-    scaled.sh_increase_every = every(config.sh_increase_every)
-    m, a = scaled.mcmc, scaled.adc
-    m.refine_start, m.refine_stop, m.refine_every = at(m.refine_start), at(m.refine_stop), every(m.refine_every)
-    a.densify_start, a.densify_stop = at(a.densify_start), at(a.densify_stop)
-    a.densify_every, a.reset_every = every(a.densify_every), every(a.reset_every)
+    scale_step_schedules(scaled, 1, world_size)
     factor = math.sqrt(world_size)
     for name in LEARNING_RATES:
         setattr(scaled.optim, name, getattr(config.optim, name) * factor)

@@ -302,6 +302,17 @@ def join(device_name: str, timeout: float) -> SingleProcess | ProcessGroup:
     return ProcessGroup(owns_group, timeout)
 
 
+def command_for(world_size: int) -> str:
+    """The start of the command line that runs `mcsplat` with `world_size` processes again (for the hints that say
+    how to resume: a run of N processes continues with N only)."""
+    if world_size == 1:
+        return "mcsplat"
+    per_machine = int(os.environ.get("LOCAL_WORLD_SIZE", world_size))
+    machines = max(1, world_size // max(1, per_machine))
+    on_machines = f"--nnodes {machines} --rdzv-endpoint HOST:PORT " if machines > 1 else ""
+    return f"torchrun {on_machines}--nproc-per-node {per_machine} -m mcsplat"
+
+
 def threads_per_process() -> int:
     """CPU threads for each of the processes torchrun started on this machine (they share its cores)."""
     local = int(os.environ.get("LOCAL_WORLD_SIZE", os.environ.get("WORLD_SIZE", "1")))

@@ -39,7 +39,8 @@ def write_ply(path: str | os.PathLike, params: dict[str, torch.Tensor], keep: to
     vertices = np.empty(n, dtype=[(name, "f4") for name, _ in columns])
     for name, values in columns:
         vertices[name] = values.numpy()
-    atomic_write(path, lambda tmp: PlyData([PlyElement.describe(vertices, "vertex")]).write(str(tmp)))
+    atomic_write(path, lambda tmp: PlyData([PlyElement.describe(vertices, "vertex")]).write(str(tmp)),
+                 size_hint=vertices.nbytes)
     return n
 
 

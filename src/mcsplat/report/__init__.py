@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from ..errors import MCSplatError
 from ..events import RunFinished, Subscriber
-from ..io.atomic import atomic_write, atomic_write_text
+from ..io.atomic import atomic_write_bytes, atomic_write_text
 from ..run_dir import RunDir
 from . import plots
 from .mesh import mesh_figure_rows
@@ -77,7 +77,7 @@ def make_report(run_dirs: Sequence[Path], out: Path | None = None, test_views: S
             figures.append(("mesh", caption, plots.image_grid(panels)))
     folder = RunDir(out)  # a run folder, or a comparison's folder laid out the same way
     for name, _, png in figures:
-        atomic_write(folder.plots_folder / f"{name}.png", lambda tmp, data=png: tmp.write_bytes(data))
+        atomic_write_bytes(folder.plots_folder / f"{name}.png", png)
     title = f"mcsplat report: {runs[0].name}" if len(runs) == 1 else "mcsplat comparison: " + \
         " vs ".join(run.name for run in runs)
     from .page import render_page

@@ -35,6 +35,25 @@ def _summary(runs: list[RunRecord]) -> str:
     return f"<table><tr><th>run</th>{head}<th>dead</th></tr>{''.join(rows)}</table>"
 
 
+def _budget_plan(run: RunRecord) -> str:
+    """--budget: how the plan went, a row per re-plan (at most a dozen, evenly spread)."""
+    plan = run.config.get("budget_plan")
+    if not plan:
+        return ""
+    history = plan.get("history", [])
+    every = max(1, -(-len(history) // 12))
+    shown = sorted(set(range(0, len(history), every)) | {len(history) - 1}) if history else []
+    rows = "".join(f"<tr><td>{h['at_seconds']:.0f} s</td><td>{h['step']:,}</td><td>{h['steps']:,}</td>"
+                   f"<td>{h['cap']:,}</td><td>{h['gaussians']:,}</td><td>{h['step_ms']:.1f}</td></tr>"
+                   for h in (history[i] for i in shown))
+    start, full_at = plan.get("resolution_start", 1.0), plan.get("resolution_full_at", 1.0)
+    return (f"<p><b>{html.escape(run.name)}</b>: a {plan['budget_seconds']:.0f} s budget planned as it ran: "
+            f"{plan['steps']:,} steps, cap {plan['cap']:,}, coarse to fine from {start:g} of the image size to full "
+            f"size at {full_at:.0%} of the steps.</p>"
+            "<table><tr><th>at</th><th>step</th><th>planned steps</th><th>cap</th><th>Gaussians</th>"
+            f"<th>predicted full-size step ms</th></tr>{rows}</table>")
+
+
 def render_page(title: str, runs: list[RunRecord], figures: list[tuple[str, str, bytes]]) -> str:
     """figures: (file name, caption, PNG bytes) in page order."""
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
@@ -44,6 +63,7 @@ def render_page(title: str, runs: list[RunRecord], figures: list[tuple[str, str,
         parts.append(f"<p><b>{html.escape(run.name)}</b>: {data}, cap "
                      f"{html.escape(str(run.config.get('mcmc', {}).get('cap_max', 'n/a')))}, "
                      f"{html.escape(str(run.path))}</p>")
+        parts.append(_budget_plan(run))
     for name, caption, png in figures:
         parts.append(f"<figure><figcaption>{html.escape(caption)}</figcaption>"
                      f"<img alt='{html.escape(name)}' src='{data_uri(png)}'></figure>")

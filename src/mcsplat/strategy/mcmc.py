@@ -66,7 +66,8 @@ class MCMCConfig:
     refine_start: int = 500         # relocate / grow when refine_start < step < refine_stop ...
     refine_stop: int = 25_000
     refine_every: int = 100         # ... and step % refine_every == 0
-    grow_rate: float = 1.05         # growth factor per refine step
+    grow_rate: float = 1.05         # growth factor per refine step (at least: see growth_share)
+    growth_share: float = 0.4       # the cap is reached by this share of the run at the latest (schedule.py)
     min_opacity: float = 0.005      # dead: opacity <= min_opacity
     max_copies: int = DEFAULT_MAX_COPIES  # N clamp in Eq. 9
     auto_cap: bool = False          # grow only where the screen gradient asks for more (cap_max is then a ceiling)
@@ -87,6 +88,8 @@ class MCMCConfig:
             raise ValueError(f"refine_start and refine_stop must be >= 0, got {self.refine_start}, {self.refine_stop}")
         if not (math.isfinite(self.grow_rate) and self.grow_rate >= 1.0):
             raise ValueError(f"grow_rate must be a finite number >= 1, got {self.grow_rate}")
+        if not 0.0 < self.growth_share <= 1.0:
+            raise ValueError(f"growth_share must be in (0, 1], got {self.growth_share}")
         if not 0.0 <= self.min_opacity < 1.0:
             raise ValueError(f"min_opacity must be in [0, 1), got {self.min_opacity}")
         if not (math.isfinite(self.demand_threshold) and self.demand_threshold > 0):

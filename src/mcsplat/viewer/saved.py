@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 import warnings
 from pathlib import Path
+from typing import Sequence
 
 import torch
 
@@ -14,6 +15,7 @@ from ..errors import MCSplatError
 from ..gaussians import GaussianModel
 from ..io.ply import read_ply
 from ..mesh import holds_mesh, read_mesh
+from .access import check_listen_address
 from .server import ViewerServer
 
 
@@ -30,6 +32,8 @@ def load_for_viewing(path: Path, device: torch.device):
     if path.suffix.lower() != ".ply":
         raise MCSplatError(f"{path}: give a run directory, a 3DGS .ply file or a mesh (.ply, .glb, .obj)")
     model = GaussianModel(**read_ply(path)).to(device)
+    if model.num_gaussians == 0:
+        raise MCSplatError(f"{path}: holds no Gaussians (0 vertices), so there is nothing to show")
     return model, [], (0.0, 0.0, 0.0), _radius_of(model)
 
 
@@ -54,15 +58,16 @@ def initial_pose_for(centre, radius: float):
 
 
 def view_saved(path: Path, host: str, port: int, device: torch.device, stop: threading.Event | None = None,
-               quiet: bool = False) -> ViewerServer:
+               quiet: bool = False, origins: Sequence[str] = ()) -> ViewerServer:
     """Serve the viewer until `stop` is set (Ctrl-C from the CLI); returns the stopped server."""
+    check_listen_address(host, port)  # before the model is loaded
     if Path(path).is_file() and holds_mesh(Path(path)):
-        return view_mesh(Path(path), host, port, stop, quiet)
+        return view_mesh(Path(path), host, port, stop, quiet, origins)
     model, cameras, background, radius = load_for_viewing(Path(path), device)
     with torch.no_grad():
         model.requires_grad_(False)
     server = ViewerServer(host, port, lock=threading.RLock(), scene_radius=radius, background=background,
-                          max_sh_degree=model.sh_degree, training=False, quiet=quiet)
+                          max_sh_degree=model.sh_degree, training=False, quiet=quiet, origins=origins)
     try:
         if cameras:
             server.add_cameras(cameras)
@@ -76,10 +81,10 @@ def view_saved(path: Path, host: str, port: int, device: torch.device, stop: thr
     return server
 
 
-def view_mesh(path: Path, host: str, port: int, stop: threading.Event | None = None, quiet: bool = False
-              ) -> ViewerServer:
+def view_mesh(path: Path, host: str, port: int, stop: threading.Event | None = None, quiet: bool = False,
+              origins: Sequence[str] = ()) -> ViewerServer:
     """Serve a mesh file until `stop` is set; returns the stopped server."""
-    server, _ = serve_mesh(path, host, port, quiet)
+    server, _ = serve_mesh(path, host, port, quiet, origins)
     try:
         (stop or threading.Event()).wait()
     finally:
@@ -87,7 +92,7 @@ def view_mesh(path: Path, host: str, port: int, stop: threading.Event | None = N
     return server
 
 
-def serve_mesh(path: Path, host: str, port: int, quiet: bool = False):
+def serve_mesh(path: Path, host: str, port: int, quiet: bool = False, origins: Sequence[str] = ()):
     """(server, viser's handle of the mesh): the browser draws the mesh itself, vertex colours kept; nothing is
     rendered here, so the controls of the splats' renders are hidden."""
     import numpy as np
@@ -96,7 +101,7 @@ def serve_mesh(path: Path, host: str, port: int, quiet: bool = False):
     low, high = mesh.bounds
     radius = float(np.linalg.norm(high - low)) / 2 or 1.0
     server = ViewerServer(host, port, lock=threading.RLock(), scene_radius=radius, background=(1.0, 1.0, 1.0),
-                          max_sh_degree=0, training=False, quiet=quiet)
+                          max_sh_degree=0, training=False, quiet=quiet, origins=origins)
     try:
         for control in (server.mode, server.sh_degree, server.show_cameras):
             control.visible = False

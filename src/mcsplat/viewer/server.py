@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
+from .access import OriginPolicy, check_listen_address, origin_checked
 from .cameras import camera_from_pose, image_size, pose_of
 from .modes import MODES, render_mode
 
@@ -28,13 +29,17 @@ MAX_FRUSTUMS = 300
 
 class ViewerServer:
     def __init__(self, host: str, port: int, *, lock, scene_radius: float, background, max_sh_degree: int,
-                 training: bool, on_pause: Callable[[bool], None] | None = None, quiet: bool = False):
+                 training: bool, on_pause: Callable[[bool], None] | None = None, quiet: bool = False,
+                 origins: Sequence[str] = ()):
+        """origins: what --viewer-origin allows besides the viewer's own page (access.py)."""
         import contextlib
         import io
 
         import viser
 
-        with contextlib.redirect_stdout(io.StringIO()):  # viser prints a banner of its own; ours is one line
+        check_listen_address(host, port)
+        # viser prints a banner of its own; ours is one line
+        with contextlib.redirect_stdout(io.StringIO()), origin_checked(OriginPolicy(host, origins)):
             self.server = viser.ViserServer(host=host, port=port, label="mcsplat", verbose=False)
         # The share button would tunnel the scene through viser's public relay: not without being asked.
         self.server.gui.configure_theme(show_share_button=False)

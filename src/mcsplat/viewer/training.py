@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from typing import Sequence
 
 from ..events import EvalDone, RunFinished, RunStarted, StepDone, Subscriber
 from .server import ViewerServer
@@ -11,8 +12,8 @@ STATS_INTERVAL = 0.25  # seconds between two updates of the panel's numbers
 
 
 class TrainingViewer(Subscriber):
-    def __init__(self, host: str = "127.0.0.1", port: int = 8080, quiet: bool = False):
-        self.host, self.port, self.quiet = host, port, quiet
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080, quiet: bool = False, origins: Sequence[str] = ()):
+        self.host, self.port, self.quiet, self.origins = host, port, quiet, origins
         self.server: ViewerServer | None = None
         self.test_psnr: float | None = None
         self.last_stats = (0.0, 0)  # (wall time, step) of the last panel update
@@ -33,7 +34,7 @@ class TrainingViewer(Subscriber):
 
         self.server = ViewerServer(self.host, self.port, lock=control.lock, scene_radius=run.scene.radius,
                                    background=run.background, max_sh_degree=run.config.model.sh_degree,
-                                   training=True, quiet=self.quiet, on_pause=pause)
+                                   training=True, quiet=self.quiet, on_pause=pause, origins=self.origins)
         self.server.add_cameras([view.camera for view in run.scene.train])
         self.server.set_model(run.model)
         self.last_stats = (time.monotonic(), event.start_step)

@@ -17,7 +17,8 @@ import numpy as np
 from . import compressed_ply, splat, spz
 from .prune import select_gaussians
 
-__all__ = ["FORMATS", "EXTENSIONS", "select_gaussians", "write_gaussians", "read_gaussians"]
+__all__ = ["FORMATS", "EXTENSIONS", "ENDINGS", "format_named_by", "select_gaussians", "write_gaussians",
+           "read_gaussians"]
 
 # name -> (writer, reader, default file name ending)
 FORMATS: dict[str, tuple[Callable, Callable, str]] = {
@@ -26,6 +27,15 @@ FORMATS: dict[str, tuple[Callable, Callable, str]] = {
     "spz": (spz.write_spz, spz.read_spz, ".spz"),
 }
 EXTENSIONS = {name: ending for name, (_, _, ending) in FORMATS.items()}
+ENDINGS = {"ply": ".ply", **EXTENSIONS}  # every export format, the plain 3DGS .ply included
+
+
+def format_named_by(path: str | os.PathLike) -> str | None:
+    """The export format a file name asks for by its ending (the longest that matches: x.compressed.ply is
+    compressed-ply, x.ply ply), or None."""
+    name = Path(path).name.lower()
+    matching = [(len(ending), fmt) for fmt, ending in ENDINGS.items() if name.endswith(ending)]
+    return max(matching)[1] if matching else None
 
 
 def write_gaussians(format_name: str, path: str | os.PathLike, params: dict[str, np.ndarray]) -> None:

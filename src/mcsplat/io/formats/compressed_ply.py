@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import MCSplatError
-from ..atomic import atomic_write
+from ..atomic import atomic_write_bytes
 from .common import SH_C0, check_params, logit, normalized_quats, read_bytes, sigmoid
 
 CHUNK = 256
@@ -146,7 +146,7 @@ def write_compressed_ply(path: Path, params: dict[str, np.ndarray]) -> None:
         header += [f"element sh {n}"] + [f"property uchar f_rest_{i}" for i in range(rest.shape[1])]
     header += ["end_header"]
     blob = ("\n".join(header) + "\n").encode("ascii") + chunk_rows.tobytes() + vertices.tobytes() + sh_bytes.tobytes()
-    atomic_write(path, lambda tmp: tmp.write_bytes(blob))
+    atomic_write_bytes(path, blob)
 
 
 def read_compressed_ply(path: Path) -> dict[str, np.ndarray]:

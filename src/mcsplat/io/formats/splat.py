@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import MCSplatError
-from ..atomic import atomic_write
+from ..atomic import atomic_write_bytes
 from .common import SH_C0, check_params, logit, normalized_quats, read_bytes, sigmoid
 
 RECORD = np.dtype([("position", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rotation", "u1", 4)])
@@ -41,7 +41,7 @@ def write_splat(path: Path, params: dict[str, np.ndarray]) -> None:
     records["rgba"][:, :3] = _to_u8(np.clip(colour, 0.0, 1.0) * 255.0)
     records["rgba"][:, 3] = _to_u8(opacity[order] * 255.0)
     records["rotation"] = _to_u8(normalized_quats(params["quats"][order]) * 128.0 + 128.0)
-    atomic_write(path, lambda tmp: tmp.write_bytes(records.tobytes()))
+    atomic_write_bytes(path, records.tobytes())
 
 
 def read_splat(path: Path) -> dict[str, np.ndarray]:

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import MCSplatError
-from ..atomic import atomic_write
+from ..atomic import atomic_write_bytes
 from .common import bases_of, check_params, logit, normalized_quats, read_bytes, sh_degree_of, sigmoid
 
 MAGIC = 0x5053474E
@@ -99,7 +99,7 @@ def write_spz(path: Path, params: dict[str, np.ndarray]) -> None:
         _quantize_sh(rest).tobytes(),
     ]
     blob = gzip.compress(b"".join(parts), mtime=0)
-    atomic_write(path, lambda tmp: tmp.write_bytes(blob))
+    atomic_write_bytes(path, blob)
 
 
 def read_spz(path: Path) -> dict[str, np.ndarray]:

@@ -1,0 +1,249 @@
+"""Test PSNR / SSIM / LPIPS against wall-clock time: `--budget` against the code as it was before it, on the shared
+captures at full resolution.
+
+    .venv/bin/python benchmarks/time_to_quality.py --before-tree ../baseline            # every scene and time
+    .venv/bin/python benchmarks/time_to_quality.py --scenes cup --minutes 10 --arms budget
+    .venv/bin/python benchmarks/time_to_quality.py --report                             # tables and plots only
+
+Arms, each run a `mcsplat train` in its own process, one at a time (run nothing else on the machine):
+    budget   this tree: `mcsplat train SCENE --budget Tm` (steps, cap and coarse to fine planned as it runs)
+    before   a checkout of the code before --budget (`--before-tree`, e.g. a git worktree of commit c12ab67): the
+             same scene with `--steps S --cap-max C`, the paper's step schedules multiplied by S / 30,000 by hand
+             (as the Makefile's demo did), C the count the budget arm ended with at the same time (or, for a time
+             the budget arm has not run, at the nearest one), S from the step time a short calibration run of that
+             code measures at C, so that the run takes about T minutes of training
+    pointless  this tree, `--budget Tm` on a copy of a COLMAP capture as a transforms.json without points: the
+             initialisation triangulated from the known poses, against the budget arm's SfM points
+
+Every run is kept (benchmarks/results/time_to_quality/runs/, git-ignored) and skipped when done: the script resumes
+where it stopped. Results: results.jsonl, results.md, quality_vs_time.png.
+"""
+
+from __future__ import annotations
+
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import _common as C
+from mcsplat.data import load_scene
+from mcsplat.io.transforms import write_transforms
+
+SCENES = {  # name -> (folder under the shared data, downscale)
+    "bird": ("colmap_bird", 1), "cup": ("colmap_cup", 1), "fern": ("llff_fern/fern", 1),
+    "dtu": ("dtu_scan24_monosdf/scan24", 1), "lego": (C.LEGO, 1)}
+POINTLESS = ("bird", "cup")  # COLMAP captures made point-less for the triangulation check
+LEGO_TEST_STRIDE = 8         # lego's 200 test views: every 8th (25), as budget.py
+PAPER_STEPS = 30_000
+CALIBRATION_STEPS = 200
+
+
+def run_train(tree: Path, args: list[str], log: Path) -> None:
+    """`mcsplat train ARGS` with the package of `tree` (its src/ first on the path), output to `log`."""
+    env = dict(os.environ, PYTHONPATH=str(tree / "src"))
+    with open(log, "w") as out:
+        done = subprocess.run([sys.executable, "-m", "mcsplat.cli", "train", *args], env=env, stdout=out,
+                              stderr=subprocess.STDOUT)
+    if done.returncode != 0:
+        sys.exit(f"time_to_quality: training failed, see {log}")
+
+
+def scene_folder(name: str, data_root: Path, work: Path) -> Path:
+    """The scene as the arms train it: lego with every 8th test view; the point-less copies written once."""
+    folder, _ = SCENES[name.removesuffix("-pointless")]
+    source = data_root / folder
+    if name == "lego":
+        target = work / "scenes" / "lego-test25"
+        if not (target / "transforms_test.json").is_file():
+            target.mkdir(parents=True, exist_ok=True)
+            for split in ("train", "test"):
+                (target / split).unlink(missing_ok=True)
+                (target / split).symlink_to(source / split)
+            (target / "transforms_train.json").write_text((source / "transforms_train.json").read_text())
+            test = json.loads((source / "transforms_test.json").read_text())
+            test["frames"] = test["frames"][::LEGO_TEST_STRIDE]
+            (target / "transforms_test.json").write_text(json.dumps(test))
+        return target
+    if name.endswith("-pointless"):
+        target = work / "scenes" / name
+        if not (target / "transforms.json").is_file():
+            scene = load_scene(source, test_every=0)
+            write_transforms(scene.train, target / "transforms.json")
+        return target
+    return source
+
+
+def metrics_of(run: Path) -> dict | None:
+    path = run / "metrics.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def budget_run(tree: Path, scene: Path, run: Path, minutes: float) -> dict:
+    if metrics_of(run) is None:
+        run_train(tree, [str(scene), "--out", str(run), "--budget", f"{minutes:g}m", "--quiet", "--overwrite"],
+                  run.with_suffix(".log"))
+    return metrics_of(run)
+
+
+def hand_scaled(steps: int) -> list[str]:
+    """The paper's step schedules x steps / 30,000, as options of the code before --scale-schedule."""
+    def scaled(value: int) -> str:
+        return str(max(1, round(value * steps / PAPER_STEPS)))
+    return ["--mcmc.refine-start", scaled(500), "--mcmc.refine-stop", scaled(25_000), "--mcmc.refine-every",
+            scaled(100), "--sh-increase-every", scaled(1000)]
+
+
+def before_step_seconds(tree: Path, scene: Path, cap: int, work: Path) -> float:
+    """Seconds per step of the old code at `cap` Gaussians: a short run that grows to the cap at once."""
+    run = work / "calibration" / f"{scene.name}-{cap}"
+    if metrics_of(run) is None:
+        run.parent.mkdir(parents=True, exist_ok=True)
+        run_train(tree, [str(scene), "--out", str(run), "--steps", str(CALIBRATION_STEPS), "--cap-max", str(cap),
+                         "--model.num-init-points", str(max(1, cap // 2)), "--mcmc.refine-start", "2",
+                         "--mcmc.refine-every", "2", "--mcmc.refine-stop", str(CALIBRATION_STEPS), "--quiet",
+                         "--overwrite", "--no-save-renders", "--lpips-net", "alex"], run.with_suffix(".log"))
+    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    first, last = log[0], log[-1]  # records at steps 100 and 200: the second half runs at the cap
+    return (last["elapsed_seconds"] - first["elapsed_seconds"]) / (last["step"] - first["step"])
+
+
+def before_run(tree: Path, scene: Path, run: Path, minutes: float, cap: int, work: Path) -> dict:
+    if metrics_of(run) is None:
+        steps = max(100, int(60 * minutes / before_step_seconds(tree, scene, cap, work)))
+        run_train(tree, [str(scene), "--out", str(run), "--steps", str(steps), "--cap-max", str(cap),
+                         "--model.num-init-points", str(max(1, cap // 2)), "--quiet", "--overwrite",
+                         *hand_scaled(steps)], run.with_suffix(".log"))
+    return metrics_of(run)
+
+
+def record(arm: str, scene: str, minutes: float, metrics: dict, run: Path) -> dict:
+    return {"benchmark": "time_to_quality", "arm": arm, "scene": scene, "minutes": minutes,
+            "psnr": round(metrics["psnr"], 3), "ssim": round(metrics["ssim"], 4),
+            "lpips": round(metrics["lpips"], 4) if metrics.get("lpips") is not None else None,
+            "steps": metrics["steps"], "num_gaussians": metrics["num_gaussians"],
+            "train_seconds": metrics["train_seconds"], "wall_seconds": metrics.get("wall_seconds"),
+            "run": str(run)}
+
+
+def nearest_cap(records: list[dict], scene: str, minutes: float) -> int | None:
+    """The count the budget arm ended with at `minutes`, or at the nearest time it ran (log scale)."""
+    ran = [r for r in records if r["arm"] == "budget" and r["scene"] == scene]
+    if not ran:
+        return None
+    return min(ran, key=lambda r: abs(math.log(r["minutes"] / minutes)))["num_gaussians"]
+
+
+# ------------------------------------------------------------------------------------------------ the report
+def report(out: Path, records: list[dict], info: dict) -> None:
+    columns = [("scene", "scene", ""), ("arm", "arm", ""), ("minutes", "minutes", "g"), ("PSNR", "psnr", ".2f"),
+               ("SSIM", "ssim", ".4f"), ("LPIPS", "lpips", ".4f"), ("steps", "steps", ","),
+               ("Gaussians", "num_gaussians", ","), ("train s", "train_seconds", ".0f")]
+    ordered = sorted(records, key=lambda r: (r["scene"], r["arm"], r["minutes"]))
+    lines = ["# Test quality against wall-clock time", "",
+             f"Machine: {C.machine_line(info)}. {C.timestamp()}.", "",
+             "`budget`: `mcsplat train SCENE --budget Tm`; `before`: the code before it with --steps fitted to the "
+             "time and the schedules scaled by hand, at the count the budget arm reached; `pointless`: the budget "
+             "arm on the capture as a transforms.json without points (triangulated from the known poses).", "",
+             C.markdown_table(ordered, columns), ""]
+    lines += target_lines(records)
+    C.write_text(out / "results.md", "\n".join(lines) + "\n")
+    plot(out, records)
+
+
+def target_lines(records: list[dict]) -> list[str]:
+    """The issue's target: --budget 10m at least the before arm's 30-minute PSNR, scene by scene."""
+    lines = ["## --budget 10m against the code before it at 30 minutes", ""]
+    for scene in sorted({r["scene"] for r in records}):
+        new = [r for r in records if r["scene"] == scene and r["arm"] == "budget" and r["minutes"] == 10]
+        old = [r for r in records if r["scene"] == scene and r["arm"] == "before" and r["minutes"] == 30]
+        if new and old:
+            gap = new[0]["psnr"] - old[0]["psnr"]
+            lines.append(f"- {scene}: {new[0]['psnr']:.2f} dB in 10 min against {old[0]['psnr']:.2f} dB in 30 min "
+                         f"({gap:+.2f} dB): {'met' if gap >= 0 else 'missed'}")
+    return lines
+
+
+def plot(out: Path, records: list[dict]) -> None:
+    plt = C.pyplot()
+    scenes = sorted({r["scene"].removesuffix("-pointless") for r in records})
+    fig, axes = plt.subplots(1, len(scenes), figsize=(4 * len(scenes), 3.4), squeeze=False)
+    styles = {"budget": ("tab:blue", "o", "--budget"), "before": ("tab:gray", "s", "before (--steps)"),
+              "pointless": ("tab:orange", "^", "--budget, no points")}
+    for ax, scene in zip(axes[0], scenes):
+        for arm, (color, marker, label) in styles.items():
+            rows = sorted((r for r in records if r["arm"] == arm and r["scene"].removesuffix("-pointless") == scene),
+                          key=lambda r: r["minutes"])
+            if rows:
+                ax.plot([r["minutes"] for r in rows], [r["psnr"] for r in rows], marker=marker, color=color,
+                        label=label)
+        ax.set_xscale("log")
+        ax.set_title(scene)
+        ax.set_xlabel("minutes of training")
+        ax.grid(alpha=0.3)
+    axes[0][0].set_ylabel("test PSNR (dB)")
+    axes[0][-1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "quality_vs_time.png", dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    parser.add_argument("--minutes", nargs="+", type=float, default=[2, 5, 10, 30], help="budget arm times")
+    parser.add_argument("--before-minutes", nargs="+", type=float, default=[10, 30], help="before arm times")
+    parser.add_argument("--pointless-minutes", nargs="+", type=float, default=[10])
+    parser.add_argument("--arms", nargs="+", default=["budget", "before", "pointless"],
+                        choices=["budget", "before", "pointless"])
+    parser.add_argument("--before-tree", type=Path, default=C.REPO.parent / "baseline",
+                        help="a checkout of the code before --budget (git worktree add ../baseline c12ab67)")
+    parser.add_argument("--data-root", type=Path, default=C.DATA_ROOT)
+    parser.add_argument("--out", type=Path, default=C.RESULTS / "time_to_quality")
+    parser.add_argument("--report", action="store_true", help="only remake the tables and plots")
+    args = parser.parse_args()
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    work = out / "runs"
+    info = C.machine()
+    results = out / "results.jsonl"
+    records = C.read_jsonl(results)
+    if not args.report:
+        if "before" in args.arms and not (args.before_tree / "src" / "mcsplat").is_dir():
+            sys.exit(f"time_to_quality: no checkout of the earlier code at {args.before_tree} (--before-tree)")
+        C.warn_if_busy()
+        done = {(r["arm"], r["scene"], r["minutes"]) for r in records}
+        jobs = [("budget", s, m) for m in args.minutes for s in args.scenes] if "budget" in args.arms else []
+        jobs += [("before", s, m) for m in args.before_minutes for s in args.scenes] if "before" in args.arms else []
+        jobs += [("pointless", f"{s}-pointless", m) for m in args.pointless_minutes for s in args.scenes
+                 if s in POINTLESS] if "pointless" in args.arms else []
+        for arm, scene, minutes in jobs:
+            if (arm, scene, minutes) in done:
+                continue
+            folder = scene_folder(scene, args.data_root, work)
+            run = work / f"{arm}-{scene}-{minutes:g}m"
+            started = time.perf_counter()
+            if arm == "before":
+                cap = nearest_cap(records, scene, minutes)
+                if cap is None:
+                    print(f"skipping before/{scene}/{minutes:g}m: no budget run of {scene} to take the count from")
+                    continue
+                metrics = before_run(args.before_tree, folder, run, minutes, cap, work)
+            else:
+                metrics = budget_run(C.REPO, folder, run, minutes)
+            new = dict(record(arm, scene, minutes, metrics, run), wall_clock=round(time.perf_counter() - started))
+            records.append(new)
+            C.append_jsonl(results, [new])
+            C.emit(new)
+    report(out, records, info)
+    print(f"wrote {out / 'results.md'} and {out / 'quality_vs_time.png'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,255 @@
+"""--budget: train for a wall-clock time instead of a number of steps, and hand back the best result that time allows.
+
+The run keeps the shape of a step-scheduled run (schedule.py): coarse to fine up to `resolution_full_at` of the
+steps, growth to the cap by `growth_share`, the paper's refinement window and learning-rate decay, all fitted to the
+number of steps. What the budget decides is that number and the cap, from the time a step takes on this machine:
+
+- A step's time is modelled as  t = a + b s^2 + c n + d n s^2  (s the share of the image size trained at, n the
+  Gaussians in units of 100,000; non-negative coefficients), fitted to the steps measured so far, recent ones
+  weighing more, and to a few timed steps at full size before the clock starts (`calibrate`).
+- The cap balances the two costs of a step: where a full-size step spends as long on its Gaussians (c + d per
+  Gaussian) as on its pixels (a + b), times sqrt(budget / 10 minutes), so that more time buys both more steps and
+  more Gaussians (if the error falls as 1/steps + 1/Gaussians, the best count grows with the square root of the
+  time). The automatic cap's ceiling of 3 Gaussians per pixel and --cap-max bound it, and it stays small enough to
+  leave at least 1,000 steps.
+- The steps are those whose predicted times, with the count growing to the cap and the resolution rising as
+  planned, fill the time left. The plan is made again every 2% of the budget (more often near its end) as the
+  measured times come in, and the schedules are fitted again to the new number of steps. The SH schedule is kept
+  once the degree has first risen, so the degree never steps back.
+- The run stops at the planned step or when the budget is spent, whichever comes first. The budget counts the
+  training loop's wall-clock time (steps, periodic evaluations and checkpoints; pauses not counted); set-up (loading,
+  initialisation, compiling, the calibration) and the final evaluation and export come on top.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import nnls
+
+from .config import TrainConfig, budget_seconds
+from .schedule import PAPER_STEPS, growth_rate_reaching, refine_steps_between, scale_step_schedules
+
+BALANCE = 1.0                     # balanced_cap: Gaussians' share of a full-size step against the pixels' share
+MIN_STEPS, MAX_STEPS = 1000, 30_000  # the cap leaves at least MIN_STEPS; the search for steps stops at 10 x MAX
+REPLAN_SHARE = 0.02               # a new plan every 2% of the budget
+LATE_REPLAN_SHARE = 0.005         # ... every 0.5% in its last 10%
+FIRST_PLAN_STEP = 10              # the first plan from measured steps
+BUCKET = 10                       # steps summarised by their median time in the cost model
+WARM_UP_STEPS = 3                 # the run's first steps (one-time costs) are left out of it
+HALF_LIFE_STEPS = 300             # older measurements weigh half every 300 steps
+PREDICTION_POINTS = 400           # the future steps are integrated on this many points
+MIN_START_GAUSSIANS = 1000        # the first plan cuts a large initialisation to no fewer than this
+# What each plan fits to its number of steps, from the values the run started with (the paper's, by default).
+SCHEDULE_KEYS = ("sh_increase_every", "mcmc.refine_start", "mcmc.refine_stop", "mcmc.refine_every",
+                 "adc.densify_start", "adc.densify_stop", "adc.densify_every", "adc.reset_every", "mcmc.grow_rate")
+
+
+def _get(config: TrainConfig, key: str) -> int:
+    owner, _, name = key.rpartition(".")
+    return getattr(getattr(config, owner) if owner else config, name)
+
+
+def _set(config: TrainConfig, key: str, value: int) -> None:
+    owner, _, name = key.rpartition(".")
+    setattr(getattr(config, owner) if owner else config, name, value)
+
+
+@dataclass
+class StepCost:
+    """Seconds per step as a + b s^2 + c n + d n s^2, fitted by non-negative least squares."""
+
+    samples: list[tuple[float, float, float, float]] = field(default_factory=list)  # (seconds, n, s, weight 0/1)
+    coefficients: np.ndarray = field(default_factory=lambda: np.zeros(4))
+
+    @staticmethod
+    def features(n: np.ndarray, s: np.ndarray) -> np.ndarray:
+        n, s2 = np.asarray(n, dtype=float) / 1e5, np.asarray(s, dtype=float) ** 2
+        return np.stack([np.ones_like(n), s2, n, n * s2], axis=-1)
+
+    def add(self, seconds: float, gaussians: int, scale: float, calibration: bool = False) -> None:
+        self.samples.append((seconds, float(gaussians), float(scale), 0.0 if calibration else 1.0))
+
+    def fit(self) -> None:
+        rows = np.array(self.samples, dtype=float)
+        steps = rows[rows[:, 3] > 0][WARM_UP_STEPS:]
+        groups = [steps[i:i + BUCKET] for i in range(0, len(steps), BUCKET)]
+        summary = [(np.median(g[:, 0]), g[:, 1].mean(), g[:, 2].mean(), len(groups) - 1 - i)
+                   for i, g in enumerate(groups)]
+        summary += [(t, n, s, 0.0) for t, n, s, w in rows if w == 0]  # the calibration steps, full weight
+        table = np.array(summary, dtype=float)
+        weights = np.sqrt(0.5 ** (table[:, 3] * BUCKET / HALF_LIFE_STEPS))
+        design = self.features(table[:, 1], table[:, 2]) * weights[:, None]
+        self.coefficients, _ = nnls(design, table[:, 0] * weights)
+
+    def predict(self, gaussians: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        return self.features(gaussians, scale) @ self.coefficients
+
+
+@dataclass
+class Plan:
+    steps: int
+    cap: int
+    grow_rate: float
+
+
+class BudgetPlanner:
+    """Plans and re-plans a --budget run (the module docstring says how). `config` is the run's own configuration:
+    the planner writes the planned steps, schedules, cap and growth rate into it."""
+
+    def __init__(self, config: TrainConfig, ceiling: int):
+        self.config = config
+        self.budget = budget_seconds(config.budget)
+        self.ceiling = ceiling  # the most Gaussians allowed whatever the time: --cap-max and 3 per pixel
+        record = config.budget_plan or {}
+        # The paper's schedule values the plan fits to each new number of steps (kept across a resume).
+        self.base = record.get("base") or {key: _get(config, key) for key in SCHEDULE_KEYS}
+        self.history: list[dict] = list(record.get("history", []))
+        self.cost = StepCost()
+        self.last_plan_at = -math.inf
+        self.sh_fixed = bool(record.get("sh_fixed", False))
+
+    # ------------------------------------------------------------------------------------------- measurements
+    def calibrate(self, seconds: float, gaussians: int, scale: float) -> None:
+        """A timed step before the clock starts (e.g. at full size, where the run begins at a quarter)."""
+        self.cost.add(seconds, gaussians, scale, calibration=True)
+
+    def observe(self, seconds: float, gaussians: int, scale: float) -> None:
+        self.cost.add(seconds, gaussians, scale)
+
+    # --------------------------------------------------------------------------------------------- planning
+    def start(self, step: int, wall_seconds: float, gaussians: int) -> None:
+        """The plan the run starts (or resumes) with: from the calibration's costs when there are any, else
+        MIN_STEPS at the current count until the first plan from measured steps."""
+        if self.cost.samples:
+            self.replan(step, wall_seconds, gaussians)
+            self.last_plan_at = -math.inf  # the first plan from measured steps still comes at FIRST_PLAN_STEP
+        else:
+            self._apply(Plan(max(step + 1, MIN_STEPS), min(self.ceiling, max(gaussians, 1)),
+                             self.base["mcmc.grow_rate"]), step)
+
+    def due(self, step: int, wall_seconds: float) -> bool:
+        share = LATE_REPLAN_SHARE if wall_seconds > 0.9 * self.budget else REPLAN_SHARE
+        return step >= FIRST_PLAN_STEP and wall_seconds - self.last_plan_at >= max(share * self.budget, 1.0)
+
+    def replan(self, step: int, wall_seconds: float, gaussians: int) -> None:
+        """A new plan from the costs measured so far, applied to the run's configuration."""
+        self.cost.fit()
+        self._apply(self._plan(step, wall_seconds, gaussians), step)
+        self.last_plan_at = wall_seconds
+        self.history.append({"at_seconds": round(wall_seconds, 1), "step": step, "steps": self.config.steps,
+                             "cap": self.config.mcmc.cap_max, "gaussians": gaussians,
+                             "step_ms": round(1000 * float(self.cost.predict(gaussians, 1.0)), 1)})
+
+    def finished(self, step: int, wall_seconds: float) -> bool:
+        return step >= self.config.steps or wall_seconds >= self.budget
+
+    def record(self) -> dict:
+        """What config.json and the report keep of the plan."""
+        return {"budget_seconds": self.budget, "steps": self.config.steps,
+                "cap": self.config.mcmc.cap_max, "resolution_start": self.config.resolution_start,
+                "resolution_full_at": self.config.resolution_full_at, "growth_share": self.config.mcmc.growth_share,
+                "cost_model_ms": [round(1000 * float(c), 4) for c in self.cost.coefficients], "base": self.base,
+                "sh_fixed": self.sh_fixed, "history": self.history}
+
+    def _plan(self, step: int, wall_seconds: float, gaussians: int) -> Plan:
+        """The cap of `balanced_cap` (within the ceiling, and small enough to leave MIN_STEPS), and the steps that
+        fill the time left with it.
+
+        The cap never falls below the current count once the run is under way (pruning a trained model costs
+        more than the steps it saves). Only the starting count can be cut (MCMC keeps the most opaque: a random
+        initialisation of more points than the budget affords). Once growth is over (growth_share of the run)
+        the cap is the count reached."""
+        left = self.budget - wall_seconds
+        current = max(gaussians, 1)
+        top = max(self.ceiling, 1)
+        if step >= min(self.config.mcmc.growth_share * self.config.steps, self.config.mcmc.refine_stop):
+            return Plan(self._steps_for(step, left, current, current), current, self.base["mcmc.grow_rate"])
+        lowest = min(top, max(MIN_START_GAUSSIANS, current // 10) if step == 0 else current)
+        cap = min(top, max(lowest, self.balanced_cap()))
+        steps = self._steps_for(step, left, current, cap)
+        while steps < MIN_STEPS and cap > lowest:
+            cap = max(lowest, int(cap * 0.8))
+            steps = self._steps_for(step, left, current, cap)
+        return Plan(steps, cap, self._grow_rate(step, steps, current, cap))
+
+    def balanced_cap(self) -> int:
+        """The count at which a full-size step spends as long on its Gaussians as on its pixels, times
+        BALANCE, times sqrt(budget / 10 minutes): a longer budget buys more Gaussians as well as more steps."""
+        a, b, c, d = self.cost.coefficients
+        per_gaussian = (c + d) / 1e5
+        if per_gaussian <= 0:
+            return max(self.ceiling, 1)
+        return int(BALANCE * (a + b) / per_gaussian * math.sqrt(self.budget / 600.0))
+
+    def _steps_for(self, step: int, left: float, gaussians: int, cap: int) -> int:
+        """The number of steps (in all) whose predicted times fill `left` seconds from `step` on."""
+        low, high = step + 1, step + 1
+        while self._future_seconds(step, high, gaussians, cap) < left and high < 10 * MAX_STEPS:
+            low, high = high, high * 2
+        while high - low > max(1, low // 200):
+            middle = (low + high) // 2
+            if self._future_seconds(step, middle, gaussians, cap) < left:
+                low = middle
+            else:
+                high = middle
+        return low
+
+    def _future_seconds(self, step: int, steps: int, gaussians: int, cap: int) -> float:
+        """Predicted seconds of the steps from `step` to `steps` when the run lasts `steps` steps in all."""
+        if steps <= step:
+            return 0.0
+        ks = np.unique(np.linspace(step, steps - 1, min(PREDICTION_POINTS, steps - step)).round())
+        trial = self._fitted(steps)
+        end = trial.resolution_full_at * steps
+        scales = np.where(ks < end, trial.resolution_start ** (1.0 - ks / end), 1.0)
+        per_step = self.cost.predict(self._counts(trial, step, ks, gaussians, cap), scales)
+        return float(np.trapezoid(per_step, ks) + per_step[-1]) if len(ks) > 1 else float(per_step[0])
+
+    def _counts(self, trial: TrainConfig, step: int, ks: np.ndarray, gaussians: int, cap: int) -> np.ndarray:
+        """The Gaussians at steps `ks` as MCMC grows towards `cap` at the planned rate (ADC: the cap, at most)."""
+        if trial.strategy != "mcmc":
+            return np.full(len(ks), float(cap))
+        if cap <= gaussians:
+            return np.full(len(ks), float(cap))
+        m = trial.mcmc
+        rate = self._grow_rate(step, trial.steps, gaussians, cap)
+        first = (max(step, m.refine_start) // m.refine_every + 1) * m.refine_every
+        upto = np.minimum(ks + 1, m.refine_stop) - 1
+        refines = np.where(upto >= first, (upto - first) // m.refine_every + 1, 0)
+        return np.minimum(cap, gaussians * rate ** refines)
+
+    def _grow_rate(self, step: int, steps: int, gaussians: int, cap: int) -> float:
+        trial = self._fitted(steps)
+        m = trial.mcmc
+        refines = refine_steps_between(max(step, m.refine_start), min(round(m.growth_share * steps), m.refine_stop),
+                                       m.refine_every)
+        return growth_rate_reaching(gaussians, cap, refines, m.grow_rate)
+
+    def _fitted(self, steps: int) -> TrainConfig:
+        """A light copy of the configuration with its schedules fitted to `steps`."""
+        trial = copy.copy(self.config)
+        trial.mcmc, trial.adc = copy.copy(self.config.mcmc), copy.copy(self.config.adc)
+        self._fit_schedules(trial, steps)
+        return trial
+
+    def _fit_schedules(self, config: TrainConfig, steps: int) -> None:
+        sh_every = config.sh_increase_every
+        for key, value in self.base.items():
+            _set(config, key, value)
+        config.steps = steps
+        scale_step_schedules(config, steps, PAPER_STEPS)
+        if self.sh_fixed:
+            config.sh_increase_every = sh_every
+
+    def _apply(self, plan: Plan, step: int) -> None:
+        config = self.config
+        if not self.sh_fixed and step >= config.sh_increase_every:
+            self.sh_fixed = True  # the degree has risen once: keep its schedule so it never steps back
+        self._fit_schedules(config, plan.steps)
+        config.mcmc.cap_max = config.adc.cap_max = plan.cap
+        config.mcmc.grow_rate = plan.grow_rate
+        config.budget_plan = self.record()

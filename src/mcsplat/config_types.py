@@ -1,0 +1,62 @@
+"""Whether a value read back from config.json has the type its option is declared with.
+
+A dataclass takes whatever it is given, so a hand-edited `"steps": "300"` would only fail deep inside the first step
+that compares it with a number; checked here, it is a one-line error that names the option.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal, Union
+
+
+@functools.cache
+def option_types(cls: type) -> dict[str, Any]:
+    """The declared type of each field of the dataclass `cls`."""
+    hints = typing.get_type_hints(cls, include_extras=False)
+    return {field.name: hints[field.name] for field in dataclasses.fields(cls)}
+
+
+def fits(value: Any, hint: Any) -> bool:
+    """Whether the JSON value `value` can stand for a value of type `hint` (a list for a tuple, a string for a
+    Path); types this does not know are let through."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType):
+        return any(fits(value, arg) for arg in args)
+    if origin is Literal:
+        return any(value == arg and type(value) is type(arg) for arg in args)
+    if hint is type(None):
+        return value is None
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if hint is float:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    if hint in (str, Path):
+        return isinstance(value, str)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(fits(item, args[0]) for item in value)
+        return len(value) == len(args) and all(fits(item, arg) for item, arg in zip(value, args))
+    return True
+
+
+def describe(hint: Any) -> str:
+    """`hint` in words, for the error message."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (Union, types.UnionType):
+        return " or ".join(describe(arg) for arg in args)
+    if origin is Literal:
+        return " or ".join(repr(arg) for arg in args)
+    if origin is tuple:
+        return "a list" if len(args) == 2 and args[1] is Ellipsis else f"a list of {len(args)} values"
+    names = {type(None): "null", bool: "true or false", int: "a whole number", float: "a number", str: "a string",
+             Path: "a path"}
+    return names.get(hint, getattr(hint, "__name__", str(hint)))

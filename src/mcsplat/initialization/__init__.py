@@ -1,0 +1,97 @@
+"""The Gaussians a run starts from, and a line saying which and why.
+
+`--model.init auto` (the default) takes, in this order:
+- the scene's SfM points (COLMAP, LLFF with sparse/);
+- for a synthetic object on a transparent background (NeRF-Synthetic: images with alpha), random points in a cube,
+  as the official code does for those scenes;
+- for a real capture with poses but no points (transforms.json, LLFF without sparse/, IDR), points triangulated
+  from its known poses (capture/triangulate.py, cached), and where that fails, random points inside the training
+  cameras' frustums (frustum.py).
+`sfm`, `triangulate`, `frustum` and `random` force one of them; `random` is the paper's "Ours (Random)": a cube of
++-init_extent scene radii around the world origin ([-1.3, 1.3]^3 for object-centric scenes).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ..capture.triangulate import triangulated_points
+from ..config import TrainConfig
+from ..data import Scene
+from ..errors import MCSplatError
+from ..gaussians import GaussianModel
+from .frustum import points_in_frustums
+
+
+def initial_model(config: TrainConfig, scene: Scene, device: torch.device, generator: torch.Generator,
+                  progress: bool = False) -> tuple[GaussianModel, str]:
+    """(model, a note saying which initialisation was used and why), within the run's cap: a random subset of
+    the points when there are more (gsplat issue 516: a run would otherwise train above its cap until its first
+    refine step)."""
+    model, note = _initial_model(config, scene, device, generator, progress)
+    return within_cap(model, note, cap_of(config), generator)
+
+
+def cap_of(config: TrainConfig) -> int | None:
+    """The most Gaussians the run may hold (MCMC's cap, ADC's optional budget)."""
+    return config.mcmc.cap_max if config.strategy == "mcmc" else config.adc.cap_max
+
+
+def within_cap(model: GaussianModel, note: str, cap: int | None, generator: torch.Generator
+               ) -> tuple[GaussianModel, str]:
+    """(the model, or a random `cap` of its Gaussians when it has more; the note, saying so)."""
+    n = model.num_gaussians
+    if cap is None or n <= cap:
+        return model, note
+    keep = torch.randperm(n, generator=generator, device=generator.device)[:cap].sort().values
+    return model.subset(keep), f"{note}; {cap:,} of the {n:,} kept at random to stay within --cap-max"
+
+
+def _initial_model(config: TrainConfig, scene: Scene, device: torch.device, generator: torch.Generator,
+                   progress: bool) -> tuple[GaussianModel, str]:
+    m = config.model
+    method = m.init
+    if method == "auto":
+        method = "sfm" if scene.points is not None else "random" if scene.alpha else "triangulate"
+    if method == "sfm":
+        if scene.points is None:
+            raise MCSplatError(f"--model.init sfm: {scene.root} has no SfM points; use --model.init auto "
+                               "(triangulated from the poses) or random")
+        return _from_points(config, scene.points, scene.point_colors, device), \
+            f"the scene's SfM points ({scene.points.shape[0]:,})"
+    if method == "triangulate":
+        try:
+            found = triangulated_points(scene.train, threads=config.threads, progress=progress)
+        except MCSplatError as error:
+            if m.init != "auto":
+                raise
+            model = _in_frustums(config, scene, device, generator)
+            return model, (f"random points in the cameras' frustums ({model.num_gaussians:,}): the scene has no SfM "
+                           f"points and {error}")
+        model = _from_points(config, torch.from_numpy(found.xyz), torch.from_numpy(found.rgb) / 255.0, device)
+        how = "from the cache" if found.cached else f"in {found.seconds:.0f} s"
+        return model, (f"{model.num_gaussians:,} points triangulated from the known poses of {found.views} views "
+                       f"({how}; mean reprojection error {found.reprojection_error:.2f} px): the scene has no SfM "
+                       "points")
+    if method == "frustum":
+        model = _in_frustums(config, scene, device, generator)
+        return model, f"random points in the cameras' frustums ({model.num_gaussians:,})"
+    model = GaussianModel.random_init(scene.radius, blender=scene.object_centric, num_points=m.num_init_points,
+                                      extent=m.init_extent, init_scale=m.init_scale, init_opacity=m.init_opacity,
+                                      sh_degree=m.sh_degree, generator=generator, device=device)
+    why = ", a synthetic scene, as the official code" if m.init == "auto" else ""
+    return model, f"random ({model.num_gaussians:,} points{why})"
+
+
+def _from_points(config: TrainConfig, points: torch.Tensor, colors: torch.Tensor, device: torch.device
+                 ) -> GaussianModel:
+    m = config.model
+    return GaussianModel.from_points(points.float(), colors.float(), init_scale=m.init_scale,
+                                     init_opacity=m.init_opacity, sh_degree=m.sh_degree, device=device)
+
+
+def _in_frustums(config: TrainConfig, scene: Scene, device: torch.device, generator: torch.Generator
+                 ) -> GaussianModel:
+    cpu = torch.Generator().manual_seed(int(torch.randint(2**31, (1,), generator=generator, device=generator.device)))
+    points, colors = points_in_frustums(scene.train, scene.radius, config.model.num_init_points, cpu)
+    return _from_points(config, points, colors, device)

@@ -1,0 +1,172 @@
+"""Training to the time and the length the user has: the schedules follow --steps, --budget stops on time, coarse to
+fine reaches full size, growth reaches the cap, and a scene without points starts from points triangulated from its
+known poses."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from mcsplat.budget import BudgetPlanner, StepCost
+from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.data import load_scene
+from mcsplat.data.undistort import CACHE_ENV
+from mcsplat.errors import MCSplatError
+from mcsplat.initialization import initial_model
+from mcsplat.initialization.frustum import points_in_frustums
+from mcsplat.io.transforms import write_transforms
+from mcsplat.schedule import fitted_to_steps, planned_growth_rate, refine_steps_between, resolution_at
+from mcsplat.train import train
+
+DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
+
+
+# ------------------------------------------------------------------------------------------------- the schedules
+def test_the_step_schedules_follow_the_steps():
+    """--steps 3000 gets the paper's schedule at a tenth: refinement 50..2,500 every 10, SH every 100, ADC's
+    densification 50..1,500 every 10 and resets every 300; --no-scale-schedule keeps the options as they are."""
+    fitted = fitted_to_steps(TrainConfig(data=DEMO, steps=3000))
+    m, a = fitted.mcmc, fitted.adc
+    assert (m.refine_start, m.refine_stop, m.refine_every, fitted.sh_increase_every) == (50, 2500, 10, 100)
+    assert (a.densify_start, a.densify_stop, a.densify_every, a.reset_every) == (50, 1500, 10, 300)
+    assert fitted.schedule_fitted and fitted_to_steps(fitted) is fitted, "a resumed run is not fitted twice"
+    paper = fitted_to_steps(TrainConfig(data=DEMO))
+    assert (paper.mcmc.refine_start, paper.mcmc.refine_stop, paper.mcmc.refine_every) == (500, 25_000, 100)
+    literal = fitted_to_steps(TrainConfig(data=DEMO, steps=3000, scale_schedule=False))
+    assert (literal.mcmc.refine_start, literal.mcmc.refine_every, literal.sh_increase_every) == (500, 100, 1000)
+
+
+def test_the_resolution_rises_from_the_start_size_to_full_size():
+    config = TrainConfig(data=DEMO, steps=1000, resolution_start=0.25, resolution_full_at=0.4)
+    scales = [resolution_at(config, step) for step in range(1000)]
+    assert scales[0] == pytest.approx(0.25) and scales[200] == pytest.approx(0.5)
+    assert all(b >= a for a, b in zip(scales, scales[1:])) and scales[400:] == [1.0] * 600
+    assert {resolution_at(TrainConfig(data=DEMO, steps=1000), step) for step in range(1000)} == {1.0}
+    assert TrainConfig(data=DEMO, budget="2m").resolution_start == 0.25, "--budget trains coarse to fine"
+
+
+def test_growth_is_planned_to_reach_the_cap_in_time():
+    """From 100 to 50,000 Gaussians is 128 refine steps at the paper's 5%: more than a 3,000-step run has before
+    40% of it (114); the planned rate gets there, and the paper's 5% stays where it is fast enough."""
+    config = fitted_to_steps(TrainConfig(data=DEMO, steps=3000))
+    rate = planned_growth_rate(config, 100, 50_000)
+    refines = refine_steps_between(config.mcmc.refine_start, round(0.4 * 3000), config.mcmc.refine_every)
+    assert refines == 114 and rate > 1.05
+    count = 100
+    for _ in range(refines):
+        count = min(50_000, int(rate * count))  # as MCMC grows: int(rate N), at most the cap
+    assert count == 50_000
+    assert planned_growth_rate(fitted_to_steps(TrainConfig(data=DEMO)), 100_000, 1_000_000) == 1.05
+
+
+def test_a_short_run_grows_to_its_cap(tmp_path, mini_demo):
+    """A 600-step run (schedules / 50: refinement every 2 steps from step 10) from 300 points reaches its cap of
+    3,000 by 40% of the run; with the paper's schedule taken literally it would refine once and not get there."""
+    metrics = train(TrainConfig(data=mini_demo, out=tmp_path / "run", steps=600, downscale=4, cap_max=3000,
+                                quiet=True, save_every=0, save_renders=False, lpips_net="alex",
+                                model=ModelConfig(num_init_points=300)))
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    reached = next(record["step"] for record in log if record["num_gaussians"] == 3000)
+    assert metrics["num_gaussians"] == 3000 and reached <= 0.4 * 600, log
+
+
+# ---------------------------------------------------------------------------------------------------- --budget
+def test_the_budget_planner_fills_the_time_with_the_balanced_cap():
+    """With a known step cost (10 ms + 40 ms s^2 + 20 ms per 100k Gaussians at full size), a 60 s budget plans the
+    cap where Gaussians cost as much as pixels (a + b = 50 ms = 250k Gaussians) x sqrt(60 / 600), and steps whose
+    predicted times add up to the budget."""
+    config = TrainConfig(data=DEMO, budget="60s", model=ModelConfig(num_init_points=1000))
+    planner = BudgetPlanner(config, ceiling=1_000_000)
+    for n, s in ((1000, 1.0), (1000, 0.25), (300_000, 1.0), (300_000, 0.25), (50_000, 0.5)):
+        planner.calibrate(0.010 + 0.040 * s * s + 0.2e-6 * n, n, s)
+    planner.start(0, 0.0, 1000)
+    assert config.mcmc.cap_max == pytest.approx(250_000 * math.sqrt(0.1), rel=0.01)
+    ks = np.arange(config.steps)
+    scales = np.array([resolution_at(config, int(k)) for k in ks])
+    assert scales[0] == pytest.approx(0.25) and scales[-1] == 1.0
+    upper = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * config.mcmc.cap_max)  # every step at the cap
+    lower = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * 1000)                   # every step at the start count
+    assert lower < 60.0 < upper and 1000 < config.steps
+    assert config.mcmc.refine_every == max(1, round(100 * config.steps / 30_000))
+    assert config.budget_plan["history"][0]["steps"] == config.steps
+
+
+def test_the_step_cost_model_recovers_known_costs():
+    """Calibrated at two sizes and two counts, then measured along a run that grows and sharpens as runs do."""
+    def seconds(n, s):
+        return 0.005 + 0.08 * s * s + 0.1e-6 * n + 0.3e-6 * n * s * s
+
+    cost = StepCost()
+    for n, s in ((2000, 1.0), (2000, 0.25), (100_000, 1.0), (300_000, 1.0), (300_000, 0.25)):
+        cost.add(seconds(n, s), n, s, calibration=True)
+    for step in range(600):
+        n, s = int(min(300_000, 10_000 * 1.01 ** step)), min(1.0, 0.25 ** (1 - step / 300))
+        cost.add(seconds(n, s), n, s)
+    cost.fit()
+    np.testing.assert_allclose(cost.coefficients, [0.005, 0.08, 0.01, 0.03], rtol=0.05, atol=1e-4)
+
+
+def test_a_budget_run_stops_on_time_and_records_its_plan(tmp_path, mini_demo):
+    metrics = train(TrainConfig(data=mini_demo, out=tmp_path / "run", budget="8s", downscale=2, quiet=True,
+                                save_every=0, save_renders=False, lpips_net="alex"))
+    assert metrics["budget_seconds"] == 8.0 and abs(metrics["wall_seconds"] - 8.0) <= 0.05 * 8.0, metrics
+    config = json.loads((tmp_path / "run" / "config.json").read_text())
+    plan = config["budget_plan"]
+    assert config["steps"] == metrics["steps"] and len(plan["history"]) >= 5
+    assert plan["history"][-1]["at_seconds"] > 0.8 * 8.0, "planned again until near the end"
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert log[-1]["resolution"] == 1.0, "full size at the end"
+    assert "planned as it ran" in (tmp_path / "run" / "report.html").read_text(), "the report shows the plan"
+
+
+def test_budget_errors_are_one_line(tmp_path):
+    for budget in ("soon", "-5m", "0"):
+        with pytest.raises(MCSplatError, match="--budget .* is not a duration"):
+            TrainConfig(data=DEMO, budget=budget)
+
+
+# ------------------------------------------------------------------------------------------- initial points
+def test_background_follows_the_images_alpha(shared_data):
+    assert load_scene(shared_data / "ngp_fruit").background == (0.0, 0.0, 0.0), "a real capture in transforms.json"
+    lego = load_scene(DEMO)
+    assert lego.alpha and lego.object_centric and lego.background == (1.0, 1.0, 1.0)
+
+
+def test_points_in_the_frustums_are_in_front_of_the_cameras_and_coloured_by_them():
+    scene = load_scene(DEMO)
+    points, colors = points_in_frustums(scene.train[:5], scene.radius, 2000, torch.Generator().manual_seed(0))
+    seen = torch.zeros(2000, dtype=torch.bool)
+    for view in scene.train[:5]:
+        camera = view.camera
+        in_camera = points @ camera.world_to_camera[:3, :3].T + camera.world_to_camera[:3, 3]
+        px = in_camera[:, :2] / in_camera[:, 2:] * torch.tensor([camera.fx, camera.fy]) + \
+            torch.tensor([camera.cx, camera.cy])
+        seen |= (in_camera[:, 2] > 0) & (px >= 0).all(1) & (px[:, 0] < camera.width) & (px[:, 1] < camera.height)
+    assert seen.all() and colors.min() >= 0 and colors.max() <= 1 and colors.std() > 0.05
+
+
+CUP_VIEWS = ["1.jpg", "4.jpg", "7.jpg", "10.jpg", "13.jpg", "16.jpg", "19.jpg", "22.jpg", "25.jpg", "28.jpg"]
+
+
+def test_a_scene_without_points_starts_from_points_triangulated_from_its_poses(shared_data, tmp_path, monkeypatch):
+    """The cup's photos and poses as a transforms.json without points: the triangulated points lie on the cup's
+    own SfM points (COLMAP triangulated them from the same photos), and a second run reads them from the cache."""
+    monkeypatch.setenv(CACHE_ENV, str(tmp_path / "cache"))
+    cup = load_scene(shared_data / "colmap_cup", test_every=0)
+    chosen = [view for view in cup.train if f"{view.name}.jpg" in CUP_VIEWS]
+    write_transforms(chosen, tmp_path / "scene" / "transforms.json")
+    scene = load_scene(tmp_path / "scene", test_every=0)
+    assert scene.points is None and not scene.alpha
+    config = TrainConfig(data=scene.root, threads=2)
+    model, note = initial_model(config, scene, torch.device("cpu"), torch.Generator().manual_seed(0))
+    assert "triangulated from the known poses of 10 views" in note and model.num_gaussians > 500, note
+    distance, _ = cKDTree(cup.points.numpy()).query(model.means.detach().numpy())
+    assert np.median(distance) < 0.01 * cup.radius, np.median(distance) / cup.radius
+    again, note = initial_model(config, scene, torch.device("cpu"), torch.Generator().manual_seed(0))
+    assert "from the cache" in note and torch.equal(again.means, model.means)
