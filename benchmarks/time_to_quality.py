@@ -48,6 +48,7 @@ CALIBRATION_STEPS = 200
 def run_train(tree: Path, args: list[str], log: Path) -> None:
     """`mcsplat train ARGS` with the package of `tree` (its src/ first on the path), output to `log`."""
     env = dict(os.environ, PYTHONPATH=str(tree / "src"))
+    log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as out:
         done = subprocess.run([sys.executable, "-m", "mcsplat.cli", "train", *args], env=env, stdout=out,
                               stderr=subprocess.STDOUT)
@@ -241,6 +242,8 @@ def main() -> None:
             records.append(new)
             C.append_jsonl(results, [new])
             C.emit(new)
+    if not records:
+        sys.exit("time_to_quality: no results yet; run the benchmark first")
     report(out, records, info)
     print(f"wrote {out / 'results.md'} and {out / 'quality_vs_time.png'}")
 

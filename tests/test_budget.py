@@ -78,21 +78,21 @@ def test_a_short_run_grows_to_its_cap(tmp_path, mini_demo):
 
 # ---------------------------------------------------------------------------------------------------- --budget
 def test_the_budget_planner_fills_the_time_with_the_balanced_cap():
-    """With a known step cost (10 ms + 40 ms s^2 + 20 ms per 100k Gaussians at full size), a 60 s budget plans the
-    cap where Gaussians cost as much as pixels (a + b = 50 ms = 250k Gaussians) x sqrt(60 / 600), and steps whose
-    predicted times add up to the budget."""
-    config = TrainConfig(data=DEMO, budget="60s", model=ModelConfig(num_init_points=1000))
+    """With a known step cost (10 ms + 40 ms s^2 + 20 ms per 100k Gaussians at full size), a 120 s budget plans the
+    cap where Gaussians cost twice as much as pixels (2 x (a + b) = 100 ms = 500k Gaussians) x sqrt(120 / 600), and
+    steps whose predicted times add up to the budget."""
+    config = TrainConfig(data=DEMO, budget="120s", model=ModelConfig(num_init_points=1000))
     planner = BudgetPlanner(config, ceiling=1_000_000)
     for n, s in ((1000, 1.0), (1000, 0.25), (300_000, 1.0), (300_000, 0.25), (50_000, 0.5)):
         planner.calibrate(0.010 + 0.040 * s * s + 0.2e-6 * n, n, s)
     planner.start(0, 0.0, 1000)
-    assert config.mcmc.cap_max == pytest.approx(250_000 * math.sqrt(0.1), rel=0.01)
+    assert config.mcmc.cap_max == pytest.approx(500_000 * math.sqrt(0.2), rel=0.01)
     ks = np.arange(config.steps)
     scales = np.array([resolution_at(config, int(k)) for k in ks])
     assert scales[0] == pytest.approx(0.25) and scales[-1] == 1.0
     upper = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * config.mcmc.cap_max)  # every step at the cap
     lower = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * 1000)                   # every step at the start count
-    assert lower < 60.0 < upper and 1000 < config.steps
+    assert lower < 120.0 < upper and 1000 < config.steps
     assert config.mcmc.refine_every == max(1, round(100 * config.steps / 30_000))
     assert config.budget_plan["history"][0]["steps"] == config.steps
 
