@@ -10,8 +10,9 @@ Arms, each run a `mcsplat train` in its own process, one at a time (run nothing 
     before   a checkout of the code before --budget (`--before-tree`, e.g. a git worktree of commit c12ab67): the
              same scene with `--steps S --cap-max C`, the paper's step schedules multiplied by S / 30,000 by hand
              (as the Makefile's demo did), C the count the budget arm ended with at the same time (or, for a time
-             the budget arm has not run, at the nearest one), S from the step time a short calibration run of that
-             code measures at C, so that the run takes about T minutes of training
+             the budget arm has not run, at the nearest one), S from the step time at the end of that budget run
+             (full size, count C; where there is none, from a short calibration run of the old code), so that the
+             run takes about T minutes of training
     pointless  this tree, `--budget Tm` on a copy of a COLMAP capture as a transforms.json without points: the
              initialisation triangulated from the known poses, against the budget arm's SfM points
 
@@ -101,6 +102,21 @@ def hand_scaled(steps: int) -> list[str]:
             scaled(100), "--sh-increase-every", scaled(1000)]
 
 
+def trained_step_seconds(budget_run: Path | None) -> float | None:
+    """Seconds per step at the end of a budget run: full size, its final count, a model well into training. A
+    short calibration run measures 1.8x less than that on bird (its young Gaussians are smaller), so the before
+    arm's steps come from here when the budget arm has run."""
+    log = budget_run / "log.jsonl" if budget_run is not None else None
+    if log is None or not log.is_file():
+        return None
+    records = [r for r in map(json.loads, log.read_text().splitlines()) if "loss" in r]
+    final = [r for r in records if r.get("resolution") == 1.0 and r["num_gaussians"] == records[-1]["num_gaussians"]]
+    if len(final) < 3:
+        return None
+    first, last = final[-3], final[-1]
+    return (last["elapsed_seconds"] - first["elapsed_seconds"]) / (last["step"] - first["step"])
+
+
 def before_step_seconds(tree: Path, scene: Path, cap: int, work: Path) -> float:
     """Seconds per step of the old code at `cap` Gaussians: a short run that grows to the cap at once."""
     run = work / "calibration" / f"{scene.name}-{cap}"
@@ -115,9 +131,11 @@ def before_step_seconds(tree: Path, scene: Path, cap: int, work: Path) -> float:
     return (last["elapsed_seconds"] - first["elapsed_seconds"]) / (last["step"] - first["step"])
 
 
-def before_run(tree: Path, scene: Path, run: Path, minutes: float, cap: int, work: Path) -> dict:
+def before_run(tree: Path, scene: Path, run: Path, minutes: float, cap: int, work: Path,
+               budget_run: Path | None = None) -> dict:
     if metrics_of(run) is None:
-        steps = max(100, int(60 * minutes / before_step_seconds(tree, scene, cap, work)))
+        step_seconds = trained_step_seconds(budget_run) or before_step_seconds(tree, scene, cap, work)
+        steps = max(100, int(60 * minutes / step_seconds))
         run_train(tree, [str(scene), "--out", str(run), "--steps", str(steps), "--cap-max", str(cap),
                          "--model.num-init-points", str(max(1, cap // 2)), "--quiet", "--overwrite",
                          *hand_scaled(steps)], run.with_suffix(".log"))
@@ -133,12 +151,13 @@ def record(arm: str, scene: str, minutes: float, metrics: dict, run: Path) -> di
             "run": str(run)}
 
 
-def nearest_cap(records: list[dict], scene: str, minutes: float) -> int | None:
-    """The count the budget arm ended with at `minutes`, or at the nearest time it ran (log scale)."""
+def nearest_budget_run(records: list[dict], scene: str, minutes: float) -> dict | None:
+    """The budget arm's record at `minutes`, or at the nearest time it ran (log scale): the before arm takes its
+    count and its step time."""
     ran = [r for r in records if r["arm"] == "budget" and r["scene"] == scene]
     if not ran:
         return None
-    return min(ran, key=lambda r: abs(math.log(r["minutes"] / minutes)))["num_gaussians"]
+    return min(ran, key=lambda r: abs(math.log(r["minutes"] / minutes)))
 
 
 # ------------------------------------------------------------------------------------------------ the report
@@ -180,10 +199,10 @@ def plot(out: Path, records: list[dict]) -> None:
     for ax, scene in zip(axes[0], scenes):
         for arm, (color, marker, label) in styles.items():
             rows = sorted((r for r in records if r["arm"] == arm and r["scene"].removesuffix("-pointless") == scene),
-                          key=lambda r: r["minutes"])
-            if rows:
-                ax.plot([r["minutes"] for r in rows], [r["psnr"] for r in rows], marker=marker, color=color,
-                        label=label)
+                          key=lambda r: r["train_seconds"])
+            if rows:  # at the minutes each run trained (a before run may overrun its planned time)
+                ax.plot([r["train_seconds"] / 60 for r in rows], [r["psnr"] for r in rows], marker=marker,
+                        color=color, label=label)
         ax.set_xscale("log")
         ax.set_title(scene)
         ax.set_xlabel("minutes of training")
@@ -231,11 +250,12 @@ def main() -> None:
             run = work / f"{arm}-{scene}-{minutes:g}m"
             started = time.perf_counter()
             if arm == "before":
-                cap = nearest_cap(records, scene, minutes)
-                if cap is None:
+                nearest = nearest_budget_run(records, scene, minutes)
+                if nearest is None:
                     print(f"skipping before/{scene}/{minutes:g}m: no budget run of {scene} to take the count from")
                     continue
-                metrics = before_run(args.before_tree, folder, run, minutes, cap, work)
+                metrics = before_run(args.before_tree, folder, run, minutes, nearest["num_gaussians"], work,
+                                     Path(nearest["run"]))
             else:
                 metrics = budget_run(C.REPO, folder, run, minutes)
             new = dict(record(arm, scene, minutes, metrics, run), wall_clock=round(time.perf_counter() - started))
