@@ -83,3 +83,15 @@ def device(request) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         pytest.fail("--device cuda: no CUDA device is available here", pytrace=False)
     return torch.device(name)
+
+
+# The longest files (minutes of multi-process training) first: with two workers taking a file each (`make test`),
+# a long file handed out last would leave one worker idle while the other finishes it.
+LONGEST_FIRST = ("test_distributed.py", "test_train_e2e.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    def rank(item):
+        name = item.path.name
+        return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
+    items.sort(key=rank)  # stable: the order within a file, and of the other files, is kept
