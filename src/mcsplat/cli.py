@@ -177,6 +177,12 @@ class Export:
     prune: bool = False
     """Also leave out the Gaussians composited into no pixel of any training view (needs the run's scene), and
     print the test PSNR with and without them."""
+    max_scale: float | None = None
+    """Leave out Gaussians whose largest axis exceeds this many scene radii (the training cameras' extent): viewers
+    draw very large splats badly. Prints the test PSNR with and without them."""
+    max_distance: float | None = None
+    """Leave out Gaussians farther than this many scene radii from the training cameras' centre: very far splats
+    leave viewers that sort by depth too little precision for the scene. Prints the test PSNR with and without."""
     voxel_size: float | None = None
     """mesh: edge of a voxel of the fusion volume, in scene units (default: the finest the budget allows)."""
     voxel_budget: int = 1 << 24
@@ -195,7 +201,7 @@ class Export:
 
         from mcsplat import run_dir
         from mcsplat.compute.device import resolve_device
-        from mcsplat.io.formats import select_gaussians, write_gaussians
+        from mcsplat.io.formats import outliers, select_gaussians, write_gaussians
         from mcsplat.io.ply import write_ply
 
         folder = run_dir.RunDir(self.run)
@@ -211,17 +217,26 @@ class Export:
             raise MCSplatError(f"{folder.checkpoint_file}: NaN or infinite values in {', '.join(broken)}, so nothing "
                                f"is exported; the run diverged: train it again, or go back to "
                                f"{folder.previous_checkpoint_file.name}")
+        limits = self.max_scale is not None or self.max_distance is not None
+        extent = self._extent(run, required=limits)
         candidates = np.arange(model.num_gaussians)
         if self.prune:
             candidates = np.flatnonzero(self._seen(run).cpu().numpy())
+        if limits:
+            inside = outliers.within(params, extent, self.max_scale, self.max_distance)[candidates]
+            print(f"{int((~inside).sum()):,} Gaussians beyond --max-scale / --max-distance: left out")
+            candidates = candidates[inside]
         chosen = candidates[select_gaussians({k: v[candidates] for k, v in params.items()}, self.min_opacity,
                                              self.max_gaussians)]
         if chosen.size == 0:
             raise MCSplatError(f"no Gaussian has opacity above --min-opacity {self.min_opacity}"
-                               f"{' and shows in a training view (--prune)' if self.prune else ''}; lower it")
+                               f"{' and shows in a training view (--prune)' if self.prune else ''}"
+                               f"{' within --max-scale / --max-distance' if limits else ''}; lower it")
+        if extent is not None:
+            print(outliers.describe({k: v[chosen] for k, v in params.items()}, extent))
         keep = torch.zeros(model.num_gaussians, dtype=torch.bool)
         keep[torch.from_numpy(chosen)] = True
-        if self.prune:
+        if self.prune or limits:
             self._compare_on_test_views(run, keep.to(run.device))
         with folder.lock("mcsplat export") if folder.contains(path) else contextlib.nullcontext():
             if format_name == "ply":
@@ -283,6 +298,21 @@ class Export:
             raise MCSplatError(f"--out {self.out} names a {named} file but --format is {self.format}; name it "
                                f"*{ENDINGS[self.format]} or leave --format out")
         return self.out, named
+
+    @staticmethod
+    def _extent(run, required: bool):
+        """The training cameras' centre and radius, for the very large and very far Gaussians; None (said) when
+        the run's scene cannot be loaded and no limit needs it."""
+        from mcsplat.io.formats.outliers import Extent
+
+        try:
+            scene = run.scene
+        except MCSplatError as error:
+            if required:
+                raise MCSplatError(f"--max-scale / --max-distance need the run's scene: {error}") from None
+            print(f"not checked for very large or very far Gaussians: {error}")
+            return None
+        return Extent(centre=scene.centre.numpy(), radius=float(scene.radius))
 
     @staticmethod
     def _seen(run):

@@ -82,6 +82,11 @@ class Scene:
     """The images carry an alpha channel: a synthetic object on a transparent background (NeRF-Synthetic)."""
 
     @property
+    def centre(self) -> torch.Tensor:
+        """[3] float64: the mean of the training cameras' centres, around which `radius` is measured."""
+        return camera_centre([view.camera for view in self.train])
+
+    @property
     def object_centric(self) -> bool:
         """Normalised around one object: a synthetic Blender scene in [-1.3, 1.3]^3, or IDR's unit sphere (where
         a random initialisation fills that box rather than a cube of scene radii)."""
@@ -162,12 +167,19 @@ def split_every(items: list, test_every: int) -> tuple[list, list]:
     return train, test
 
 
+def camera_centre(cameras: Sequence[Camera]) -> torch.Tensor:
+    """[3] float64: the mean of the cameras' centres (the origin when there are none)."""
+    if not cameras:
+        return torch.zeros(3, dtype=torch.float64)
+    return torch.stack([c.center.to(torch.float64) for c in cameras]).mean(dim=0)
+
+
 def camera_radius(cameras: Sequence[Camera]) -> float:
     """1.1 x the largest distance from a camera centre to the mean centre (3DGS `getNerfppNorm`)."""
     if not cameras:
         return 1.0
     centres = torch.stack([c.center.to(torch.float64) for c in cameras])
-    distance = (centres - centres.mean(dim=0)).norm(dim=1).max().item()
+    distance = (centres - camera_centre(cameras)).norm(dim=1).max().item()
     # A single camera (or all at one spot) would give 0, which breaks every scale derived from it.
     return 1.1 * distance if distance > 0 else 1.0
 
