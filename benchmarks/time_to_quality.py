@@ -15,6 +15,8 @@ Arms, each run a `mcsplat train` in its own process, one at a time (run nothing 
              run takes about T minutes of training
     pointless  this tree, `--budget Tm` on a copy of a COLMAP capture as a transforms.json without points: the
              initialisation triangulated from the known poses, against the budget arm's SfM points
+    init     this tree, `--budget Tm --model.init auto|random` on a capture that has poses but no points
+             (ngp_fruit): points triangulated from the known poses against the random cube the code before it used
 
 Every run is kept (benchmarks/results/time_to_quality/runs/, git-ignored) and skipped when done: the script resumes
 where it stopped. Results: results.jsonl, results.md, quality_vs_time.png.
@@ -39,8 +41,9 @@ from mcsplat.io.transforms import write_transforms
 
 SCENES = {  # name -> (folder under the shared data, downscale)
     "bird": ("colmap_bird", 1), "cup": ("colmap_cup", 1), "fern": ("llff_fern/fern", 1),
-    "dtu": ("dtu_scan24_monosdf/scan24", 1), "lego": (C.LEGO, 1)}
+    "dtu": ("dtu_scan24_monosdf/scan24", 1), "lego": (C.LEGO, 1), "ngp_fruit": ("ngp_fruit", 1)}
 POINTLESS = ("bird", "cup")  # COLMAP captures made point-less for the triangulation check
+INIT_SCENES, INITS = ("ngp_fruit",), ("auto", "random")  # captures without points: the init arm's scenes and inits
 LEGO_TEST_STRIDE = 8         # lego's 200 test views: every 8th (25), as budget.py
 PAPER_STEPS = 30_000
 CALIBRATION_STEPS = 200
@@ -59,7 +62,7 @@ def run_train(tree: Path, args: list[str], log: Path) -> None:
 
 def scene_folder(name: str, data_root: Path, work: Path) -> Path:
     """The scene as the arms train it: lego with every 8th test view; the point-less copies written once."""
-    folder, _ = SCENES[name.removesuffix("-pointless")]
+    folder, _ = SCENES[base_scene(name)]
     source = data_root / folder
     if name == "lego":
         target = work / "scenes" / "lego-test25"
@@ -82,15 +85,20 @@ def scene_folder(name: str, data_root: Path, work: Path) -> Path:
     return source
 
 
+def base_scene(name: str) -> str:
+    """'bird-pointless' or 'ngp_fruit-random' -> the scene's name."""
+    return name.split("-")[0]
+
+
 def metrics_of(run: Path) -> dict | None:
     path = run / "metrics.json"
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def budget_run(tree: Path, scene: Path, run: Path, minutes: float) -> dict:
+def budget_run(tree: Path, scene: Path, run: Path, minutes: float, options: tuple[str, ...] = ()) -> dict:
     if metrics_of(run) is None:
-        run_train(tree, [str(scene), "--out", str(run), "--budget", f"{minutes:g}m", "--quiet", "--overwrite"],
-                  run.with_suffix(".log"))
+        run_train(tree, [str(scene), "--out", str(run), "--budget", f"{minutes:g}m", *options, "--quiet",
+                         "--overwrite"], run.with_suffix(".log"))
     return metrics_of(run)
 
 
@@ -170,7 +178,10 @@ def report(out: Path, records: list[dict], info: dict) -> None:
              f"Machine: {C.machine_line(info)}. {C.timestamp()}.", "",
              "`budget`: `mcsplat train SCENE --budget Tm`; `before`: the code before it with --steps fitted to the "
              "time and the schedules scaled by hand, at the count the budget arm reached; `pointless`: the budget "
-             "arm on the capture as a transforms.json without points (triangulated from the known poses).", "",
+             "arm on the capture as a transforms.json without points (triangulated from the known poses); `init`: "
+             "the budget arm on a capture without points, initialised by `--model.init auto` (triangulated) or "
+             "`random` (the cube the code before it used); `budget-capped`: `--budget Tm --cap-max N`, run by hand "
+             "(each record's note has its command).", "",
              C.markdown_table(ordered, columns), ""]
     lines += target_lines(records)
     C.write_text(out / "results.md", "\n".join(lines) + "\n")
@@ -192,17 +203,21 @@ def target_lines(records: list[dict]) -> list[str]:
 
 def plot(out: Path, records: list[dict]) -> None:
     plt = C.pyplot()
-    scenes = sorted({r["scene"].removesuffix("-pointless") for r in records})
+    scenes = sorted({base_scene(r["scene"]) for r in records})
     fig, axes = plt.subplots(1, len(scenes), figsize=(4 * len(scenes), 3.4), squeeze=False)
     styles = {"budget": ("tab:blue", "o", "--budget"), "before": ("tab:gray", "s", "before (--steps)"),
-              "pointless": ("tab:orange", "^", "--budget, no points")}
+              "pointless": ("tab:orange", "^", "--budget, no points"),
+              "init": ("tab:green", "v", "--budget, no points (auto / random init)")}
     for ax, scene in zip(axes[0], scenes):
         for arm, (color, marker, label) in styles.items():
-            rows = sorted((r for r in records if r["arm"] == arm and r["scene"].removesuffix("-pointless") == scene),
+            rows = sorted((r for r in records if r["arm"] == arm and base_scene(r["scene"]) == scene),
                           key=lambda r: r["train_seconds"])
             if rows:  # at the minutes each run trained (a before run may overrun its planned time)
                 ax.plot([r["train_seconds"] / 60 for r in rows], [r["psnr"] for r in rows], marker=marker,
-                        color=color, label=label)
+                        color=color, label=label, linestyle="none" if arm == "init" else "-")
+            for r in rows if arm == "init" else ():  # two inits at one time: named, not joined
+                ax.annotate(r["scene"].split("-")[1], (r["train_seconds"] / 60, r["psnr"]), fontsize=7,
+                            xytext=(4, 0), textcoords="offset points")
         ax.set_xscale("log")
         ax.set_title(scene)
         ax.set_xlabel("minutes of training")
@@ -220,8 +235,9 @@ def main() -> None:
     parser.add_argument("--minutes", nargs="+", type=float, default=[2, 5, 10, 30], help="budget arm times")
     parser.add_argument("--before-minutes", nargs="+", type=float, default=[10, 30], help="before arm times")
     parser.add_argument("--pointless-minutes", nargs="+", type=float, default=[10])
-    parser.add_argument("--arms", nargs="+", default=["budget", "before", "pointless"],
-                        choices=["budget", "before", "pointless"])
+    parser.add_argument("--init-minutes", nargs="+", type=float, default=[5])
+    parser.add_argument("--arms", nargs="+", default=["budget", "before", "pointless", "init"],
+                        choices=["budget", "before", "pointless", "init"])
     parser.add_argument("--before-tree", type=Path, default=C.REPO.parent / "baseline",
                         help="a checkout of the code before --budget (git worktree add ../baseline c12ab67)")
     parser.add_argument("--data-root", type=Path, default=C.DATA_ROOT)
@@ -243,6 +259,8 @@ def main() -> None:
         jobs += [("before", s, m) for m in args.before_minutes for s in args.scenes] if "before" in args.arms else []
         jobs += [("pointless", f"{s}-pointless", m) for m in args.pointless_minutes for s in args.scenes
                  if s in POINTLESS] if "pointless" in args.arms else []
+        jobs += [("init", f"{s}-{init}", m) for m in args.init_minutes for s in args.scenes if s in INIT_SCENES
+                 for init in INITS] if "init" in args.arms else []
         for arm, scene, minutes in jobs:
             if (arm, scene, minutes) in done:
                 continue
@@ -256,6 +274,8 @@ def main() -> None:
                     continue
                 metrics = before_run(args.before_tree, folder, run, minutes, nearest["num_gaussians"], work,
                                      Path(nearest["run"]))
+            elif arm == "init":
+                metrics = budget_run(C.REPO, folder, run, minutes, ("--model.init", scene.split("-")[1]))
             else:
                 metrics = budget_run(C.REPO, folder, run, minutes)
             new = dict(record(arm, scene, minutes, metrics, run), wall_clock=round(time.perf_counter() - started))
