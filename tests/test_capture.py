@@ -246,3 +246,47 @@ def test_photos_of_two_sizes_get_a_camera_each_and_all_register(cup_photos, tmp_
     sizes = {model.cameras[image.camera_id].width for image in model.images.values()}
     assert len(model.cameras) == 2 and len(sizes) == 2, "both sizes registered, each under its own camera"
     assert len(load_scene(out).train) > 0
+
+
+def _left_share(model, masks: Path | None = None) -> tuple[float, float]:
+    """Of the observations with a 3D point: the share in the left 40% of their image, and (with the scene's
+    masks/) the share on a pixel the image's mask leaves out."""
+    left = observed = dropped = 0
+    for image in model.images.values():
+        width = model.cameras[image.camera_id].width
+        keep = None if masks is None else np.asarray(Image.open(masks / f"{Path(image.name).stem}.png"))
+        for point in image.points2D:
+            if not point.has_point3D():
+                continue
+            x, y = point.xy
+            observed += 1
+            left += x < 0.4 * width
+            if keep is not None:
+                dropped += keep[min(int(y), keep.shape[0] - 1), min(int(x), keep.shape[1] - 1)] == 0
+    return left / observed, dropped / observed
+
+
+def test_masks_keep_sift_off_what_they_leave_out_and_come_with_the_scene(cup_photos, cup_scene, tmp_path):
+    """Masks that leave out the left 40% of every photo (inverted: white there): no tie point of the model lies
+    there (without the masks a good share does), and the scene gets the masks, undistorted, as masks/."""
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    leave_out = np.zeros(SMALL[::-1], dtype=np.uint8)
+    leave_out[:, : int(0.4 * SMALL[0])] = 255
+    for path in cup_photos.glob("*.jpg"):
+        Image.fromarray(leave_out).save(masks / f"{path.stem}.png")
+    out = tmp_path / "scene"
+    with pytest.warns(UserWarning):
+        summary = process(cup_photos, out, ProcessOptions(threads=2, progress=False, masks=str(masks),
+                                                          invert_masks=True))
+    assert summary.registered >= 40 and summary.masks == summary.registered, summary
+    assert any(line.startswith("masks:") for line in summary.lines())
+    model = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    left, dropped = _left_share(model, out / "masks")
+    unmasked_left, _ = _left_share(pycolmap.Reconstruction(str(cup_scene[0] / "sparse" / "0")))
+    print(f"tie points in the left 40%: {left:.1%} with the masks, {unmasked_left:.1%} without")
+    assert unmasked_left > 0.15 and left < 0.02 and dropped < 0.01
+    scene = load_scene(out)
+    assert all(view.mask is not None and view.mask.shape == view.image.shape[:2] for view in scene.train)
+    assert 0.3 < (scene.train[0].mask == 0).float().mean() < 0.5  # the left 40%, through the undistortion
+    assert sorted(p.name for p in masks.iterdir()) == sorted(f"{p.stem}.png" for p in cup_photos.glob("*.jpg"))

@@ -39,13 +39,19 @@ class Info:
     test_every: int = 8
     """Every N-th view (sorted by name) is held out for testing; 0 = none. Blender test splits are kept as they are."""
     background: Annotated[str, tyro.conf.arg(metavar="COLOR")] = "auto"
-    """'white', 'black' or 'r,g,b' in [0, 1]; 'auto' = white for Blender scenes, black otherwise."""
+    """'white', 'black' or 'r,g,b' in [0, 1]; 'auto' = white when the images have an alpha channel, else black."""
+    masks: str = "auto"
+    """Training masks: 'auto' (the scene's masks/ folder when it has one), 'none', 'alpha' or a folder."""
+    invert_masks: bool = False
+    """Masks are white where the pixel is left out."""
 
     def run_command(self) -> int:
         from mcsplat.data import load_scene
+        from mcsplat.data.masks import MaskOptions
 
         background = None if self.background.strip().lower() == "auto" else self.background
-        scene = load_scene(self.data, downscale=self.downscale, background=background, test_every=self.test_every)
+        scene = load_scene(self.data, downscale=self.downscale, background=background, test_every=self.test_every,
+                           masks=MaskOptions(self.masks, self.invert_masks))
         print(scene.summary())
         return 0
 
@@ -78,10 +84,17 @@ class Eval:
             result = evaluate(run.model, run.scene.test, run.background, run.sh_degree, run.device, lpips_net=net,
                               render_file=render_file, progress=True)
             run.folder.update_metrics(psnr=result.psnr, ssim=result.ssim, lpips=result.lpips, lpips_net=net,
-                                      steps=run.step, num_gaussians=run.model.num_gaussians, test_views=result.views)
+                                      steps=run.step, num_gaussians=run.model.num_gaussians, test_views=result.views,
+                                      **result.masked(), **result.compensated())
         lpips = "n/a (weights not installed)" if result.lpips is None else f"{result.lpips:.4f}"
         print(f"PSNR {result.psnr:.3f} dB  SSIM {result.ssim:.4f}  LPIPS-{net} {lpips}  "
               f"({result.views} test views, {run.model.num_gaussians:,} Gaussians, step {run.step:,})")
+        if run.config.appearance != "none":
+            print(f"compensated: PSNR {result.compensated_psnr:.3f} dB  SSIM {result.compensated_ssim:.4f}  (each "
+                  "test view's colour transform fitted on its left half, the right half scored)")
+        if result.masked_views:
+            print(f"masked: PSNR {result.masked_psnr:.3f} dB  SSIM {result.masked_ssim:.4f}  "
+                  f"({result.masked_views} views, over the pixels their masks keep)")
         return 0
 
 
@@ -440,6 +453,11 @@ class Process:
     threads: int | None = None
     """CPU threads for pycolmap (default: all cores)."""
     overwrite: bool = False
+    masks: Path | None = None
+    """Photos only: a folder of masks (<photo name>.png, black: leave out, as `mcsplat train --masks`): SIFT finds no
+    features where they leave out (people, sky, the operator), and the scene gets them, undistorted, as masks/."""
+    invert_masks: bool = False
+    """The masks are white where the photo is to be left out."""
 
     def run_command(self) -> int:
         from mcsplat.capture import ProcessOptions, process
@@ -448,7 +466,8 @@ class Process:
             raise MCSplatError("--num-frames must be at least 3 and --fps positive")
         summary = process(self.input, self.out, ProcessOptions(
             matcher=self.matcher, camera_model=self.camera_model, sfm_max_size=self.sfm_max_size,
-            num_frames=self.num_frames, fps=self.fps, threads=self.threads, overwrite=self.overwrite))
+            num_frames=self.num_frames, fps=self.fps, threads=self.threads, overwrite=self.overwrite,
+            masks=None if self.masks is None else str(self.masks), invert_masks=self.invert_masks))
         print("\n".join(summary.lines()))
         return 0
 

@@ -13,12 +13,13 @@ import torch
 from PIL import Image
 from tqdm import tqdm
 
+from .appearance import apply_transform, fitted_transform, split_halves
 from .data import View
 from .distributed import SingleProcess, Team
 from .errors import MCSplatError
 from .gaussians import GaussianModel
 from .io.atomic import atomic_write
-from .metrics import lpips_model, psnr, ssim_metric
+from .metrics import lpips_model, masked_psnr, masked_ssim, psnr, ssim_metric
 from .render import render
 from .visibility import seen_in
 
@@ -33,6 +34,25 @@ class Evaluation:
     lpips_net: str
     views: int
     per_view_psnr: dict[str, float] = field(default_factory=dict)  # view name -> PSNR
+    # Over the pixels the masks keep (data/masks.py): the means over the views that have a mask, else None.
+    masked_psnr: float | None = None
+    masked_ssim: float | None = None
+    masked_views: int = 0
+    # 3DGS's train_test_exp protocol (appearance.py): each test view's right half, after the colour transform fitted
+    # on its left half.
+    compensated_psnr: float | None = None
+    compensated_ssim: float | None = None
+
+    def compensated(self) -> dict[str, float]:
+        if self.compensated_psnr is None:
+            return {}
+        return {"compensated_psnr": self.compensated_psnr, "compensated_ssim": self.compensated_ssim}
+
+    def masked(self) -> dict[str, float | int]:
+        """The masked scores for metrics.json (nothing when no test view has a mask)."""
+        if not self.masked_views:
+            return {}
+        return {"masked_psnr": self.masked_psnr, "masked_ssim": self.masked_ssim, "masked_views": self.masked_views}
 
 
 @dataclass
@@ -41,6 +61,10 @@ class ViewScore:
     psnr: float
     ssim: float
     lpips: float | None
+    masked_psnr: float | None = None  # the view has a mask
+    masked_ssim: float | None = None
+    compensated_psnr: float | None = None
+    compensated_ssim: float | None = None
 
 
 @torch.no_grad()
@@ -52,8 +76,13 @@ def score_views(model: GaussianModel, views: list[View], background, sh_degree: 
     for view in tqdm(views, desc="evaluating", disable=not progress, leave=False):
         target = view.image_float(device)
         image = render(model, view.camera.to(device), background, sh_degree).rgb.clamp(0, 1)
+        keep = view.mask_float(device)
+        right, right_photo = compensated_half(image, target)
         scores.append(ViewScore(view.name, psnr(image, target), ssim_metric(image, target),
-                                float(lp(image, target)) if lp is not None else None))
+                                float(lp(image, target)) if lp is not None else None,
+                                masked_psnr(image, target, keep) if keep is not None else None,
+                                masked_ssim(image, target, keep) if keep is not None else None,
+                                psnr(right, right_photo), ssim_metric(right, right_photo)))
         if on_image is not None:
             on_image(view, image)
     return scores
@@ -62,9 +91,23 @@ def score_views(model: GaussianModel, views: list[View], background, sh_degree: 
 def summarize(scores: list[ViewScore], lpips_net: str | None) -> Evaluation:
     """The means over the views (in the order given)."""
     lpips_values = [s.lpips for s in scores if s.lpips is not None]
+    masked = [s for s in scores if s.masked_psnr is not None and np.isfinite(s.masked_psnr)]
     return Evaluation(psnr=float(np.mean([s.psnr for s in scores])), ssim=float(np.mean([s.ssim for s in scores])),
                       lpips=float(np.mean(lpips_values)) if lpips_values else None, lpips_net=lpips_net or "",
-                      views=len(scores), per_view_psnr={s.name: round(s.psnr, 3) for s in scores})
+                      views=len(scores), per_view_psnr={s.name: round(s.psnr, 3) for s in scores},
+                      masked_psnr=float(np.mean([s.masked_psnr for s in masked])) if masked else None,
+                      masked_ssim=float(np.mean([s.masked_ssim for s in masked])) if masked else None,
+                      masked_views=len(masked),
+                      compensated_psnr=float(np.mean([s.compensated_psnr for s in scores])) if scores else None,
+                      compensated_ssim=float(np.mean([s.compensated_ssim for s in scores])) if scores else None)
+
+
+def compensated_half(image: torch.Tensor, photo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The right half of the render through the colour transform fitted on the left half, and the photo's right
+    half (appearance.py)."""
+    left, right = split_halves(image)
+    left_photo, right_photo = split_halves(photo)
+    return apply_transform(fitted_transform(left, left_photo), right).clamp(0, 1), right_photo
 
 
 def require_test_views(views: list[View]) -> None:

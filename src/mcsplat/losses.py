@@ -69,3 +69,19 @@ def l1(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 def photometric_loss(image: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
     """(1 - w) L1 + w (1 - SSIM), w = 0.2 as in 3DGS and the MCMC paper."""
     return (1.0 - ssim_weight) * l1(image, target) + ssim_weight * (1.0 - ssim(image, target))
+
+
+def masked_photometric_loss(image: torch.Tensor, target: torch.Tensor, keep: torch.Tensor | None,
+                            ssim_weight: float = 0.2) -> torch.Tensor:
+    """photometric_loss over the pixels a mask keeps (`keep`: [H, W, 1] weights in [0, 1], None: every pixel).
+
+    Where a pixel is left out, the render and the target both take the render's own detached value: the pixel adds
+    no L1, SSIM windows that reach it see no difference there, and no gradient reaches the render through it. The
+    loss is divided by the kept share, so that it keeps its weight against the strategy's regularizers."""
+    if keep is None:
+        return photometric_loss(image, target, ssim_weight)
+    fixed = image.detach()
+    left_out = 1.0 - keep
+    image = image * keep + fixed * left_out
+    target = target * keep + fixed * left_out
+    return photometric_loss(image, target, ssim_weight) / keep.mean().clamp_min(1e-6)

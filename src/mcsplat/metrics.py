@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from .errors import MCSplatError
-from .losses import ssim
+from .losses import ssim, ssim_map
 
 LPIPS_NETS = ("alex", "vgg")
 _CKPT_NAMES = {"alex": "alexnet.ckpt", "vgg": "vgg16.ckpt"}
@@ -35,6 +35,26 @@ def psnr(image: torch.Tensor, target: torch.Tensor) -> float:
 
 def ssim_metric(image: torch.Tensor, target: torch.Tensor) -> float:
     return ssim(image.clamp(0, 1), target).item()
+
+
+def masked_psnr(image: torch.Tensor, target: torch.Tensor, keep: torch.Tensor) -> float:
+    """PSNR over the pixels a mask keeps (`keep`: [H, W, 1] weights in [0, 1]), each weighted by its keep value."""
+    weight = keep.expand_as(target)
+    kept = float(weight.sum())
+    if kept == 0:
+        return float("nan")
+    mse = float((weight * (image.clamp(0, 1) - target) ** 2).sum()) / kept
+    return float("inf") if mse == 0 else -10.0 * np.log10(mse)
+
+
+def masked_ssim(image: torch.Tensor, target: torch.Tensor, keep: torch.Tensor) -> float:
+    """The SSIM map averaged over the pixels a mask keeps (windows that straddle the mask's edge count, with the
+    left-out pixels as they are)."""
+    weight = keep.permute(2, 0, 1).expand(3, -1, -1)
+    kept = float(weight.sum())
+    if kept == 0:
+        return float("nan")
+    return float((ssim_map(image.clamp(0, 1), target) * weight).sum()) / kept
 
 
 class _NumpyOnlyUnpickler(pickle.Unpickler):

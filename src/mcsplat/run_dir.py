@@ -31,6 +31,7 @@ import torch
 from .budget import SCHEDULE_KEYS
 from .config import PROCESS_OPTIONS, TrainConfig, load_config, save_config, to_jsonable
 from .data import Scene, detect_kind, load_scene
+from .data.masks import MaskOptions
 from .errors import DataError, MCSplatError
 from .gaussians import DEAD_OPACITY, GaussianModel
 from .io.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
@@ -309,7 +310,8 @@ def check_resumable(config: TrainConfig, world_size: int) -> None:
 def scene_of(config: TrainConfig) -> Scene:
     """The scene a run trains on, loaded as the run loads it."""
     return load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
-                      background=None if config.background == "auto" else config.background)
+                      background=None if config.background == "auto" else config.background,
+                      masks=MaskOptions(config.masks, config.invert_masks))
 
 
 def background_of(config: TrainConfig, scene: Scene) -> Background:

@@ -13,9 +13,11 @@ from typing import Any
 
 import torch
 
+from .appearance import Compensation, make_appearance
 from .config import TrainConfig, to_jsonable
 from .data import Scene
 from .distributed import Team
+from .errors import MCSplatError
 from .gaussians import GaussianModel
 from .initialization import initial_model
 from .optim import make_optimizers
@@ -75,6 +77,7 @@ class TrainingState:
     step: int = 0  # steps done
     train_seconds: float = 0.0  # time spent in steps (pauses, evaluations and consumers not counted)
     wall_seconds: float = 0.0  # time spent in the training loop, pauses not counted (what --budget counts)
+    compensation: Compensation | None = None  # --appearance: the per-image colour transforms and their Adam
 
     def checkpoint(self, config: TrainConfig, strategies: list[dict]) -> dict[str, Any]:
         """What checkpoint.pt holds; `strategies` is every process's strategy state (rank 0's first)."""
@@ -83,6 +86,7 @@ class TrainingState:
                 "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
                 "strategy": strategies[0], "strategy_per_process": strategies if len(strategies) > 1 else None,
                 "generator": self.generator.get_state(), "sampler": self.sampler.state_dict(),
+                "appearance": self.compensation.state_dict() if self.compensation is not None else None,
                 "config": to_jsonable(config)}
 
 
@@ -113,5 +117,18 @@ def start(config: TrainConfig, scene: Scene, device: torch.device, team: Team,
                               train_seconds=checkpoint["train_seconds"],
                               wall_seconds=checkpoint.get("wall_seconds", checkpoint["train_seconds"]))
         note = f"resumed at step {state.step:,}"
+    state.compensation = _compensation(config, len(scene.train), device)
+    if state.compensation is not None and checkpoint is not None:
+        if checkpoint.get("appearance") is None:
+            raise MCSplatError("--appearance affine: the checkpoint was trained without it; resume without "
+                               "--appearance, or train a new run")
+        state.compensation.load_state_dict(checkpoint["appearance"])
     strategy.collective = team.collective
     return state, note
+
+
+def _compensation(config: TrainConfig, images: int, device: torch.device) -> Compensation | None:
+    transforms = make_appearance(config.appearance, images, device)
+    if transforms is None:
+        return None
+    return Compensation(transforms, config.appearance_lr, config.appearance_lr_final, config.appearance_reg)

@@ -12,6 +12,7 @@ from typing import Callable
 
 from tqdm import tqdm
 
+from .data import masks
 from .events import CheckpointWritten, EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
 from .io.disk import writing_into
 from .metrics import LPIPS_HINT
@@ -63,6 +64,9 @@ class ConsoleLog(Subscriber):
             steps = f"a {config.budget} budget (steps, cap and resolution planned as it runs)"
         self.write(f"mcsplat: {scene.kind} scene {scene.root.name}: {len(scene.train)} train / {len(scene.test)} "
                    f"test views, {config.strategy} strategy, init {event.init_note}, {steps} on {run.device}")
+        for note in scene.notes:
+            if note.startswith(masks.NOTE_PREFIX):  # what the loss leaves out is not something to find out later
+                self.write(f"mcsplat: {note}")
 
     def on_kernels_compiling(self, event: KernelsCompiling) -> None:
         self.write(f"compiling {event.modules} kernel module(s) for this machine (once: later runs load them from "
@@ -78,6 +82,12 @@ class ConsoleLog(Subscriber):
         self.write(f"test PSNR {evaluation.psnr:.2f} dB, SSIM {evaluation.ssim:.4f}, LPIPS-{m['lpips_net']} "
                    f"{lpips_text} on {evaluation.views} views; {m['num_gaussians']:,} Gaussians, "
                    f"{m['train_seconds']:.0f} s of training")
+        if m.get("compensated_psnr") is not None and event.run.config.appearance != "none":
+            self.write(f"compensated (each test view's colour transform fitted on its left half, the right half "
+                       f"scored): PSNR {m['compensated_psnr']:.2f} dB, SSIM {m['compensated_ssim']:.4f}")
+        if evaluation.masked_views:
+            self.write(f"over the pixels the masks keep: PSNR {evaluation.masked_psnr:.2f} dB, SSIM "
+                       f"{evaluation.masked_ssim:.4f} on {evaluation.masked_views} views")
         if "budget_seconds" in m:
             self.write(f"budget: {m['steps']:,} steps in {m['wall_seconds']:.0f} s of the {m['budget_seconds']:.0f} s "
                        "budget (set-up, the final evaluation and the export not counted)")

@@ -2,7 +2,8 @@
 
 One step (docs/method.md, "One training step"; in gsplat's order, see strategy/mcmc.py for how the official code
 differs):
-    render a training view -> loss = 0.8 L1 + 0.2 D-SSIM + strategy regularizers -> backward
+    render a training view (through its colour transform, with --appearance) -> loss = 0.8 L1 + 0.2 D-SSIM (over
+    the pixels a mask keeps) + strategy regularizers -> backward
     -> strategy.step_post_backward (ADC gradient statistics) -> Adam step for every parameter
     -> strategy.step_post_optimizer (MCMC: relocate / grow every 100 steps, then SGLD noise; ADC: densify / prune)
 
@@ -23,6 +24,7 @@ from typing import Any, Callable, Protocol, Sequence
 import torch
 
 from . import __version__, losses, render, run_dir
+from .appearance import Compensation
 from .budget import BudgetPlanner
 from .compute.compile import compile_kernels, modules_to_compile
 from .compute.device import resolve_device
@@ -35,7 +37,7 @@ from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Lis
                      RunStarted, StepDone)
 from .gaussians import PARAM_KEYS, GaussianModel
 from .io.lock import FolderLock
-from .losses import photometric_loss
+from .losses import masked_photometric_loss
 from .metrics import psnr
 from .optim import make_optimizers, means_lr_at, set_means_lr
 from .render import RenderResult, set_cpu_threads
@@ -79,19 +81,25 @@ class StepPhases(Protocol):
 
 def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view: View, *, config: TrainConfig,
                scene_radius: float, background, device: torch.device, reduce: Reduce = _alone,
-               phases: StepPhases | None = None) -> StepResult:
+               phases: StepPhases | None = None, compensation: Compensation | None = None,
+               view_index: int = 0) -> StepResult:
     """One optimisation step on one training view (the module docstring lists its parts, in order).
 
     `reduce(model, [loss, psnr])` runs between the backward and the Adam step: with several processes it averages
-    the gradients (and the two values) over them (distributed/team.py)."""
+    the gradients (and the two values) over them (distributed/team.py). With `compensation` (--appearance) the
+    render goes through training view `view_index`'s colour transform before the loss."""
     lap = phases.lap if phases is not None else (lambda phase: None)
     set_means_lr(optimizers, means_lr_at(step, config.steps, config.optim, scene_radius))
     camera = view.camera_at(resolution_at(config, step)).to(device)  # coarse to fine, when configured
     target = view.image_float(device, size=(camera.width, camera.height))
+    keep = view.mask_float(device, size=(camera.width, camera.height))  # None unless the scene has masks
     lap("other")
     result = render.render(model, camera, background, sh_degree_at(config, step))
     lap("render")
-    loss = photometric_loss(result.rgb, target, config.ssim_weight) + strategy.regularization(model)
+    rgb = result.rgb if compensation is None else compensation.apply(view_index, result.rgb)
+    loss = masked_photometric_loss(rgb, target, keep, config.ssim_weight) + strategy.regularization(model)
+    if compensation is not None:
+        loss = loss + compensation.regularization(view_index)
     lap("loss")
     if phases is not None:
         phases.rendered(result)
@@ -99,7 +107,7 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
     lap("backward")
     strategy.step_post_backward(step, model, result, camera.width, camera.height)
     lap("strategy")
-    loss_value, train_psnr = reduce(model, [loss.item(), psnr(result.rgb.detach(), target)])
+    loss_value, train_psnr = reduce(model, [loss.item(), psnr(rgb.detach(), target)])
     if not math.isfinite(loss_value):  # checked after the reduce, so that every process stops at the same step
         raise MCSplatError(f"step {step}: the loss became {loss_value}; lower the learning rates or check "
                            f"the input images (the last checkpoint is kept)")
@@ -107,6 +115,8 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
     for opt in optimizers.values():
         opt.step()
         opt.zero_grad(set_to_none=True)
+    if compensation is not None:
+        compensation.step(step, config.steps)
     lap("optimizer")
     # The noise uses the position learning rate after this step's decay, as gsplat does (docs/method.md).
     refine = strategy.step_post_optimizer(step, model, optimizers,
@@ -159,6 +169,9 @@ class TrainingRun:
     def __init__(self, config: TrainConfig, control: Control | None = None, team: Team | None = None,
                  lock: FolderLock | None = None):
         self.team = team = team or SingleProcess()
+        if config.appearance != "none" and team.world_size > 1:
+            raise MCSplatError("--appearance does not work with several training processes yet (each holds the "
+                               "transforms of its own views); train in one process, or leave it out")
         team.check_same_setup(_setup_of(config))
         local = config
         self.lock = lock or run_dir.train_lock(config)  # rank 0 takes it in prepare; run() releases it
@@ -326,13 +339,14 @@ class TrainingRun:
             started = time.perf_counter()
             with control.lock:
                 tick = time.perf_counter()
-                view = self.scene.train[team.pick(state.sampler.take(n))]
+                view_index = team.pick(state.sampler.take(n))
+                view = self.scene.train[view_index]
                 for index in state.sampler.upcoming(PREFETCH_VIEWS * n)[team.rank::n]:  # decode ahead when images
                     self.scene.train[index].prefetch()                                   # are not all in memory
                 count, scale = state.model.num_gaussians, resolution_at(config, state.step)
                 done = train_step(state.step, state.model, state.optimizers, state.strategy, view, config=config,
                                   scene_radius=self.scene.radius, background=self.background, device=self.device,
-                                  reduce=self._reduce)
+                                  reduce=self._reduce, compensation=state.compensation, view_index=view_index)
                 if changed(done.refine):
                     emit(RefineDone(step=state.step, report=done.refine))
                 state.step += 1
@@ -398,7 +412,7 @@ class TrainingRun:
                    # --cap-max auto: where growth stopped (None: the demand never fell, the ceiling decided)
                    **({"auto_cap": strategy.chosen_cap, "auto_cap_ceiling": strategy.ceiling}
                       if config.cap_max == "auto" else {}),
-                   "per_view_psnr": evaluation.per_view_psnr}
+                   **evaluation.masked(), **evaluation.compensated(), "per_view_psnr": evaluation.per_view_psnr}
         if team.is_main:
             self.folder.write_metrics(metrics)
         emit(RunFinished(run=self, metrics=metrics, evaluation=evaluation))

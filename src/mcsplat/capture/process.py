@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from mcsplat.capture import frames
+from mcsplat.capture import masks as capture_masks
 from mcsplat.capture.child import run_worker, terminate_as_interrupt
 from mcsplat.capture.sfm import Matcher, describe_cameras
 from mcsplat.errors import MCSplatError
@@ -42,6 +43,8 @@ class ProcessOptions:
     threads: int | None = None
     overwrite: bool = False
     progress: bool = True
+    masks: str | None = None  # a folder of masks (capture/masks.py): SIFT skips what they leave out
+    invert_masks: bool = False
 
 
 @dataclass
@@ -58,6 +61,7 @@ class ProcessSummary:
     undistorted_camera: str
     image_sizes: dict[str, int] = field(default_factory=dict)  # "WxH" -> how many input images have that size
     seconds: dict[str, float] = field(default_factory=dict)
+    masks: int = 0  # masks written to the scene's masks/ (with --masks)
 
     def lines(self) -> list[str]:
         stages = ", ".join(f"{name} {value:.1f} s" for name, value in self.seconds.items())
@@ -68,6 +72,8 @@ class ProcessSummary:
                   if len(self.image_sizes) > 1 else []),
                 f"points:     {self.points:,}, mean reprojection error {self.mean_reprojection_error:.2f} px",
                 f"camera:     {self.camera} -> {self.undistorted_camera}",
+                *([f"masks:      used by SIFT, and undistorted into masks/ ({self.masks}) for training"]
+                  if self.masks else []),
                 f"time:       {stages} (total {sum(self.seconds.values()):.1f} s)",
                 f"wrote:      {self.scene} (images/ + sparse/0/); next: mcsplat train {self.scene}"]
 
@@ -87,6 +93,9 @@ def process(source: str | os.PathLike, out: str | os.PathLike, options: ProcessO
     if source.is_relative_to(out):  # --overwrite would replace the folder that holds the input
         raise MCSplatError(f"the input {source} is inside --out {out}; write the scene to another folder")
     _check_output(out, options.overwrite)
+    if from_video and options.masks is not None:
+        raise MCSplatError("--masks needs a folder of photos (the frames taken from a video have no masks named "
+                           "after them); extract the frames first, or leave --masks out")
     photos = None if from_video else frames.list_photos(source)  # fail on a bad input before any work
     needed = _space_needed(source, photos, options)
     with writing_into(out.parent, needed):
@@ -170,6 +179,10 @@ def _process(source: Path, out: Path, work: Path, photos, from_video: bool, opti
                            "overlapping views (20 or more for a good scene)")
     job = {"folder": str(photos.folder), "names": photos.names, "sizes": photos.sizes, "from_video": from_video,
            "options": asdict(options)}
+    if options.masks is not None:
+        sift, as_photos = capture_masks.prepare(Path(options.masks).expanduser(), photos.folder, photos.names,
+                                                photos.sizes, options.invert_masks, work)
+        job.update(sift_masks=str(sift), masks_as_photos=str(as_photos))
     result = run_worker(work, job, space_needed)
     seconds.update(result["seconds"])
 
@@ -180,7 +193,7 @@ def _process(source: Path, out: Path, work: Path, photos, from_video: bool, opti
         points=model.num_points3D(), mean_reprojection_error=float(model.compute_mean_reprojection_error()),
         matcher=result["matcher"], models=result["models"], camera=result["camera"],
         undistorted_camera=describe_cameras(model), image_sizes=_count_sizes(photos.sizes),
-        seconds={k: round(v, 2) for k, v in seconds.items()})
+        seconds={k: round(v, 2) for k, v in seconds.items()}, masks=result.get("masks", 0))
     # The summary, and the list of the files written: --overwrite replaces the scene only while that is all it holds.
     files = sorted(files_in(scene) + [MANIFEST])
     (scene / MANIFEST).write_text(json.dumps({**asdict(summary), "files": files}, indent=2) + "\n")

@@ -22,6 +22,7 @@ class SfmOptions:
     overlap: int = 15
     threads: int | None = None
     use_gpu: bool = True  # used only where pycolmap was built with CUDA
+    mask_path: str | None = None  # COLMAP's masks (<image name>.png, 0: no features there)
 
 
 @dataclass
@@ -49,7 +50,7 @@ def by_size(names: list[str], sizes: list[tuple[int, int]]) -> list[list[str]]:
 
 def extract_features(database: Path, image_dir: Path, groups: list[list[str]], *, camera_model: str,
                      per_image: bool, max_size: int, threads: int, gpu: bool, progress: bool = True,
-                     max_features: int | None = None) -> float:
+                     max_features: int | None = None, mask_path: str | None = None) -> float:
     """SIFT features into `database`: the images of each group share one camera (a phone's or a video's, for one
     image size), or each image has its own (`per_image`). Images go in chunks so that a progress bar moves and
     Ctrl-C is heard between them; at most `max_features` per image (COLMAP's 8,192 by default). Returns the seconds
@@ -59,6 +60,8 @@ def extract_features(database: Path, image_dir: Path, groups: list[list[str]], *
 
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
+    if mask_path is not None:
+        reader.mask_path = mask_path
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = threads
     extraction.max_image_size = max_size
@@ -124,7 +127,8 @@ def run_sfm(image_dir: Path, names: list[str], sizes: list[tuple[int, int]], wor
     # (pycolmap's single camera skips every image of another size than the first, with a log line easily missed.)
     seconds["features"] = extract_features(database, image_dir, by_size(names, sizes),
                                            camera_model=options.camera_model, per_image=False,
-                                           max_size=options.max_size, threads=threads, gpu=gpu, progress=progress)
+                                           max_size=options.max_size, threads=threads, gpu=gpu, progress=progress,
+                                           mask_path=options.mask_path)
     matcher = choose_matcher(options.matcher, from_video, len(names))
     seconds["matching"] = match_features(database, matcher, overlap=options.overlap, threads=threads, gpu=gpu,
                                          progress=progress)

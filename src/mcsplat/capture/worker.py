@@ -15,17 +15,19 @@ import sys
 import time
 from pathlib import Path
 
+from mcsplat.capture.masks import write_scene_masks
 from mcsplat.capture.sfm import SfmOptions, describe_cameras, run_sfm
 from mcsplat.errors import MCSplatError
 
 
 def reconstruct(work: Path, folder: Path, names: list[str], sizes: list[tuple[int, int]], from_video: bool,
-                options: dict) -> dict:
+                options: dict, sift_masks: str | None = None, masks_as_photos: str | None = None) -> dict:
     import pycolmap
 
     sfm = run_sfm(folder, names, sizes, work,
                   SfmOptions(matcher=options["matcher"], camera_model=options["camera_model"],
-                             max_size=options["sfm_max_size"], overlap=options["overlap"], threads=options["threads"]),
+                             max_size=options["sfm_max_size"], overlap=options["overlap"], threads=options["threads"],
+                             mask_path=sift_masks),
                   from_video, options["progress"])
     start = time.perf_counter()
     model_dir = work / "model"
@@ -38,9 +40,14 @@ def reconstruct(work: Path, folder: Path, names: list[str], sizes: list[tuple[in
     os.replace(undistorted / "images", scene / "images")
     for item in (undistorted / "sparse").iterdir():  # COLMAP writes sparse/*.bin; 3DGS tools expect sparse/0/
         os.replace(item, scene / "sparse" / "0" / item.name)
+    masks = 0
+    if masks_as_photos is not None:  # the masks through the photos' undistortion, into the scene's masks/
+        pycolmap.undistort_images(work / "undistorted_masks", model_dir, masks_as_photos,
+                                  num_threads=options["threads"] or -1)
+        masks = write_scene_masks(work / "undistorted_masks" / "images", scene / "masks")
     seconds = dict(sfm.seconds, undistortion=time.perf_counter() - start)
     return {"matcher": sfm.matcher, "models": sfm.models, "seconds": seconds,
-            "camera": describe_cameras(sfm.reconstruction)}
+            "camera": describe_cameras(sfm.reconstruction), "masks": masks}
 
 
 def end_with_parent(parent: int) -> None:
@@ -63,7 +70,7 @@ def main(work: Path) -> None:
     pycolmap.logging.minloglevel = 1  # COLMAP's per-image INFO lines would bury the progress bars
     try:
         result = reconstruct(work, Path(job["folder"]), job["names"], [tuple(size) for size in job["sizes"]],
-                             job["from_video"], job["options"])
+                             job["from_video"], job["options"], job.get("sift_masks"), job.get("masks_as_photos"))
     except MCSplatError as error:
         result = {"error": str(error)}
     except Exception as error:  # the parent tells a full disk from the rest (child.py)

@@ -9,6 +9,7 @@ import numpy as np
 
 from mcsplat.data import colmap_files, images, undistort
 from mcsplat.data.assemble import Frame, Points, assemble
+from mcsplat.data.masks import MaskOptions
 from mcsplat.data.poses import check_translation, intrinsic_matrix, rigid_rotation, scale_intrinsics
 from mcsplat.data.scene import Background, Scene
 from mcsplat.errors import DataError
@@ -91,7 +92,8 @@ def _fits(actual: tuple[int, int], camera_size: tuple[int, int], factor: int) ->
     return all(abs(a - c / factor) <= 1.0 for a, c in zip(actual, camera_size))
 
 
-def load_colmap(root: Path, downscale: int, background: Background | None, test_every: int) -> Scene:
+def load_colmap(root: Path, downscale: int, background: Background | None, test_every: int,
+                mask_options: MaskOptions | None = None) -> Scene:
     found = find_model(root)
     if found is None:
         raise DataError(incomplete_model(root) or f"no COLMAP model in {root}")
@@ -162,7 +164,7 @@ def load_colmap(root: Path, downscale: int, background: Background | None, test_
         note += f" (no folder for downscale {downscale}; using the smaller images as they are)"
     return assemble(frames, kind="colmap", root=root, background=background, test_every=test_every,
                     points=Points(xyz, rgb, str(folder / f"points3D.{ext}")),
-                    notes=[f"model: {folder.relative_to(root)}/*.{ext}", note])
+                    notes=[f"model: {folder.relative_to(root)}/*.{ext}", note], mask_options=mask_options)
 
 
 def _rescaled(camera, size: tuple[int, int]):

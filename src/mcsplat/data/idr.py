@@ -19,6 +19,7 @@ import scipy.linalg
 
 from mcsplat.data import images
 from mcsplat.data.assemble import Frame, assemble
+from mcsplat.data.masks import MaskOptions
 from mcsplat.data.poses import scale_intrinsics
 from mcsplat.data.scene import Background, Scene
 from mcsplat.errors import DataError
@@ -101,7 +102,8 @@ def intrinsics_for(K: np.ndarray, image_size: tuple[int, int], where: str) -> tu
                     "the ones the cameras were calibrated for")
 
 
-def load_idr(root: Path, downscale: int, background: Background | None, test_every: int) -> Scene:
+def load_idr(root: Path, downscale: int, background: Background | None, test_every: int,
+             mask_options: MaskOptions | None = None) -> Scene:
     paths = image_paths(root)
     cameras_file = root / CAMERAS_FILE
     if not paths:
@@ -123,4 +125,5 @@ def load_idr(root: Path, downscale: int, background: Background | None, test_eve
     if target != sizes[0]:
         notes.append(f"images resized to {target[0]}x{target[1]}")
     notes.append("no SfM points (the object fills the unit sphere: random init)")
-    return assemble(frames, kind="idr", root=root, background=background, test_every=test_every, notes=notes)
+    return assemble(frames, kind="idr", root=root, background=background, test_every=test_every, notes=notes,
+                    mask_options=mask_options)

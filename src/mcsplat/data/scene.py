@@ -22,13 +22,15 @@ class View:
     """One image with the camera that took it. `image` is uint8 [H, W, 3] on the CPU; convert when used.
 
     The pixels are either a tensor or a LazyImage (decoded on demand from the scene's ImageStore); `image` returns
-    the tensor in both cases, and `prefetch()` asks for it ahead of time.
+    the tensor in both cases, and `prefetch()` asks for it ahead of time. `mask`, when the scene has masks, is the
+    uint8 [H, W] weight of each pixel in the loss (255 kept, 0 left out; data/masks.py).
     """
 
-    __slots__ = ("camera", "name", "_image")
+    __slots__ = ("camera", "name", "_image", "mask")
 
-    def __init__(self, camera: Camera, image: "torch.Tensor | LazyImage", name: str):
-        self.camera, self.name, self._image = camera, name, image
+    def __init__(self, camera: Camera, image: "torch.Tensor | LazyImage", name: str,
+                 mask: torch.Tensor | None = None):
+        self.camera, self.name, self._image, self.mask = camera, name, image, mask
 
     @property
     def image(self) -> torch.Tensor:
@@ -52,6 +54,18 @@ class View:
             return image
         chw = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(size[1], size[0]), mode="area")
         return chw[0].permute(1, 2, 0).contiguous()
+
+    def mask_float(self, device: torch.device | str = "cpu", size: tuple[int, int] | None = None
+                   ) -> torch.Tensor | None:
+        """The mask as float32 [H, W, 1] keep weights in [0, 1] (area-averaged to `size` as image_float is), or
+        None for a view without one."""
+        if self.mask is None:
+            return None
+        mask = self.mask.to(device, non_blocking=True).to(torch.float32).div_(255.0)[:, :, None]
+        if size is None or tuple(size) == (mask.shape[1], mask.shape[0]):
+            return mask
+        return torch.nn.functional.interpolate(mask.permute(2, 0, 1)[None], size=(size[1], size[0]),
+                                               mode="area")[0].permute(1, 2, 0).contiguous()
 
     def camera_at(self, scale: float) -> Camera:
         """The view's camera for its image shrunk to `scale` of its size (at least one pixel a side)."""
