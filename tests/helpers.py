@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import math
 import shutil
+import struct
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 
 def visible_fraction(view, points: torch.Tensor) -> float:
@@ -36,3 +40,52 @@ def small_disks_work(folder: Path) -> bool:
     if shutil.which("unshare") is None:
         return False
     return on_a_small_disk(folder, "size=64k", "pass").returncode == 0
+
+
+def perturbed_cup(shared_data: Path, root: Path, train_names: set[str], degrees: float, radius_share: float,
+                  scene_radius: float, image_folders: tuple[str, ...] = ("images_4",)) -> dict[str, np.ndarray]:
+    """A copy of the cup in `root` with each training image's pose (`train_names`: the loader's view names) moved, in
+    its camera's axes, by `degrees` about a random axis and `radius_share` of the scene radius in a random direction
+    (the test views untouched); returns each moved image's rotation vector (radians). images.bin is patched in place:
+    u64 count, then per image u32 id, f64 qvec[4] (w x y z), f64 tvec[3], u32 camera id, the name + NUL, u64 point
+    count and 24 bytes per point."""
+    from mcsplat.pose_refinement import correction_matrix
+
+    source = shared_data / "colmap_cup"
+    for folder in image_folders:
+        shutil.copytree(source / folder, root / folder, copy_function=shutil.copyfile)
+    (root / "sparse" / "0").mkdir(parents=True)
+    for name in ("cameras.bin", "points3D.bin"):
+        shutil.copyfile(source / "sparse" / "0" / name, root / "sparse" / "0" / name)
+    data = bytearray((source / "sparse" / "0" / "images.bin").read_bytes())
+    rng = np.random.default_rng(0)
+    moved, offset = {}, 8
+    for _ in range(struct.unpack_from("<Q", data, 0)[0]):
+        qvec = np.array(struct.unpack_from("<4d", data, offset + 4))
+        tvec = np.array(struct.unpack_from("<3d", data, offset + 36))
+        end = data.index(b"\0", offset + 64)
+        name = Path(data[offset + 64:end].decode()).stem  # the loader's view name
+        if name in train_names:
+            axis = rng.normal(size=3)
+            omega = axis / np.linalg.norm(axis) * math.radians(degrees)
+            direction = rng.normal(size=3)
+            shift = direction / np.linalg.norm(direction) * radius_share * scene_radius
+            delta = correction_matrix(torch.tensor([*omega, *shift], dtype=torch.float64), 1.0).numpy()
+            rotation = _rotation_of(qvec)
+            new_rotation = delta[:3, :3] @ rotation
+            new_translation = delta[:3, :3] @ tvec + delta[:3, 3]
+            struct.pack_into("<4d", data, offset + 4, *_quaternion_of(new_rotation))
+            struct.pack_into("<3d", data, offset + 36, *new_translation)
+            moved[name] = omega
+        points = struct.unpack_from("<Q", data, end + 1)[0]
+        offset = end + 1 + 8 + points * 24
+    (root / "sparse" / "0" / "images.bin").write_bytes(bytes(data))
+    return moved
+
+
+def _rotation_of(qvec: np.ndarray) -> np.ndarray:
+    return Rotation.from_quat(qvec[[1, 2, 3, 0]]).as_matrix()  # COLMAP: w x y z; scipy: x y z w
+
+
+def _quaternion_of(rotation: np.ndarray) -> np.ndarray:
+    return Rotation.from_matrix(rotation).as_quat()[[3, 0, 1, 2]]

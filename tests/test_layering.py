@@ -17,7 +17,7 @@ LAYERS = [
     ("loop", {"trainer", "subscribers"}),
     ("run", {"run_dir", "state", "evaluation", "events"}),
     ("set-up", {"distributed", "initialization", "schedule", "budget", "config", "config_types"}),
-    ("method", {"strategy", "visibility", "metrics", "optim", "mesh", "appearance"}),
+    ("method", {"strategy", "visibility", "metrics", "optim", "mesh", "appearance", "pose_refinement"}),
     ("building blocks", {"render", "data", "losses", "ssim_cpu", "io", "capture", "camera_path"}),
     ("model", {"gaussians"}),
     ("foundation", {"geometry", "compute", "camera", "errors", ""}),

@@ -255,7 +255,11 @@ class Export:
             if format_name == "ply":
                 write_ply(path, dict(model.params.items()), keep=keep)
             else:
-                write_gaussians(format_name, path, {k: v[chosen] for k, v in params.items()})
+                write_gaussians(format_name, path, {k: v[chosen] for k, v in params.items()},
+                                antialiased=model.antialiased)
+        if model.antialiased and format_name != "spz":
+            print(f"note: this run was trained with --antialiased, which {format_name} files cannot record: viewers "
+                  "draw it without the 2D filter (fine detail a little heavier); .spz records it")
         print(f"wrote {path} ({chosen.size:,} of {model.num_gaussians:,} Gaussians, {path.stat().st_size:,} bytes)")
         return 0
 

@@ -83,6 +83,9 @@ class GaussianModel(torch.nn.Module):
             raise ValueError(f"GaussianModel: shN must have shape [{n}, 0|3|8|15, 3], got {list(shN.shape)}")
         self.params = torch.nn.ParameterDict(
             {key: torch.nn.Parameter(tensors[key].detach().clone()) for key in PARAM_KEYS})
+        # Drawn with Mip-Splatting's 2D filter (--antialiased): render() reads it, so every view of a scene trained
+        # with the filter goes through it. Not in the state dict: a run's configuration says it.
+        self.antialiased = False
 
     # ----------------------------------------------------------------------------------------------- construction
     @classmethod
@@ -159,7 +162,9 @@ class GaussianModel(torch.nn.Module):
 
     def subset(self, keep: torch.Tensor) -> "GaussianModel":
         """A new model of the rows `keep` selects (a bool mask or indices), detached from this one."""
-        return GaussianModel(*(self.params[key].detach()[keep] for key in PARAM_KEYS))
+        model = GaussianModel(*(self.params[key].detach()[keep] for key in PARAM_KEYS))
+        model.antialiased = self.antialiased
+        return model
 
     @classmethod
     def from_state_dict(cls, state: Mapping[str, torch.Tensor],
@@ -242,4 +247,4 @@ class GaussianModel(torch.nn.Module):
         return covariance_times(self.params["quats"], self.scales, vectors)
 
     def extra_repr(self) -> str:
-        return f"num_gaussians={self.num_gaussians}, sh_degree={self.sh_degree}"
+        return f"num_gaussians={self.num_gaussians}, sh_degree={self.sh_degree}, antialiased={self.antialiased}"

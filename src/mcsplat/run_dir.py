@@ -352,4 +352,5 @@ def load(path: str | Path, device: torch.device) -> TrainedRun:
     config = folder.read_config()
     state = folder.read_checkpoint()
     model = GaussianModel.from_state_dict(state["model"]).to(device)
+    model.antialiased = config.antialiased
     return TrainedRun(folder=folder, config=config, model=model, step=int(state["step"]), device=device)

@@ -21,6 +21,7 @@ from .errors import MCSplatError
 from .gaussians import GaussianModel
 from .initialization import initial_model
 from .optim import make_optimizers
+from .pose_refinement import PoseRefinement
 from .strategy import ADCStrategy, MCMCStrategy, Strategy
 
 
@@ -78,6 +79,7 @@ class TrainingState:
     train_seconds: float = 0.0  # time spent in steps (pauses, evaluations and consumers not counted)
     wall_seconds: float = 0.0  # time spent in the training loop, pauses not counted (what --budget counts)
     compensation: Compensation | None = None  # --appearance: the per-image colour transforms and their Adam
+    poses: PoseRefinement | None = None  # --pose-opt: the per-image pose corrections and their Adam
 
     def checkpoint(self, config: TrainConfig, strategies: list[dict]) -> dict[str, Any]:
         """What checkpoint.pt holds; `strategies` is every process's strategy state (rank 0's first)."""
@@ -87,6 +89,7 @@ class TrainingState:
                 "strategy": strategies[0], "strategy_per_process": strategies if len(strategies) > 1 else None,
                 "generator": self.generator.get_state(), "sampler": self.sampler.state_dict(),
                 "appearance": self.compensation.state_dict() if self.compensation is not None else None,
+                "poses": self.poses.state_dict() if self.poses is not None else None,
                 "config": to_jsonable(config)}
 
 
@@ -117,12 +120,20 @@ def start(config: TrainConfig, scene: Scene, device: torch.device, team: Team,
                               train_seconds=checkpoint["train_seconds"],
                               wall_seconds=checkpoint.get("wall_seconds", checkpoint["train_seconds"]))
         note = f"resumed at step {state.step:,}"
+    model.antialiased = config.antialiased
     state.compensation = _compensation(config, len(scene.train), device)
     if state.compensation is not None and checkpoint is not None:
         if checkpoint.get("appearance") is None:
             raise MCSplatError("--appearance affine: the checkpoint was trained without it; resume without "
                                "--appearance, or train a new run")
         state.compensation.load_state_dict(checkpoint["appearance"])
+    if config.pose_opt:
+        state.poses = PoseRefinement(len(scene.train), radius, device, config.pose_opt_lr, config.pose_opt_reg)
+        if checkpoint is not None:
+            if checkpoint.get("poses") is None:
+                raise MCSplatError("--pose-opt: the checkpoint was trained without it; resume without --pose-opt, "
+                                   "or train a new run")
+            state.poses.load_state_dict(checkpoint["poses"])
     strategy.collective = team.collective
     return state, note
 

@@ -85,6 +85,10 @@ class ConsoleLog(Subscriber):
         if m.get("compensated_psnr") is not None and event.run.config.appearance != "none":
             self.write(f"compensated (each test view's colour transform fitted on its left half, the right half "
                        f"scored): PSNR {m['compensated_psnr']:.2f} dB, SSIM {m['compensated_ssim']:.4f}")
+        if "pose_corrections" in m:
+            c = m["pose_corrections"]
+            self.write(f"pose corrections learned: median {c['median_degrees']:.3f} deg and {c['median_radii']:.4f} "
+                       f"scene radii, largest {c['max_degrees']:.3f} deg and {c['max_radii']:.4f} radii")
         if evaluation.masked_views:
             self.write(f"over the pixels the masks keep: PSNR {evaluation.masked_psnr:.2f} dB, SSIM "
                        f"{evaluation.masked_ssim:.4f} on {evaluation.masked_views} views")

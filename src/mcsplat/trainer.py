@@ -2,7 +2,8 @@
 
 One step (docs/method.md, "One training step"; in gsplat's order, see strategy/mcmc.py for how the official code
 differs):
-    render a training view (through its colour transform, with --appearance) -> loss = 0.8 L1 + 0.2 D-SSIM (over
+    render a training view (from its corrected pose with --pose-opt; through its colour transform with
+    --appearance) -> loss = 0.8 L1 + 0.2 D-SSIM (over
     the pixels a mask keeps) + strategy regularizers -> backward
     -> strategy.step_post_backward (ADC gradient statistics) -> Adam step for every parameter
     -> strategy.step_post_optimizer (MCMC: relocate / grow every 100 steps, then SGLD noise; ADC: densify / prune)
@@ -25,6 +26,7 @@ import torch
 
 from . import __version__, losses, render, run_dir
 from .appearance import Compensation
+from .pose_refinement import PoseRefinement
 from .budget import BudgetPlanner
 from .compute.compile import compile_kernels, modules_to_compile
 from .compute.device import resolve_device
@@ -82,15 +84,18 @@ class StepPhases(Protocol):
 def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view: View, *, config: TrainConfig,
                scene_radius: float, background, device: torch.device, reduce: Reduce = _alone,
                phases: StepPhases | None = None, compensation: Compensation | None = None,
-               view_index: int = 0) -> StepResult:
+               poses: PoseRefinement | None = None, view_index: int = 0) -> StepResult:
     """One optimisation step on one training view (the module docstring lists its parts, in order).
 
     `reduce(model, [loss, psnr])` runs between the backward and the Adam step: with several processes it averages
     the gradients (and the two values) over them (distributed/team.py). With `compensation` (--appearance) the
-    render goes through training view `view_index`'s colour transform before the loss."""
+    render goes through training view `view_index`'s colour transform before the loss; with `poses` (--pose-opt)
+    the view is rendered from its corrected pose, and the correction takes a step with the scene."""
     lap = phases.lap if phases is not None else (lambda phase: None)
     set_means_lr(optimizers, means_lr_at(step, config.steps, config.optim, scene_radius))
     camera = view.camera_at(resolution_at(config, step)).to(device)  # coarse to fine, when configured
+    if poses is not None:
+        camera = poses.camera(view_index, camera)
     target = view.image_float(device, size=(camera.width, camera.height))
     keep = view.mask_float(device, size=(camera.width, camera.height))  # None unless the scene has masks
     lap("other")
@@ -117,6 +122,8 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
         opt.zero_grad(set_to_none=True)
     if compensation is not None:
         compensation.step(step, config.steps)
+    if poses is not None:
+        poses.step()
     lap("optimizer")
     # The noise uses the position learning rate after this step's decay, as gsplat does (docs/method.md).
     refine = strategy.step_post_optimizer(step, model, optimizers,
@@ -169,9 +176,9 @@ class TrainingRun:
     def __init__(self, config: TrainConfig, control: Control | None = None, team: Team | None = None,
                  lock: FolderLock | None = None):
         self.team = team = team or SingleProcess()
-        if config.appearance != "none" and team.world_size > 1:
-            raise MCSplatError("--appearance does not work with several training processes yet (each holds the "
-                               "transforms of its own views); train in one process, or leave it out")
+        if (config.appearance != "none" or config.pose_opt) and team.world_size > 1:
+            raise MCSplatError("--appearance and --pose-opt do not work with several training processes yet (each "
+                               "holds the corrections of its own views); train in one process, or leave them out")
         team.check_same_setup(_setup_of(config))
         local = config
         self.lock = lock or run_dir.train_lock(config)  # rank 0 takes it in prepare; run() releases it
@@ -346,7 +353,8 @@ class TrainingRun:
                 count, scale = state.model.num_gaussians, resolution_at(config, state.step)
                 done = train_step(state.step, state.model, state.optimizers, state.strategy, view, config=config,
                                   scene_radius=self.scene.radius, background=self.background, device=self.device,
-                                  reduce=self._reduce, compensation=state.compensation, view_index=view_index)
+                                  reduce=self._reduce, compensation=state.compensation, poses=state.poses,
+                                  view_index=view_index)
                 if changed(done.refine):
                     emit(RefineDone(step=state.step, report=done.refine))
                 state.step += 1
@@ -412,7 +420,9 @@ class TrainingRun:
                    # --cap-max auto: where growth stopped (None: the demand never fell, the ceiling decided)
                    **({"auto_cap": strategy.chosen_cap, "auto_cap_ceiling": strategy.ceiling}
                       if config.cap_max == "auto" else {}),
-                   **evaluation.masked(), **evaluation.compensated(), "per_view_psnr": evaluation.per_view_psnr}
+                   **evaluation.masked(), **evaluation.compensated(),
+                   **({"pose_corrections": state.poses.summary()} if state.poses is not None else {}),
+                   "per_view_psnr": evaluation.per_view_psnr}
         if team.is_main:
             self.folder.write_metrics(metrics)
         emit(RunFinished(run=self, metrics=metrics, evaluation=evaluation))
@@ -422,7 +432,9 @@ class TrainingRun:
 def _resized(model: GaussianModel, count: int) -> GaussianModel:
     """A detached model of `count` Gaussians: the first `count` of `model`, or copies of it side by side."""
     copies = -(-count // max(model.num_gaussians, 1))
-    return GaussianModel(*(torch.cat([model.params[key].detach()] * copies)[:count] for key in PARAM_KEYS))
+    resized = GaussianModel(*(torch.cat([model.params[key].detach()] * copies)[:count] for key in PARAM_KEYS))
+    resized.antialiased = model.antialiased
+    return resized
 
 
 def _setup_of(config: TrainConfig) -> dict[str, Any]:

@@ -33,6 +33,9 @@ class GaussiansLike(Protocol):
     scales: torch.Tensor     # [N, 3] activated (positive)
     opacities: torch.Tensor  # [N] activated, in [0, 1]
     sh: torch.Tensor         # [N, K, 3] SH coefficients, K = (degree + 1)^2
+    # Optional (read with getattr, False when absent): drawn with Mip-Splatting's 2D filter (--antialiased). A scene
+    # trained with the filter is meant to be seen through it, so the flag travels with the Gaussians.
+    # antialiased: bool
 
 
 @dataclass
@@ -44,6 +47,7 @@ class Splats:
     scales: torch.Tensor
     opacities: torch.Tensor
     sh: torch.Tensor
+    antialiased: bool = False
 
 
 @dataclass
@@ -70,10 +74,11 @@ class RenderResult:
 def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float] | torch.Tensor | None = None,
            sh_degree: int | None = None, *, near: float = NEAR_PLANE, far: float = FAR_PLANE,
            eps2d: float = LOW_PASS, opacity_aware_radius: bool = False, path: RenderPath | None = None,
-           median_depth: bool = False) -> RenderResult:
+           median_depth: bool = False, antialiased: bool | None = None) -> RenderResult:
     """Render one view. `sh_degree` None uses every SH coefficient given; `background` defaults to black; `path`
     the stages to run (default: current_render_path(), the kernels unless a caller chose otherwise); `median_depth`
-    also gives the median depth (forward kernels of their own, so that a render without it costs nothing more)."""
+    also gives the median depth (forward kernels of their own, so that a render without it costs nothing more);
+    `antialiased` draws with Mip-Splatting's 2D filter (None: as the Gaussians' own `antialiased` flag says)."""
     stages = path or current_render_path()
     means, quats, scales, opacities = gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities
     sh, sh_rest = _sh_arrays(gaussians)
@@ -86,8 +91,13 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
     bg = torch.zeros(3, dtype=dtype, device=device) if background is None else \
         torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
 
+    if antialiased is None:
+        antialiased = bool(getattr(gaussians, "antialiased", False))
     projection, colors = stages.project(means, quats, scales, opacities, sh, camera, degree, sh_rest=sh_rest,
-                                        near=near, far=far, eps2d=eps2d, opacity_aware_radius=opacity_aware_radius)
+                                        near=near, far=far, eps2d=eps2d, opacity_aware_radius=opacity_aware_radius,
+                                        antialiased=antialiased)
+    if projection.compensations is not None:
+        opacities = opacities * projection.compensations
     means2d = projection.means2d
     if means2d.requires_grad:
         means2d.retain_grad()

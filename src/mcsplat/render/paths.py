@@ -2,7 +2,7 @@
 baseline the speed benchmarks compare against in the same process.
 
     project    (means, quats, scales, opacities, sh, camera, sh_degree, sh_rest=, near=, far=, eps2d=,
-                opacity_aware_radius=) -> (Projection, colours [N, 3])
+                opacity_aware_radius=, antialiased=) -> (Projection, colours [N, 3])
     bin        (tile_min, tile_max, depths, radii, tiles_x, tiles_y, means2d=, alpha_extent=) -> TileBins
     composite  (means2d, conics, opacities, colours, depths, background, bins, width, height[, median_gaussian=True])
                -> (rgb, alpha, accumulated depth, contributed[, median Gaussian per pixel])

@@ -1,8 +1,10 @@
 """EWA projection of 3D Gaussians to the image plane, in torch so that autograd gives the backward.
 
 Conventions: OpenCV camera (x right, y down, z forward), pixel centres at +0.5 (COLMAP). The 2D covariance gets the
-3DGS low-pass filter (+0.3 px on the diagonal); the Jacobian uses the view direction clamped to 1.3x the field of view
-(as 3DGS and gsplat do) so that Gaussians far outside the image do not blow up.
+3DGS low-pass filter (+0.3 px on the diagonal; with `antialiased`, Mip-Splatting's 2D filter: the same low-pass and
+the opacity scaled by the ratio of the splat's areas before and after it, as gsplat's antialiased mode); the Jacobian
+uses the view direction clamped to 1.3x the field of view (as 3DGS and gsplat do) so that Gaussians far outside the
+image do not blow up.
 """
 
 from __future__ import annotations
@@ -29,12 +31,15 @@ class Projection:
     tile_min: torch.Tensor  # [N, 2] int32 (x, y), inclusive
     tile_max: torch.Tensor  # [N, 2] int32 (x, y), exclusive
     alpha_extent: torch.Tensor  # [N, 2] half-size in pixels of the box outside which alpha < 1/255 (0: never)
+    # [N] antialiased only: sqrt(det before / det after the low-pass), the factor the opacity is drawn with; radii,
+    # tiles and alpha extents come from the uncompensated opacity (a little wider than needed, never too narrow).
+    compensations: torch.Tensor | None = None
 
 
 def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                       camera: Camera, *, near: float = NEAR_PLANE, far: float = FAR_PLANE,
-                      eps2d: float = LOW_PASS,
-                      opacity_aware_radius: bool = False) -> Projection:
+                      eps2d: float = LOW_PASS, opacity_aware_radius: bool = False,
+                      antialiased: bool = False) -> Projection:
     dtype, device = means.dtype, means.device
     w2c = camera.world_to_camera.to(device=device, dtype=dtype)
     rotation, translation = w2c[:3, :3], w2c[:3, 3]
@@ -69,6 +74,11 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     valid = in_range & (det > 0)
     det_safe = torch.where(valid, det, torch.ones_like(det))
     conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
+    compensations = None
+    if antialiased:
+        ratio = (cov2d[:, 0, 0] * cov2d[:, 1, 1] - b * b) / det_safe
+        positive = ratio > 0
+        compensations = torch.where(positive, torch.sqrt(torch.where(positive, ratio, 1.0)), 0.0)
 
     means2d = torch.stack([fx * x / z_safe + cx, fy * y / z_safe + cy], dim=-1)
 
@@ -77,7 +87,7 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
                                                    opacity_aware_radius)
         alpha_extent = _alpha_extent(a, c, opacities)
     return Projection(means2d=means2d, conics=conics, depths=z, radii=radii, tile_min=tile_min, tile_max=tile_max,
-                      alpha_extent=alpha_extent)
+                      alpha_extent=alpha_extent, compensations=compensations)
 
 
 def _alpha_extent(a: torch.Tensor, c: torch.Tensor, opacities: torch.Tensor) -> torch.Tensor:

@@ -1,12 +1,14 @@
 """EWA projection and SH colour of every Gaussian in one Warp kernel (CPU and CUDA), with its backward.
 
 Same maths and conventions as project.py (which stays as the readable torch version and the benchmarks' baseline):
-OpenCV camera, pixel centres at +0.5, the 3DGS low-pass filter (+eps2d on the 2D covariance diagonal), the Jacobian's
-view direction clamped to 1.3x the field of view, SH colour + 0.5 clamped at 0. One thread per Gaussian; the kernel is
-straight-line code; the backward kernel recomputes it and applies the chain rule by hand (Warp's generated adjoint
-is correct here but 5x slower than the forward on the CPU). The tests hold both against the torch version, the
-dense reference renderer and torch's gradcheck in float64. On the CPU, ranges of Gaussians run from the rasterizer's
-thread pool; each thread writes only its own Gaussians, so the result does not depend on timing.
+OpenCV camera, pixel centres at +0.5, the 3DGS low-pass filter (+eps2d on the 2D covariance diagonal; antialiased,
+with Mip-Splatting's opacity compensation as an output), the Jacobian's view direction clamped to 1.3x the field of
+view, SH colour + 0.5 clamped at 0. One thread per Gaussian; the kernel is straight-line code; the backward kernel
+recomputes it and applies the chain rule by hand (Warp's generated adjoint is correct here but 5x slower than the
+forward on the CPU), and on request each Gaussian's share of the view matrix's gradient (pose refinement). The
+tests hold both against the torch version, the dense reference renderer and torch's gradcheck in float64. On the
+CPU, ranges of Gaussians run from the rasterizer's thread pool; each thread writes only its own Gaussians, so the
+result does not depend on timing.
 
 (No `from __future__ import annotations` here: Warp reads the kernels' annotations as live objects.)
 """
@@ -86,12 +88,12 @@ def projection_kernels(dtype):
         offset: int, rotation: mat33, translation: vec3, camera_center: vec3,
         fx: dtype, fy: dtype, cx: dtype, cy: dtype, width: int, height: int, tiles_x: int, tiles_y: int,
         near: dtype, far: dtype,
-        eps2d: dtype, sh_degree: int, opacity_aware_radius: int,
+        eps2d: dtype, sh_degree: int, opacity_aware_radius: int, antialiased: int,
         means: wp.array(dtype=vec3), quats: wp.array(dtype=vec4), scales: wp.array(dtype=vec3),
         opacities: wp.array(dtype=dtype), sh_dc: wp.array2d(dtype=vec3), sh_rest: wp.array2d(dtype=vec3),
         rest_shift: int,  # sh_rest[i, rest_shift + k - 1] is band coefficient k: 0 for the rest alone, 1 for all
         means2d: wp.array(dtype=vec2), conics: wp.array(dtype=vec3), depths: wp.array(dtype=dtype),
-        colors: wp.array(dtype=vec3),
+        colors: wp.array(dtype=vec3), compensations: wp.array(dtype=dtype),
         radii: wp.array(dtype=wp.int32), tile_min: wp.array2d(dtype=wp.int32), tile_max: wp.array2d(dtype=wp.int32),
         alpha_extent: wp.array(dtype=vec2),
     ):
@@ -121,6 +123,13 @@ def projection_kernels(dtype):
         valid = in_range and det > zero
         det_safe = wp.where(valid, det, one)
         conics[i] = vec3(c / det_safe, -b / det_safe, a / det_safe)
+        if antialiased != 0:
+            # Mip-Splatting's 2D filter: the low-pass widens the splat, so its opacity shrinks by the ratio of the
+            # areas (sqrt of the determinants before and after) and a sub-pixel splat no longer paints a whole pixel.
+            det_unfiltered = cov2d[0, 0] * cov2d[1, 1] - b * b
+            compensations[i] = wp.sqrt(wp.max(det_unfiltered / det_safe, zero))
+        else:
+            compensations[i] = one
         mean2d = vec2(fx * p[0] / z_safe + cx, fy * p[1] / z_safe + cy)
         means2d[i] = mean2d
         depths[i] = z
@@ -171,23 +180,29 @@ def projection_kernels(dtype):
     def project_backward(
         offset: int, rotation: mat33, translation: vec3, camera_center: vec3,
         fx: dtype, fy: dtype, cx: dtype, cy: dtype, width: int, height: int, near: dtype, far: dtype,
-        eps2d: dtype, sh_degree: int,
+        eps2d: dtype, sh_degree: int, antialiased: int,
         means: wp.array(dtype=vec3), quats: wp.array(dtype=vec4), scales: wp.array(dtype=vec3),
         sh_dc: wp.array2d(dtype=vec3), sh_rest: wp.array2d(dtype=vec3), rest_shift: int,
         grad_means2d: wp.array(dtype=vec2), grad_conics: wp.array(dtype=vec3), grad_depths: wp.array(dtype=dtype),
-        grad_colors: wp.array(dtype=vec3),
+        grad_colors: wp.array(dtype=vec3), grad_compensations: wp.array(dtype=dtype),
         out_means: wp.array(dtype=vec3), out_quats: wp.array(dtype=vec4), out_scales: wp.array(dtype=vec3),
         out_dc: wp.array2d(dtype=vec3), out_rest: wp.array2d(dtype=vec3),
+        view_grad: int, out_view: wp.array2d(dtype=dtype),
     ):
-        """Recomputes the forward and applies the chain rule by hand, step by step in reverse."""
+        """Recomputes the forward and applies the chain rule by hand, step by step in reverse. With `view_grad`,
+        also this Gaussian's share of the gradient of the world-to-camera rotation W (row-major, out_view[i, 0:9])
+        and translation t (out_view[i, 9:12]), which the caller sums (pose refinement)."""
         i = offset + wp.tid()
         g_mean2d = grad_means2d[i]
         g_conic = grad_conics[i]
         g_depth = grad_depths[i]
         g_color = grad_colors[i]
+        g_compensation = zero
+        if antialiased != 0:
+            g_compensation = grad_compensations[i]
         if (g_mean2d[0] == zero and g_mean2d[1] == zero and g_conic[0] == zero and g_conic[1] == zero
                 and g_conic[2] == zero and g_depth == zero and g_color[0] == zero and g_color[1] == zero
-                and g_color[2] == zero):
+                and g_color[2] == zero and g_compensation == zero):
             return  # no gradient reaches this Gaussian (culled, or outside every pixel's list)
 
         # ---- forward, again
@@ -229,6 +244,13 @@ def projection_kernels(dtype):
             g_a = g_a + g_det * c
             g_b = g_b - two * g_det * b
             g_c = g_c + g_det * a
+            # ---- compensation = sqrt(ratio), ratio = det((a, b; b, c) - eps2d I) / det
+            ratio = ((a - eps2d) * (c - eps2d) - b * b) / det_safe
+            if g_compensation != zero and ratio > zero:
+                g_ratio = g_compensation / (two * wp.sqrt(ratio))
+                g_a = g_a + g_ratio * ((c - eps2d) - ratio * c) / det_safe
+                g_b = g_b - g_ratio * two * b * (one - ratio) / det_safe
+                g_c = g_c + g_ratio * ((a - eps2d) - ratio * a) / det_safe
         g_cov2d = mat22(g_a, g_b, zero, g_c)  # the forward reads cov2d[0, 1] only
         # ---- cov2d = J V J^T, V = W Sigma W^T, Sigma = M M^T, M = R(q) diag(s)
         g_jacobian = (g_cov2d + wp.transpose(g_cov2d)) @ jacobian @ cov_cam
@@ -352,9 +374,20 @@ def projection_kernels(dtype):
                 + dtype(SH_C3_3) * (dtype(6.0) * zz - dtype(3.0) * xx - dtype(3.0) * yy) * s12
                 + dtype(SH_C3_4) * dtype(8.0) * dx * dz * s13 + dtype(SH_C3_5) * (xx - yy) * s14)
         length = wp.length(offset_dir)
+        g_offset = vec3(zero, zero, zero)  # of mean - camera centre
         if length > zero:
-            g_mean = g_mean + (g_d - d * wp.dot(d, g_d)) / length
-        out_means[i] = g_mean
+            g_offset = (g_d - d * wp.dot(d, g_d)) / length
+        out_means[i] = g_mean + g_offset
+
+        if view_grad != 0:
+            # p = W mean + t; V = W Sigma W^T; camera centre = -W^T t (the colour's view direction).
+            g_w = wp.outer(g_p, mean) + (g_cov_cam + wp.transpose(g_cov_cam)) @ rotation @ (m @ wp.transpose(m)) \
+                + wp.outer(translation, g_offset)
+            g_t = g_p + rotation @ g_offset
+            for r in range(3):
+                for col in range(3):
+                    out_view[i, 3 * r + col] = g_w[r, col]
+                out_view[i, 9 + r] = g_t[r]
 
     return project, project_backward
 
@@ -368,14 +401,16 @@ def _scalar_view(tensor: torch.Tensor):
 
 
 class _ProjectFunction(torch.autograd.Function):
-    """(means, quats, scales, sh_dc, sh_rest) -> (means2d, conics, depths, colors); radii, tile rectangles and alpha
-    extents come along without gradient (opacities enter only those). The SH coefficients come as the DC band
+    """(means, quats, scales, sh_dc, sh_rest) -> (means2d, conics, depths, colors, compensations); radii, tile
+    rectangles and alpha extents come along without gradient (opacities enter only those). Compensations are 1 unless
+    `antialiased`. `world_to_camera`, the camera's 4x4 view matrix, is an input only for its gradient (pose
+    refinement; None otherwise): the kernels read the view from `camera_args`. The SH coefficients come as the DC band
     [N, 1, 3] and the rest [N, K - 1, 3] (GaussianModel keeps them apart: no concatenation per render), or, with
     sh_rest None, all together in sh_dc [N, K, 3]."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, sh_dc, sh_rest, opacities, camera_args: tuple, sh_degree: int,
-                opacity_aware_radius: bool):
+                opacity_aware_radius: bool, antialiased: bool, world_to_camera: torch.Tensor | None):
         ensure_warp()
         n, dtype, device = means.shape[0], means.dtype, means.device
         scalar = warp_scalar(dtype)
@@ -385,47 +420,60 @@ class _ProjectFunction(torch.autograd.Function):
         sh_rest = sh_dc if ctx.together else sh_rest.detach().contiguous()
         empty = functools.partial(torch.empty, dtype=dtype, device=device)
         empty_int = functools.partial(torch.empty, dtype=torch.int32, device=device)
-        means2d, conics, depths, colors = empty(n, 2), empty(n, 3), empty(n), empty(n, 3)
+        means2d, conics, depths, colors, compensations = empty(n, 2), empty(n, 3), empty(n), empty(n, 3), empty(n)
         radii, tile_min, tile_max, alpha_extent = empty_int(n), empty_int(n, 2), empty_int(n, 2), empty(n, 2)
         forward_kernel, _ = projection_kernels(scalar)
         run_ranges(forward_kernel, n, device, [
-            *camera_args, sh_degree, int(opacity_aware_radius),
+            *camera_args, sh_degree, int(opacity_aware_radius), int(antialiased),
             _vector_view(means, 3, scalar), _vector_view(quats, 4, scalar), _vector_view(scales, 3, scalar),
             _scalar_view(opacities), _vector_view(sh_dc, 3, scalar), _vector_view(sh_rest, 3, scalar),
             int(ctx.together), _vector_view(means2d, 2, scalar), _vector_view(conics, 3, scalar),
-            _scalar_view(depths), _vector_view(colors, 3, scalar), _scalar_view(radii), _scalar_view(tile_min),
+            _scalar_view(depths), _vector_view(colors, 3, scalar), _scalar_view(compensations),
+            _scalar_view(radii), _scalar_view(tile_min),
             _scalar_view(tile_max), _vector_view(alpha_extent, 2, scalar)])
         ctx.save_for_backward(means, quats, scales, sh_dc, sh_rest)
-        ctx.camera_args, ctx.sh_degree = camera_args, sh_degree
+        ctx.camera_args, ctx.sh_degree, ctx.antialiased = camera_args, sh_degree, antialiased
+        ctx.view_like = None if world_to_camera is None else world_to_camera.detach()
         ctx.mark_non_differentiable(radii, tile_min, tile_max, alpha_extent)
-        return means2d, conics, depths, colors, radii, tile_min, tile_max, alpha_extent
+        return means2d, conics, depths, colors, compensations, radii, tile_min, tile_max, alpha_extent
 
     @staticmethod
-    def backward(ctx, grad_means2d, grad_conics, grad_depths, grad_colors, *_no_grad):
+    def backward(ctx, grad_means2d, grad_conics, grad_depths, grad_colors, grad_compensations, *_no_grad):
         means, quats, scales, sh_dc, sh_rest = ctx.saved_tensors
         n, scalar = means.shape[0], warp_scalar(means.dtype)
         upstream = [torch.zeros_like(like) if g is None else g.contiguous() for g, like in (
-            (grad_means2d, means[:, :2]), (grad_conics, means), (grad_depths, means[:, 0]), (grad_colors, means))]
+            (grad_means2d, means[:, :2]), (grad_conics, means), (grad_depths, means[:, 0]), (grad_colors, means),
+            (grad_compensations, means[:, 0]))]
         grads = [torch.zeros_like(t) for t in (means, quats, scales, sh_dc)]
         grads.append(grads[3] if ctx.together else torch.zeros_like(sh_rest))
         _, backward_kernel = projection_kernels(scalar)
         camera_args = ctx.camera_args[:9] + ctx.camera_args[11:]  # the backward has no use for the tile counts
+        view_grad = ctx.needs_input_grad[10]
+        per_gaussian_view = torch.zeros((n if view_grad else 1, 12), dtype=means.dtype, device=means.device)
         run_ranges(backward_kernel, n, means.device, [
-            *camera_args, ctx.sh_degree,
+            *camera_args, ctx.sh_degree, int(ctx.antialiased),
             _vector_view(means, 3, scalar), _vector_view(quats, 4, scalar), _vector_view(scales, 3, scalar),
             _vector_view(sh_dc, 3, scalar), _vector_view(sh_rest, 3, scalar), int(ctx.together),
             _vector_view(upstream[0], 2, scalar), _vector_view(upstream[1], 3, scalar), _scalar_view(upstream[2]),
-            _vector_view(upstream[3], 3, scalar),
+            _vector_view(upstream[3], 3, scalar), _scalar_view(upstream[4]),
             _vector_view(grads[0], 3, scalar), _vector_view(grads[1], 4, scalar), _vector_view(grads[2], 3, scalar),
-            _vector_view(grads[3], 3, scalar), _vector_view(grads[4], 3, scalar)])
+            _vector_view(grads[3], 3, scalar), _vector_view(grads[4], 3, scalar),
+            int(view_grad), _scalar_view(per_gaussian_view)])
         grad_rest = None if ctx.together else grads[4]
-        return (*grads[:4], grad_rest, None, None, None, None)
+        grad_view = None
+        if view_grad:
+            summed = per_gaussian_view.sum(dim=0)
+            grad_view = torch.zeros(4, 4, dtype=means.dtype, device=means.device)
+            grad_view[:3, :3] = summed[:9].reshape(3, 3)
+            grad_view[:3, 3] = summed[9:]
+            grad_view = grad_view.to(ctx.view_like)
+        return (*grads[:4], grad_rest, None, None, None, None, None, grad_view)
 
 
 def _camera_arguments(camera: Camera, near: float, far: float, eps2d: float, scalar) -> tuple:
     """(rotation, translation, centre, fx, fy, cx, cy, width, height, tiles_x, tiles_y, near, far, eps2d)."""
-    w2c = camera.world_to_camera.to(dtype=torch.float64).cpu()
-    center = camera.center.to(dtype=torch.float64).cpu()
+    w2c = camera.world_to_camera.detach().to(dtype=torch.float64).cpu()
+    center = camera.center.detach().to(dtype=torch.float64).cpu()
     mat33 = wp.types.matrix((3, 3), scalar)
     vec3 = wp.types.vector(3, scalar)
     s = scalar
@@ -437,13 +485,16 @@ def _camera_arguments(camera: Camera, near: float, far: float, eps2d: float, sca
 def project_and_shade(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
                       sh: torch.Tensor, camera: Camera, sh_degree: int, *, sh_rest: torch.Tensor | None = None,
                       near: float = NEAR_PLANE, far: float = FAR_PLANE, eps2d: float = LOW_PASS,
-                      opacity_aware_radius: bool = False) -> tuple[Projection, torch.Tensor]:
+                      opacity_aware_radius: bool = False, antialiased: bool = False) -> tuple[Projection, torch.Tensor]:
     """project_gaussians + view_dependent_colors of project.py in one kernel -> (Projection, colors [N, 3]).
 
     `sh` holds every SH coefficient [N, K, 3], or, with `sh_rest` [N, K - 1, 3] given, the DC band [N, 1, 3] only.
+    Where the camera's `world_to_camera` requires grad, it gets its gradient too (in its own dtype).
     """
     camera_args = _camera_arguments(camera, near, far, eps2d, warp_scalar(means.dtype))
-    means2d, conics, depths, colors, radii, tile_min, tile_max, alpha_extent = _ProjectFunction.apply(
-        means, quats, scales, sh, sh_rest, opacities, camera_args, sh_degree, opacity_aware_radius)
+    view = camera.world_to_camera if camera.world_to_camera.requires_grad else None  # pose refinement
+    means2d, conics, depths, colors, compensations, radii, tile_min, tile_max, alpha_extent = _ProjectFunction.apply(
+        means, quats, scales, sh, sh_rest, opacities, camera_args, sh_degree, opacity_aware_radius, antialiased, view)
     return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii, tile_min=tile_min,
-                      tile_max=tile_max, alpha_extent=alpha_extent), colors
+                      tile_max=tile_max, alpha_extent=alpha_extent,
+                      compensations=compensations if antialiased else None), colors

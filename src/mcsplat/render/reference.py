@@ -2,7 +2,8 @@
 
 Every pixel looks at every Gaussian (an [H*W, N] matrix), so it needs O(H W N) memory: keep scenes tiny. It follows
 the same rules as the fast path: EWA projection with the 0.3 px low-pass, 3-sigma (or opacity-aware) radius and 16x16
-tile rectangles (a Gaussian only reaches pixels of the tiles its rectangle covers), alpha = min(0.99, o G), skip
+tile rectangles (a Gaussian only reaches pixels of the tiles its rectangle covers), alpha = min(0.99, o G) (o times
+sqrt(det Sigma2D / det(Sigma2D + 0.3 I)) when antialiased, the tiles still from o alone), skip
 alpha < 1/255, stop before transmittance falls below 1e-4. Gradients come from autograd alone. The median Gaussian
 of a pixel is the last one composited while the transmittance in front of it is above 0.5; the median depth is where
 the pixel's ray meets its density's peak (render/median.py), here through the inverse of the 3D covariance.
@@ -33,8 +34,8 @@ class ReferenceResult:
 
 
 def reference_render(gaussians, camera: Camera, background=None, sh_degree: int | None = None, *,
-                     near: float = NEAR_PLANE, eps2d: float = LOW_PASS, opacity_aware_radius: bool = False
-                     ) -> ReferenceResult:
+                     near: float = NEAR_PLANE, eps2d: float = LOW_PASS, opacity_aware_radius: bool = False,
+                     antialiased: bool = False) -> ReferenceResult:
     means, quats, scales = gaussians.means, gaussians.quats, gaussians.scales
     opacities, sh = gaussians.opacities, gaussians.sh
     dtype, device = means.dtype, means.device
@@ -42,8 +43,10 @@ def reference_render(gaussians, camera: Camera, background=None, sh_degree: int 
         torch.as_tensor(background, dtype=dtype, device=device).reshape(3)
     degree = round(math.sqrt(sh.shape[1])) - 1 if sh_degree is None else sh_degree
 
-    means2d, conics, depths, radii, tile_min, tile_max = reference_project(
+    means2d, conics, depths, radii, tile_min, tile_max, compensations = reference_project(
         means, quats, scales, opacities, camera, near=near, eps2d=eps2d, opacity_aware_radius=opacity_aware_radius)
+    if antialiased:
+        opacities = opacities * compensations
     means2d.retain_grad() if means2d.requires_grad else None
     cam_center = -camera.world_to_camera[:3, :3].T.to(dtype) @ camera.world_to_camera[:3, 3].to(dtype)
     dirs = (means - cam_center) / torch.linalg.norm(means - cam_center, dim=-1, keepdim=True)
@@ -60,13 +63,14 @@ def reference_render(gaussians, camera: Camera, background=None, sh_degree: int 
 
 def reference_project(means, quats, scales, opacities, camera: Camera, *, near=NEAR_PLANE, eps2d=LOW_PASS,
                       opacity_aware_radius=False):
-    """Per-Gaussian 2D mean, conic, depth, pixel radius and tile rectangle, written out matrix by matrix."""
+    """Per-Gaussian 2D mean, conic, depth, pixel radius, tile rectangle and antialiasing compensation (the square
+    root of the ratio of the 2D covariance's determinant without and with the low-pass), matrix by matrix."""
     dtype, device = means.dtype, means.device
     w2c = camera.world_to_camera.to(device, dtype)
     K = camera.K.to(device, dtype)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     W, H = camera.width, camera.height
-    out_means2d, out_conics, out_depths, out_radii, out_min, out_max = [], [], [], [], [], []
+    out_means2d, out_conics, out_depths, out_radii, out_min, out_max, out_comp = [], [], [], [], [], [], []
     for i in range(means.shape[0]):
         p = w2c[:3, :3] @ means[i] + w2c[:3, 3]
         x, y, z = p[0], p[1], p[2]
@@ -87,9 +91,12 @@ def reference_project(means, quats, scales, opacities, camera: Camera, *, near=N
         zero = torch.zeros((), dtype=dtype, device=device)
         J = torch.stack([torch.stack([fx / zs, zero, -fx * u / zs ** 2]),
                          torch.stack([zero, fy / zs, -fy * v / zs ** 2])])
-        cov2d = J @ w2c[:3, :3] @ sigma @ w2c[:3, :3].T @ J.T + eps2d * torch.eye(2, dtype=dtype, device=device)
+        unfiltered = J @ w2c[:3, :3] @ sigma @ w2c[:3, :3].T @ J.T
+        cov2d = unfiltered + eps2d * torch.eye(2, dtype=dtype, device=device)
         det = torch.linalg.det(cov2d)
         visible = visible and bool(det > 0)
+        ratio = torch.linalg.det(unfiltered) / det if visible else torch.zeros((), dtype=dtype, device=device)
+        out_comp.append(torch.sqrt(ratio) if bool(ratio > 0) else torch.zeros((), dtype=dtype, device=device))
         inv = torch.linalg.inv(cov2d) if visible else torch.eye(2, dtype=dtype, device=device)
         mean2d = torch.stack([fx * x / zs + cx, fy * y / zs + cy])
 
@@ -120,9 +127,10 @@ def reference_project(means, quats, scales, opacities, camera: Camera, *, near=N
     if n == 0:
         empty = means.new_zeros(0, 2)
         return (empty, means.new_zeros(0, 3), means.new_zeros(0), torch.zeros(0, **ints),
-                torch.zeros(0, 2, **ints), torch.zeros(0, 2, **ints))
+                torch.zeros(0, 2, **ints), torch.zeros(0, 2, **ints), means.new_zeros(0))
     return (torch.stack(out_means2d), torch.stack(out_conics), torch.stack(out_depths),
-            torch.tensor(out_radii, **ints), torch.tensor(out_min, **ints), torch.tensor(out_max, **ints))
+            torch.tensor(out_radii, **ints), torch.tensor(out_min, **ints), torch.tensor(out_max, **ints),
+            torch.stack(out_comp))
 
 
 def _front_to_back(means2d, conics, opacities, depths, radii, tile_min, tile_max, width: int, height: int):

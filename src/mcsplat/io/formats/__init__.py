@@ -38,8 +38,13 @@ def format_named_by(path: str | os.PathLike) -> str | None:
     return max(matching)[1] if matching else None
 
 
-def write_gaussians(format_name: str, path: str | os.PathLike, params: dict[str, np.ndarray]) -> None:
-    FORMATS[format_name][0](Path(path), params)
+def write_gaussians(format_name: str, path: str | os.PathLike, params: dict[str, np.ndarray], *,
+                    antialiased: bool = False) -> None:
+    """`antialiased`: the scene was trained to be drawn with the 2D filter; only .spz has a flag that says so."""
+    if format_name == "spz":
+        spz.write_spz(Path(path), params, antialiased=antialiased)
+    else:
+        FORMATS[format_name][0](Path(path), params)
 
 
 def read_gaussians(format_name: str, path: str | os.PathLike) -> dict[str, np.ndarray]:

@@ -1,7 +1,7 @@
 """Niantic's `.spz` (version 3): a gzip stream (written here with the standard library) holding, uncompressed:
 
     header, 16 bytes little-endian: u32 magic 0x5053474e ("NGSP"), u32 version 3, u32 number of points N,
-        u8 SH degree, u8 fractional bits (12), u8 flags (0; 1 = antialiased training), u8 reserved (0)
+        u8 SH degree, u8 fractional bits (12), u8 flags (1 = antialiased training, else 0), u8 reserved (0)
     positions  N x 3 x 24-bit signed fixed point (little-endian, 2^-12 units), x y z of each point in turn
     alphas     N x u8   round(sigmoid(opacity) * 255)
     colours    N x 3 u8 round(f_dc * 0.15 * 255 + 127.5)   (the SH DC coefficient, not the colour)
@@ -34,6 +34,7 @@ VERSION = 3
 FRACTIONAL_BITS = 12
 COLOUR_SCALE = 0.15
 _HEADER = struct.Struct("<IIIBBBB")
+FLAG_ANTIALIASED = 1  # the scene was trained with Mip-Splatting's 2D filter: viewers should draw it with the filter
 # Sign change of each SH rest coefficient (3DGS order) under y -> -y, z -> -z: odd total power of y and z.
 _SH_FLIP = np.array([-1, -1, 1,  -1, 1, 1, -1, 1,  -1, 1, -1, -1, 1, -1, 1], dtype=np.float64)
 _AXES_FLIP = np.array([1.0, -1.0, -1.0])
@@ -78,7 +79,7 @@ def _unpack_rotations(packed: np.ndarray) -> np.ndarray:
     return q[:, [3, 0, 1, 2]]  # w x y z
 
 
-def write_spz(path: Path, params: dict[str, np.ndarray]) -> None:
+def write_spz(path: Path, params: dict[str, np.ndarray], antialiased: bool = False) -> None:
     n = check_params(params)
     degree = sh_degree_of(params["shN"])
     means = params["means"].astype(np.float64) * _AXES_FLIP
@@ -90,7 +91,7 @@ def write_spz(path: Path, params: dict[str, np.ndarray]) -> None:
     quats = params["quats"].astype(np.float64) * np.array([1.0, 1.0, -1.0, -1.0])
     rest = params["shN"].astype(np.float64) * _SH_FLIP[:bases_of(degree), None]
     parts = [
-        _HEADER.pack(MAGIC, VERSION, n, degree, FRACTIONAL_BITS, 0, 0),
+        _HEADER.pack(MAGIC, VERSION, n, degree, FRACTIONAL_BITS, FLAG_ANTIALIASED if antialiased else 0, 0),
         positions.tobytes(),
         _u8(sigmoid(params["opacity_logits"]) * 255.0).tobytes(),
         _u8(params["sh0"][:, 0, :].astype(np.float64) * (COLOUR_SCALE * 255.0) + 127.5).tobytes(),
