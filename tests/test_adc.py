@@ -269,3 +269,35 @@ def test_impossible_options_raise(kwargs, message):
         ADCConfig(**kwargs)
     with pytest.raises(ValueError, match="scene_radius"):
         ADCStrategy(ADCConfig(), -1.0, torch.Generator())
+
+
+def test_the_baseline_is_3dgs_as_the_paper_ran_it(tmp_path):
+    # 3DGS resets opacities at its first densification step on white backgrounds, and starts from 1.0 x kNN scales
+    # at opacity 0.1; MCMC keeps its own (0.1 x kNN, 0.5). Explicit options still win.
+    assert ADCStrategy(ADCConfig(), RADIUS, torch.Generator(), white_background=True).is_reset_step(500)
+    assert not ADCStrategy(ADCConfig(), RADIUS, torch.Generator(), white_background=False).is_reset_step(500)
+    assert not ADCStrategy(ADCConfig(reset_at_start=False), RADIUS, torch.Generator(),
+                           white_background=True).is_reset_step(500)
+    from mcsplat.config import ModelConfig, TrainConfig
+
+    adc, mcmc = TrainConfig(data=tmp_path, strategy="adc"), TrainConfig(data=tmp_path)
+    assert (adc.model.init_scale, adc.model.init_opacity) == (1.0, 0.1)
+    assert (mcmc.model.init_scale, mcmc.model.init_opacity) == (0.1, 0.5)
+    chosen = TrainConfig(data=tmp_path, strategy="adc", model=ModelConfig(init_scale=0.1, init_opacity=0.5))
+    assert (chosen.model.init_scale, chosen.model.init_opacity) == (0.1, 0.5)
+
+
+def test_a_white_background_run_resets_at_the_first_densification(tmp_path):
+    from mcsplat.config import TrainConfig
+    from mcsplat.events import RefineDone
+    from mcsplat.train import train
+
+    from conftest import REPO
+
+    resets = []
+    config = TrainConfig(data=REPO / "data" / "lego_demo", out=tmp_path / "run", strategy="adc", steps=60, quiet=True,
+                         lpips_net="alex", save_every=0, save_renders=False, scale_schedule=False,
+                         adc=ADCConfig(densify_start=20, densify_every=20, reset_every=1000))
+    train(config, [lambda event: resets.append(event.step) if isinstance(event, RefineDone)
+                   and event.report.reset else None])
+    assert resets == [20]

@@ -34,9 +34,11 @@ class ModelConfig:
     """Points of a random (cube or frustum) initialisation."""
     init_extent: float = 3.0
     """Random init fills [-extent R, extent R]^3 around the world origin (Blender scenes: [-1.3, 1.3]^3)."""
-    init_scale: float = 0.1
-    """Initial scale = init_scale x RMS distance to the 3 nearest neighbours."""
-    init_opacity: float = 0.5
+    init_scale: float | None = None
+    """Initial scale = init_scale x RMS distance to the 3 nearest neighbours. Default: the strategy's own, 0.1 for
+    MCMC (the paper's code) and 1.0 for ADC (3DGS's)."""
+    init_opacity: float | None = None
+    """Default: the strategy's own, 0.5 for MCMC and 0.1 for ADC."""
     sh_degree: int = 3
 
 
@@ -155,6 +157,10 @@ class TrainConfig:
     adc: ADCConfig = field(default_factory=ADCConfig)
 
     def __post_init__(self) -> None:
+        # Each strategy starts from the initial Gaussians its own code uses (as in gsplat).
+        scale, opacity = INITIAL_GAUSSIANS.get(self.strategy, INITIAL_GAUSSIANS["mcmc"])
+        self.model.init_scale = scale if self.model.init_scale is None else self.model.init_scale
+        self.model.init_opacity = opacity if self.model.init_opacity is None else self.model.init_opacity
         checks = [(self.steps >= 1, "--steps must be at least 1"),
                   (self.downscale >= 1, "--downscale must be at least 1"),
                   (self.eval_every >= 0, "--eval-every must be 0 (off) or positive"),
@@ -197,6 +203,8 @@ class TrainConfig:
         return self.out if self.out is not None else Path("runs") / Path(self.data).resolve().name
 
 
+# (init scale, init opacity) per strategy: the MCMC paper's code, and 3DGS's for its ADC.
+INITIAL_GAUSSIANS = {"mcmc": (0.1, 0.5), "adc": (1.0, 0.1)}
 BUDGET_RESOLUTION_START = 0.25  # --budget trains coarse to fine from a quarter of the image size
 _UNITS = {"s": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
 

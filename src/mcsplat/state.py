@@ -22,6 +22,7 @@ from .gaussians import GaussianModel
 from .initialization import initial_model
 from .optim import make_optimizers
 from .pose_refinement import PoseRefinement
+from .run_dir import background_of
 from .strategy import ADCStrategy, MCMCStrategy, Strategy
 
 
@@ -55,11 +56,12 @@ class ViewSampler:
 
 
 def make_strategy(config: TrainConfig, scene_radius: float, generator: torch.Generator,
-                  image_pixels: int | None = None) -> Strategy:
-    """image_pixels (a training image's, the median over them): the ceiling of MCMC's automatic cap."""
+                  image_pixels: int | None = None, white_background: bool = False) -> Strategy:
+    """image_pixels (a training image's, the median over them): the ceiling of MCMC's automatic cap;
+    white_background: ADC's reset at its first densification step (3DGS's rule)."""
     if config.strategy == "mcmc":
         return MCMCStrategy(config.mcmc, scene_radius, generator, image_pixels)
-    return ADCStrategy(config.adc, scene_radius, generator)
+    return ADCStrategy(config.adc, scene_radius, generator, white_background)
 
 
 def training_image_pixels(scene: Scene) -> int:
@@ -101,18 +103,19 @@ def start(config: TrainConfig, scene: Scene, device: torch.device, team: Team,
     generator = torch.Generator(device=device).manual_seed(config.seed)
     sampler = ViewSampler(len(scene.train), config.seed)
     radius, pixels = scene.radius, training_image_pixels(scene)
+    white = tuple(background_of(config, scene)) == (1.0, 1.0, 1.0)
     if checkpoint is None:
         model, note = initial_model(config, scene, device, generator, progress)
         team.share_parameters(model)
         optimizers = make_optimizers(model, config.optim, radius)
-        strategy = make_strategy(config, radius, generator, pixels)
+        strategy = make_strategy(config, radius, generator, pixels, white)
         state = TrainingState(model, optimizers, strategy, generator, sampler)
     else:
         model = GaussianModel.from_state_dict(checkpoint["model"]).to(device)
         optimizers = make_optimizers(model, config.optim, radius)
         for name, opt in optimizers.items():
             opt.load_state_dict(checkpoint["optimizers"][name])
-        strategy = make_strategy(config, radius, generator, pixels)
+        strategy = make_strategy(config, radius, generator, pixels, white)
         strategy.load_state_dict((checkpoint.get("strategy_per_process") or [checkpoint["strategy"]])[team.rank])
         generator.set_state(checkpoint["generator"])
         sampler.load_state_dict(checkpoint["sampler"])

@@ -12,7 +12,8 @@
     largest scale exceeds max_world_size R;
   * reset the accumulators.
   New rows start with zero Adam moments.
-- Every reset_every steps (and step < densify_stop): opacities = min(opacity, reset_opacity), opacity moments zeroed.
+- Every reset_every steps (and step < densify_stop): opacities = min(opacity, reset_opacity), opacity moments zeroed;
+  on a white background also at densify_start (3DGS's rule; `reset_at_start` sets it either way).
 - Optional budget (cap_max): the paper's "3DGS with a budget" stops densifying at the budget. A densification that
   would exceed it keeps only the candidates with the largest gradients that fit (clone and split add one each).
   A model that starts above the budget is not cut (pruning by opacity and size goes on as usual).
@@ -63,7 +64,7 @@ class ADCConfig:
     screen_size_prune: bool = False
     max_world_size: float = 0.1      # prune when the largest scale exceeds max_world_size x scene radius
     cap_max: int | None = None       # optional budget: densification stops there
-    reset_at_start: bool = False     # also reset at densify_start (3DGS does for white backgrounds)
+    reset_at_start: bool | None = None  # also reset at densify_start; None: on white backgrounds, as 3DGS does
 
     def __post_init__(self) -> None:
         for name in ("grad_threshold", "percent_dense", "max_screen_size", "max_world_size"):
@@ -99,10 +100,13 @@ class ADCStrategy:
     """3DGS adaptive density control behind the Strategy protocol (mcsplat.strategy.base)."""
 
     def __init__(self, config: ADCConfig | None = None, scene_radius: float = 1.0,
-                 generator: torch.Generator | None = None) -> None:
+                 generator: torch.Generator | None = None, white_background: bool = False) -> None:
+        """`white_background`: the scene is trained over white, where 3DGS also resets opacities at densify_start
+        (unless `config.reset_at_start` says otherwise)."""
         if not (scene_radius > 0 and math.isfinite(scene_radius)):
             raise ValueError(f"scene_radius must be a positive number, got {scene_radius}")
         self.config = config or ADCConfig()
+        self.reset_at_start = white_background if self.config.reset_at_start is None else self.config.reset_at_start
         self.scene_radius = scene_radius
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.gradients = ScreenGradients()          # NDC gradient norms and view counts since the last densification
@@ -130,7 +134,7 @@ class ADCStrategy:
         c = self.config
         if step >= c.densify_stop:
             return False
-        return (step > 0 and step % c.reset_every == 0) or (c.reset_at_start and step == c.densify_start)
+        return (step > 0 and step % c.reset_every == 0) or (self.reset_at_start and step == c.densify_start)
 
     # ------------------------------------------------------------------------------------------- the protocol
     def regularization(self, model: GaussianModel) -> torch.Tensor:
