@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/pose_refinement.py                  # 3,000 steps at 400x300, cap 50k
     .venv/bin/python benchmarks/pose_refinement.py --steps 1000 --downscale 4
+    .venv/bin/python benchmarks/pose_refinement.py --lrs 3e-4       # adds a learning rate (recorded runs are kept)
     .venv/bin/python benchmarks/pose_refinement.py --report         # rebuild results.md from results.jsonl
 
 A copy of the cup in results/pose_refinement/ (git-ignored runs/) has every training image's pose moved, in its
@@ -99,6 +100,7 @@ def main() -> None:
     parser.add_argument("--radius-share", type=float, default=0.01)
     parser.add_argument("--lrs", type=float, nargs="+", default=[1e-5, 1e-4])
     parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--rerun", action="store_true", help="train again the runs results.jsonl already holds")
     parser.add_argument("--report", action="store_true", help="only rebuild results.md")
     args = parser.parse_args()
     folder = C.results_dir("pose_refinement")
@@ -114,7 +116,11 @@ def main() -> None:
         arms = [("exact", original, None, None), (f"exact + pose-opt {default:.0e}", original, None, default),
                 ("perturbed", folder / "runs" / "perturbed-cup", moved, None)]
         arms += [(f"perturbed + pose-opt {lr:.0e}", folder / "runs" / "perturbed-cup", moved, lr) for lr in args.lrs]
+        done = {(r["run"], r["steps"], r["downscale"]) for r in C.read_jsonl(folder / "results.jsonl")} \
+            if (folder / "results.jsonl").is_file() else set()
         for label, data, moved_poses, lr in arms:
+            if (label, args.steps, args.downscale) in done and not args.rerun:
+                continue  # recorded already: the table keeps that record
             record = run_arm(label.replace(" ", "_"), data, args, moved_poses, lr)
             record["run"] = label
             C.emit({k: v for k, v in record.items() if k != "machine"})
