@@ -94,6 +94,13 @@ def write_text(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
+def write_results_page(folder: Path, title: str, script: str, rows: Sequence[dict], columns) -> None:
+    """folder/results.md: a title, the command that made the figures, and their table."""
+    text = [f"# {title}", "", f"`.venv/bin/python benchmarks/{script}` (the module docstring says what each column "
+            "is).", "", markdown_table(rows, columns), ""]
+    write_text(folder / "results.md", "\n".join(text))
+
+
 def pyplot():
     """matplotlib.pyplot on the Agg backend, or None (with a hint on stderr) when matplotlib is not installed."""
     try:

@@ -6,9 +6,9 @@ resolution, test at others.
     .venv/bin/python benchmarks/antialiasing.py --report            # rebuild results.md from results.jsonl
 
 Each scene trains twice with the same options (`--steps` with the scaled schedule, `--cap-max`, the default
-initialisation: lego from random points, the real captures from their SfM points), without and with `--antialiased`, at
-`--train-downscale` (2: lego at 200x200, the cup at 400x300, the bird at 272x480) into results/antialiasing/runs/ (git-ignored). Each
-model is then scored on the test views loaded at four resolutions: 2x the training one (zoom in), the training one,
+initialisation: lego from random points, the real captures from their SfM points), without and with
+`--antialiased`, at `--train-downscale` (2: lego at 200x200, the cup at 400x300, the bird at 272x480) into
+results/antialiasing/runs/ (git-ignored). Each model is then scored on the test views loaded at four resolutions: 2x the training one (zoom in), the training one,
 1/2 and 1/4 (zoom out, where a splat that covered a pixel shrinks under one and aliasing shows). Recorded per
 resolution: PSNR, SSIM and LPIPS-VGG over the test views (every 8th of lego's 200, all of the real captures'). A picture
 (results/antialiasing/<scene>.png): a test view at 1/4 of the training resolution, photo / without / with, enlarged
@@ -99,10 +99,8 @@ def report(folder) -> None:
     columns = [("scene", "scene", ""), ("test resolution", "zoom", ""), ("filter", "filter", ""),
                ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"), ("LPIPS-VGG", "lpips", ".4f"),
                ("test views", "views", ""), ("steps", "steps", ","), ("s/step", "s/step", ".3f")]
-    text = ["# Anti-aliasing: `--antialiased` against none, trained at one resolution, tested at four", "",
-            "`.venv/bin/python benchmarks/antialiasing.py` (the module docstring says what each column is).", "",
-            C.markdown_table(rows, columns), ""]
-    C.write_text(folder / "results.md", "\n".join(text))
+    C.write_results_page(folder, "Anti-aliasing: `--antialiased` against none, trained at one resolution, tested "
+                         "at four", "antialiasing.py", rows, columns)
 
 
 def main() -> None:

@@ -49,10 +49,8 @@ def report(folder) -> None:
                ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"), ("LPIPS-VGG", "lpips", ".4f"),
                ("compensated PSNR", "compensated_psnr", ".2f"), ("compensated SSIM", "compensated_ssim", ".4f"),
                ("s/step", "seconds_per_step", ".3f"), ("Gaussians", "gaussians", ",")]
-    text = ["# Exposure compensation: `--appearance affine` against none", "",
-            "`.venv/bin/python benchmarks/appearance.py` (the module docstring says what each column is).", "",
-            C.markdown_table(records, columns), ""]
-    C.write_text(folder / "results.md", "\n".join(text))
+    C.write_results_page(folder, "Exposure compensation: `--appearance affine` against none", "appearance.py",
+                         records, columns)
 
 
 def main() -> None:

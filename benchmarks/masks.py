@@ -119,10 +119,7 @@ def report(folder: Path) -> None:
                ("block PSNR train", "train_block_psnr", ".2f"), ("block PSNR test", "test_block_psnr", ".2f"),
                ("magenta (train)", "train_magenta", ".3f"), ("outside PSNR test", "test_outside_psnr", ".2f"),
                ("masked test PSNR (metrics.json)", "masked_psnr", ".2f"), ("Gaussians", "gaussians", ",")]
-    text = ["# Training masks: a block painted over every photo", "",
-            "`.venv/bin/python benchmarks/masks.py` (the module docstring says what each column is).", "",
-            C.markdown_table(records, columns), ""]
-    C.write_text(folder / "results.md", "\n".join(text))
+    C.write_results_page(folder, "Training masks: a block painted over every photo", "masks.py", records, columns)
 
 
 def main() -> None:

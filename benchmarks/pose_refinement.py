@@ -85,10 +85,8 @@ def report(folder: Path) -> None:
                ("median correction (deg)", "median_rotation_degrees", ".3f"),
                ("median correction (radii)", "median_translation_radii", ".4f"),
                ("cosine with the undoing rotation", "median_cosine", ".2f"), ("s/step", "seconds_per_step", ".3f")]
-    text = ["# Pose refinement: `--pose-opt` on the cup, its training poses moved and as they are", "",
-            "`.venv/bin/python benchmarks/pose_refinement.py` (the module docstring says what each column is).", "",
-            C.markdown_table(records, columns), ""]
-    C.write_text(folder / "results.md", "\n".join(text))
+    C.write_results_page(folder, "Pose refinement: `--pose-opt` on the cup, its training poses moved and as they "
+                         "are", "pose_refinement.py", records, columns)
 
 
 def main() -> None:
