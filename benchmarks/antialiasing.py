@@ -8,11 +8,11 @@ resolution, test at others.
 Each scene trains twice with the same options (`--steps` with the scaled schedule, `--cap-max`, the default
 initialisation: lego from random points, the real captures from their SfM points), without and with
 `--antialiased`, at `--train-downscale` (2: lego at 200x200, the cup at 400x300, the bird at 272x480) into
-results/antialiasing/runs/ (git-ignored). Each model is then scored on the test views loaded at four resolutions: 2x the training one (zoom in), the training one,
-1/2 and 1/4 (zoom out, where a splat that covered a pixel shrinks under one and aliasing shows). Recorded per
-resolution: PSNR, SSIM and LPIPS-VGG over the test views (every 8th of lego's 200, all of the real captures'). A picture
-(results/antialiasing/<scene>.png): a test view at 1/4 of the training resolution, photo / without / with, enlarged
-without smoothing.
+results/antialiasing/runs/ (git-ignored). Each model is then scored on the test views loaded at four resolutions:
+2x the training one (zoom in), the training one, 1/2 and 1/4 (zoom out, where a splat that covered a pixel shrinks
+under one and aliasing shows). Recorded per resolution: PSNR, SSIM and LPIPS-VGG over the test views (every 8th of
+lego's 200, all of the real captures'). A picture (results/antialiasing/<scene>.png): a test view at 1/4 of the
+training resolution, photo / without / with, enlarged without smoothing.
 """
 
 from __future__ import annotations
