@@ -409,7 +409,7 @@ def test_refine_schedule_is_gsplat_0_based():
 
 def test_step_order_refine_then_noise_and_noise_on_every_step(monkeypatch):
     calls = []
-    for name in ("prune_to_cap", "relocate_dead", "grow", "inject_noise"):
+    for name in ("prune_to_cap", "relocate_dead", "grow", "inject_position_noise"):
         original = getattr(mcmc_module, name)
 
         def spy(*args, _name=name, _original=original, **kwargs):
@@ -420,13 +420,13 @@ def test_step_order_refine_then_noise_and_noise_on_every_step(monkeypatch):
     optimizers = make_optimizers(model, OptimConfig(), RADIUS)
     strategy = MCMCStrategy(MCMCConfig(cap_max=100), RADIUS, torch.Generator().manual_seed(23))
     strategy.step_post_optimizer(599, model, optimizers, means_lr=1e-4)
-    assert calls == ["inject_noise"]
+    assert calls == ["inject_position_noise"]
     calls.clear()
     strategy.step_post_optimizer(600, model, optimizers, means_lr=1e-4)
-    assert calls == ["prune_to_cap", "relocate_dead", "grow", "inject_noise"]
+    assert calls == ["prune_to_cap", "relocate_dead", "grow", "inject_position_noise"]
     calls.clear()
     strategy.step_post_optimizer(25_000, model, optimizers, means_lr=1e-4)
-    assert calls == ["inject_noise"]
+    assert calls == ["inject_position_noise"]
 
 
 def test_regularization_is_the_mean_of_activated_values():

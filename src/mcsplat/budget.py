@@ -46,15 +46,16 @@ PREDICTION_POINTS = 400           # the future steps are integrated on this many
 MIN_START_GAUSSIANS = 1000        # the first plan cuts a large initialisation to no fewer than this
 # What each plan fits to its number of steps, from the values the run started with (the paper's, by default).
 SCHEDULE_KEYS = ("sh_increase_every", "mcmc.refine_start", "mcmc.refine_stop", "mcmc.refine_every",
-                 "adc.densify_start", "adc.densify_stop", "adc.densify_every", "adc.reset_every", "mcmc.grow_rate")
+                 "adc.densify_start", "adc.densify_stop", "adc.densify_every", "adc.reset_every", "mcmc.grow_rate",
+                 "mcmc.param_noise_decay")
 
 
-def _get(config: TrainConfig, key: str) -> int:
+def _get(config: TrainConfig, key: str) -> float:
     owner, _, name = key.rpartition(".")
     return getattr(getattr(config, owner) if owner else config, name)
 
 
-def _set(config: TrainConfig, key: str, value: int) -> None:
+def _set(config: TrainConfig, key: str, value: float) -> None:
     owner, _, name = key.rpartition(".")
     setattr(getattr(config, owner) if owner else config, name, value)
 

@@ -32,6 +32,7 @@ def scale_step_schedules(config: TrainConfig, numerator: int, denominator: int) 
     m.refine_start, m.refine_stop, m.refine_every = at(m.refine_start), at(m.refine_stop), every(m.refine_every)
     a.densify_start, a.densify_stop = at(a.densify_start), at(a.densify_stop)
     a.densify_every, a.reset_every = every(a.densify_every), every(a.reset_every)
+    m.param_noise_decay = m.param_noise_decay ** (denominator / numerator)  # the same decay over the run
 
 
 def fitted_to_steps(config: TrainConfig) -> TrainConfig:

@@ -48,6 +48,7 @@ from .state import make_strategy, start, training_image_pixels
 from .strategy.auto_cap import pixel_ceiling
 from .strategy.base import RefineReport, changed
 from .strategy.mcmc import prune_to_cap
+from .strategy.noise import noise_lr_at
 from .visibility import count_invisible
 
 PREFETCH_VIEWS = 2  # images decoded in the background ahead of their step (a no-op when all are in memory)
@@ -125,9 +126,11 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
     if poses is not None:
         poses.step()
     lap("optimizer")
-    # The noise uses the position learning rate after this step's decay, as gsplat does (docs/method.md).
+    # The noise uses the position learning rate after this step's decay, as gsplat does (docs/method.md), or the
+    # schedule an ablation puts in its place (strategy/noise.py).
     refine = strategy.step_post_optimizer(step, model, optimizers,
-                                          means_lr_at(step + 1, config.steps, config.optim, scene_radius))
+                                          noise_lr_at(config.mcmc.noise_schedule, step + 1, config.steps,
+                                                      config.optim, scene_radius))
     lap("strategy")
     return StepResult(loss=loss_value, train_psnr=train_psnr, refine=refine)
 

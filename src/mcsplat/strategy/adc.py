@@ -37,7 +37,7 @@ import torch
 from ..gaussians import PARAM_KEYS, GaussianModel
 from ..geometry.rotation import quaternion_to_rotation
 from ..optim import append_rows, remove_rows, set_rows, zero_moments
-from .base import ALONE, RefineReport
+from .base import ALONE, RefineReport, l1_regularizers
 from .screen_gradients import ScreenGradients
 
 __all__ = ["ADCConfig", "ADCStrategy", "ADCReport"]
@@ -65,9 +65,13 @@ class ADCConfig:
     max_world_size: float = 0.1      # prune when the largest scale exceeds max_world_size x scene radius
     cap_max: int | None = None       # optional budget: densification stops there
     reset_at_start: bool | None = None  # also reset at densify_start; None: on white backgrounds, as 3DGS does
+    # The MCMC paper's L1 regularizers on ADC, for its Table 3's "3DGS + our regularizers"; 3DGS has none.
+    opacity_reg: float = 0.0         # weight of mean(opacity)
+    scale_reg: float = 0.0           # weight of mean(scale)
 
     def __post_init__(self) -> None:
-        for name in ("grad_threshold", "percent_dense", "max_screen_size", "max_world_size"):
+        for name in ("grad_threshold", "percent_dense", "max_screen_size", "max_world_size", "opacity_reg",
+                     "scale_reg"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value}")
@@ -138,7 +142,7 @@ class ADCStrategy:
 
     # ------------------------------------------------------------------------------------------- the protocol
     def regularization(self, model: GaussianModel) -> torch.Tensor:
-        return model.means.new_zeros(())
+        return l1_regularizers(model, self.config.opacity_reg, self.config.scale_reg)
 
     @torch.no_grad()
     def step_post_backward(self, step: int, model: GaussianModel, render_result: Any, width: int,

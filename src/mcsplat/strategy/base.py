@@ -23,7 +23,7 @@ import torch
 
 from ..gaussians import GaussianModel
 
-__all__ = ["Strategy", "Collective", "ALONE", "RefineReport", "changed"]
+__all__ = ["Strategy", "Collective", "ALONE", "RefineReport", "changed", "l1_regularizers"]
 
 
 class Collective(Protocol):
@@ -103,3 +103,11 @@ class Strategy(Protocol):
 
     def load_state_dict(self, state: dict) -> None:
         ...
+
+
+def l1_regularizers(model: GaussianModel, opacity_reg: float, scale_reg: float) -> torch.Tensor:
+    """The MCMC paper's Eq. 10 as its code has it: opacity_reg mean(sigmoid(o)) + scale_reg mean(exp(s)), means of
+    the activated values (the paper writes sums). Zero for an empty model or zero weights."""
+    if model.num_gaussians == 0 or (opacity_reg == 0 and scale_reg == 0):
+        return model.means.new_zeros(())
+    return opacity_reg * model.opacities.mean() + scale_reg * model.scales.mean()

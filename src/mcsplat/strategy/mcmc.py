@@ -9,7 +9,8 @@ Per step, after the Adam steps (`step_post_optimizer`), in gsplat's order (since
    b. relocate the dead Gaussians onto live ones (docs/method.md, "Relocation of dead Gaussians");
    c. grow by 5% up to cap_max ("Growth"); with auto_cap, by at most the number of Gaussians whose screen
       gradient asks for more (strategy/auto_cap.py), so that the count stops where the scene needs no more;
-2. add the SGLD noise to the positions ("SGLD position noise"), on every step, with the learning rate the caller passes.
+2. add the SGLD noise to the positions ("SGLD position noise"), on every step, with the learning rate the caller passes
+   (the position learning rate; strategy/noise.py has the variants the paper ablates).
 
 How the official code (ubc-vision/3dgs-mcmc) differs (docs/method.md, "One training step" and the table at its end):
 - its iterations are 1-based: it relocates at iterations 600..24900 (500 < it < 25000, it % 100 == 0) *before*
@@ -28,7 +29,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, ClassVar, Mapping
+from typing import Any, Callable, ClassVar, Literal, Mapping
 
 import torch
 
@@ -36,16 +37,13 @@ from ..gaussians import PARAM_KEYS, GaussianModel
 from ..optim import append_rows, copy_rows, remove_rows, set_rows, zero_moments
 from .auto_cap import (DEFAULT_DEMAND_SHARE, DEFAULT_DEMAND_THRESHOLD, DEFAULT_GAUSSIANS_PER_PIXEL, growth_demand,
                        pixel_ceiling)
-from .base import ALONE, RefineReport
+from .base import ALONE, RefineReport, l1_regularizers
+from .noise import NOISE_GATE_CENTER, NOISE_GATE_K, inject_parameter_noise, inject_position_noise, noise_gate
 from .relocation import DEFAULT_MAX_COPIES, relocation_params, sample_by_weight
 from .screen_gradients import ScreenGradients
 
 __all__ = ["MCMCConfig", "MCMCStrategy", "MCMCReport", "inject_noise", "noise_gate", "relocate_dead", "grow",
            "prune_to_cap", "NOISE_GATE_K", "NOISE_GATE_CENTER"]
-
-# The noise gate sigmoid(-k (o - t)), k = 100, t = 0.005: the official code's, not the paper's printed t = 0.995.
-NOISE_GATE_K = 100.0
-NOISE_GATE_CENTER = 0.005
 
 Optimizers = Mapping[str, torch.optim.Optimizer]
 Agree = Callable[[torch.Tensor], torch.Tensor]
@@ -74,6 +72,12 @@ class MCMCConfig:
     demand_threshold: float = DEFAULT_DEMAND_THRESHOLD  # the automatic cap's gradient threshold (3DGS's, NDC units)
     demand_share: float = DEFAULT_DEMAND_SHARE  # the automatic cap stops growth once D < demand_share N
     gaussians_per_pixel: float = DEFAULT_GAUSSIANS_PER_PIXEL  # the automatic cap's ceiling per training pixel (0: off)
+    # The noise ablations of the paper's rebuttal and Table 3 (strategy/noise.py); the defaults are the method.
+    noise_covariance: bool = True   # shape the position noise by the covariance Sigma
+    noise_gate: bool = True         # move only the nearly transparent Gaussians
+    noise_all_params: bool = False  # also add decaying noise to scales, rotations and opacities (Table 3)
+    param_noise_decay: float = 0.9995  # that noise's decay per step (of a 30,000-step run: fitted with the schedules)
+    noise_schedule: Literal["lr", "linear", "neelakantan"] = "lr"  # what the noise factor follows over the run
 
     def __post_init__(self) -> None:
         if int(self.cap_max) != self.cap_max or self.cap_max < 1:
@@ -98,32 +102,19 @@ class MCMCConfig:
             raise ValueError(f"demand_share must be in [0, 1), got {self.demand_share}")
         if not (math.isfinite(self.gaussians_per_pixel) and self.gaussians_per_pixel >= 0):
             raise ValueError(f"gaussians_per_pixel must be a finite number >= 0, got {self.gaussians_per_pixel}")
+        if not 0.0 < self.param_noise_decay <= 1.0:
+            raise ValueError(f"param_noise_decay must be in (0, 1], got {self.param_noise_decay}")
         if not 1 <= self.max_copies <= 1000:
             raise ValueError(f"max_copies must be in [1, 1000], got {self.max_copies}")
         self.cap_max = int(self.cap_max)
 
 
 # --------------------------------------------------------------------------------------------------- the pieces
-def noise_gate(opacities: torch.Tensor) -> torch.Tensor:
-    """sigmoid(-100 (o - 0.005)): about 0.5 at o = 0.005, 0.011 at 0.05, ~3e-22 at 0.5."""
-    return torch.sigmoid(-NOISE_GATE_K * (opacities - NOISE_GATE_CENTER))
-
-
 @torch.no_grad()
 def inject_noise(model: GaussianModel, factor: float, generator: torch.Generator) -> None:
-    """means += factor * gate(o) * Sigma @ eta, eta ~ N(0, I3) (the paper's Eqs. 7-8).
-
-    `factor` is lambda_noise x the current position learning rate. Sigma is the full covariance (not its square
-    root). Only the positions change, in place, bypassing the optimizer: its state is untouched.
-    """
-    n = model.num_gaussians
-    if n == 0 or factor == 0:
-        return
-    means = model.params["means"]
-    eta = torch.randn(n, 3, generator=generator, device=generator.device, dtype=means.dtype).to(means.device)
-    scale = factor * noise_gate(model.opacities)
-    noise = model.covariance_times(eta) * scale[:, None]
-    means.add_(noise)
+    """The paper's position noise: means += factor * gate(o) * Sigma @ eta, eta ~ N(0, I3) (Eqs. 7-8; the variants
+    are in strategy/noise.py). `factor` is lambda_noise x the current position learning rate."""
+    inject_position_noise(model, factor, generator)
 
 
 def _apply_eq9(model: GaussianModel, sources: torch.Tensor, min_opacity: float,
@@ -258,10 +249,7 @@ class MCMCStrategy:
     def regularization(self, model: GaussianModel) -> torch.Tensor:
         """opacity_reg mean(sigmoid(o)) + scale_reg mean(exp(s)): means of the activated values, as the official
         code (the paper's Eq. 10 writes sums)."""
-        c = self.config
-        if model.num_gaussians == 0:
-            return model.means.new_zeros(())
-        return c.opacity_reg * model.opacities.mean() + c.scale_reg * model.scales.mean()
+        return l1_regularizers(model, self.config.opacity_reg, self.config.scale_reg)
 
     def step_post_backward(self, step: int, model: GaussianModel, render_result: Any, width: int,
                            height: int) -> None:
@@ -290,7 +278,10 @@ class MCMCStrategy:
                 counts["relocated"], counts["added"] = int(slots.numel()), int(added.numel())
             if c.auto_cap and self.chosen_cap is None:
                 self.gradients.reset(model.num_gaussians, model.means.device)
-        inject_noise(model, c.noise_lr * means_lr, self.generator)
+        inject_position_noise(model, c.noise_lr * means_lr, self.generator, covariance=c.noise_covariance,
+                              gated=c.noise_gate)
+        if c.noise_all_params:
+            inject_parameter_noise(model, c.param_noise_decay ** step, self.generator, gated=c.noise_gate)
         return MCMCReport(num_gaussians=model.num_gaussians, **counts)
 
     def _auto_cap(self, model: GaussianModel) -> tuple[int, int | None]:

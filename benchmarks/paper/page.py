@@ -1,0 +1,256 @@
+"""docs/paper.md: each claim with the paper's figures beside ours, from the records of every scale.
+
+The page has hand-written prose (what each result means, why it differs) around generated blocks marked
+`<!-- generated: NAME -->` ... `<!-- end: NAME -->`: writing the page replaces what is inside the blocks and keeps
+everything else, so the prose survives a new run. A page without a block gets it appended.
+"""
+
+from __future__ import annotations
+
+import re
+import statistics
+from pathlib import Path
+from typing import Callable
+
+import _common as C
+
+from . import paper_numbers as P
+from .experiments import (NOISE_VARIANTS, REGULARIZER_VARIANTS, SCALES, Comparison, Scale, ablation_reference,
+                          comparisons)
+from .runner import Records, churn
+
+PAGE = C.REPO / "docs" / "paper.md"
+COMMAND = ".venv/bin/python -m benchmarks.paper"
+
+
+# ---------------------------------------------------------------------------------------------- the figures
+class Figures:
+    """The records of one scale, averaged over the seeds each run has."""
+
+    def __init__(self, scale: Scale) -> None:
+        self.scale = scale
+        folder = C.RESULTS / "paper" / scale.name
+        self.records = Records(folder)
+        for record in self.records.by_name.values():  # records written before the runner counted relocations
+            if "relocated_per_gaussian" not in record and (folder / "runs" / record["name"]).is_dir():
+                record.update(churn(folder / "runs" / record["name"]))
+
+    def seeds(self, base_name: str) -> list[dict]:
+        return [r for r in self.records.by_name.values() if r["base_name"] == base_name]
+
+    def mean(self, base_name: str, key: str) -> float | None:
+        values = [r[key] for r in self.seeds(base_name) if r.get(key) is not None]
+        return statistics.fmean(values) if values else None
+
+    def pair(self, row: Comparison, key: str = "psnr") -> tuple[float | None, float | None]:
+        return self.mean(row.baseline.base_name, key), self.mean(row.variant.base_name, key)
+
+    def delta(self, row: Comparison, key: str = "psnr") -> float | None:
+        base, variant = self.pair(row, key)
+        return None if base is None or variant is None else variant - base
+
+    def seed_count(self, row: Comparison) -> int:
+        return min(len(self.seeds(row.baseline.base_name)), len(self.seeds(row.variant.base_name)))
+
+    def rows(self, claim: str) -> list[Comparison]:
+        return [row for row in comparisons(self.scale) if row.claim == claim]
+
+    @property
+    def empty(self) -> bool:
+        return not self.records.by_name
+
+
+def _f(value: float | None, spec: str = ".2f", signed: bool = False) -> str:
+    if value is None:
+        return "-"
+    return format(value, ("+" if signed else "") + spec)
+
+
+def _quality(figures: Figures, base_name: str) -> str:
+    psnr, ssim, lpips = (figures.mean(base_name, key) for key in ("psnr", "ssim", "lpips"))
+    return f"{_f(psnr)} / {_f(ssim, '.3f')} / {_f(lpips, '.3f')}" if psnr is not None else "not run"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
+
+
+# ------------------------------------------------------------------------------------------------ the claims
+def same_count(figures: Figures) -> str:
+    rows = []
+    for row in figures.rows("count"):
+        delta = figures.delta(row)
+        count = figures.mean(row.baseline.base_name, "num_gaussians")
+        width, height = (int(v) for v in figures.scale.scenes[row.baseline.scene].size.split("x"))
+        rows.append([row.label, _f(count, ",.0f"), _f(None if count is None else count / (width * height), ".1f"),
+                     _quality(figures, row.baseline.base_name), _quality(figures, row.variant.base_name),
+                     _f(delta, signed=True), _f(figures.mean(row.variant.base_name, "relocated_per_gaussian"), ".1f"),
+                     str(figures.seed_count(row)),
+                     "-" if delta is None else ("MCMC ahead" if delta > 0 else "ADC ahead")])
+    ours = _table(["scene, init", "count (ADC's final)", "per training pixel", "ADC PSNR / SSIM / LPIPS",
+                   "MCMC PSNR / SSIM / LPIPS", "MCMC - ADC (dB)", "MCMC relocations per Gaussian", "seeds",
+                   "verdict"], rows)
+    paper = _table(["dataset (paper)", "3DGS", "MCMC", "MCMC - 3DGS"],
+                   [[name, f"{a:.2f}", f"{b:.2f}", f"{b - a:+.2f}"] for name, (a, b) in P.SAME_COUNT.items()])
+    return f"{paper}\n\nOurs:\n\n{ours}"
+
+
+def budget(figures: Figures) -> str:
+    rows, trends = [], []
+    for scene in figures.scale.real_scenes:
+        gaps = []
+        scene_rows = [r for r in figures.rows("budget") if r.label.startswith(f"{scene},")]
+        full = next(r for r in figures.rows("count") if r.label == f"{scene}, sfm init")
+        for row in scene_rows + [full]:
+            cap = "ADC's count" if row is full else row.label.split("cap ")[1]
+            delta = figures.delta(row)
+            if delta is not None:
+                gaps.append(delta)
+            rows.append([scene, cap, _quality(figures, row.baseline.base_name),
+                         _quality(figures, row.variant.base_name), _f(delta, signed=True),
+                         str(figures.seed_count(row))])
+        if len(gaps) == len(scene_rows) + 1:
+            ahead = all(g > 0 for g in gaps)
+            growing = all(a >= b for a, b in zip(gaps, gaps[1:]))
+            trends.append(f"- {scene}: MCMC ahead at every cap: **{'yes' if ahead else 'no'}**; the gap grows as "
+                          f"the cap shrinks: **{'yes' if growing else 'no'}** ({', '.join(_f(g, signed=True) for g in gaps)}"
+                          " dB, smallest cap first)")
+    table = _table(["scene", "cap", "ADC PSNR / SSIM / LPIPS", "MCMC PSNR / SSIM / LPIPS", "MCMC - ADC (dB)", "seeds"],
+                   rows)
+    return table + "\n\n" + "\n".join(trends)
+
+
+def initialisation(figures: Figures) -> str:
+    rows = []
+    for row in figures.rows("init"):
+        scene, strategy = row.label.split(", ")[0], row.baseline.strategy
+        cap = "-" if row.variant.cap is None else C.human(int(row.variant.cap))
+        rows.append([scene, strategy.upper(), "unbounded" if row.variant.cap is None else cap,
+                     _f(figures.mean(row.baseline.base_name, "psnr")), _f(figures.mean(row.variant.base_name, "psnr")),
+                     _f(figures.delta(row), signed=True), str(figures.seed_count(row))])
+    ours = _table(["scene", "strategy", "cap", "random, 3x extent", "random, 1x extent", "1x - 3x (dB)", "seeds"],
+                  rows)
+    paper = _table(["strategy (paper, Mip-NeRF 360)", "random, 3x", "random, 1x", "1x - 3x"],
+                   [[name.upper(), f"{a:.2f}", f"{b:.2f}", f"{b - a:+.2f}"] for name, (a, b) in P.INIT_EXTENT.items()])
+    return f"{paper}\n\nOurs:\n\n{ours}"
+
+
+def _ablation(figures: Figures, claim: str, variants, paper: dict) -> str:
+    rows = []
+    for name in variants:
+        cells = [name]
+        base_psnr, variant_psnr, where = paper[name]
+        if base_psnr is not None and variant_psnr is not None:
+            cells.append(f"{variant_psnr - base_psnr:+.2f} ({where})")
+        elif name == "no-gate-paper-lambda":
+            cells.append(f"PSNR < {P.NOISE_NO_GATE_PAPER_LAMBDA_BELOW:g} ({where.split(':')[0]})")
+        else:
+            cells.append(where)
+        for scene in figures.scale.ablation_scenes:
+            row = next((r for r in figures.rows(claim) if r.variant.base_name.endswith(f"-{name}")
+                        and r.variant.scene == scene), None)
+            delta = figures.delta(row) if row else None
+            psnr = figures.mean(row.variant.base_name, "psnr") if row else None
+            seeds = figures.seed_count(row) if row else 0
+            cells.append("-" if delta is None else f"{_f(delta, signed=True)} ({_f(psnr)}, {seeds} seed"
+                         f"{'s' if seeds != 1 else ''})")
+        rows.append(cells)
+    header = ["variant", "paper: change in PSNR"] + [f"ours, {s}: change (PSNR)" for s in figures.scale.ablation_scenes]
+    return _table(header, rows)
+
+
+def _reference_line(figures: Figures) -> str:
+    scale = figures.scale
+    cap = "ADC's count" if scale.ablation_cap is None else f"a {C.human(scale.ablation_cap)} cap"
+    bases = ", ".join(f"{scene} {_f(figures.mean(ablation_reference(scale, scene).base_name, 'psnr'))} dB"
+                      for scene in scale.ablation_scenes)
+    return f"The full method they are compared with (MCMC, random init, {cap}): {bases}."
+
+
+def noise(figures: Figures) -> str:
+    return _ablation(figures, "noise", NOISE_VARIANTS, P.NOISE) + "\n\n" + _reference_line(figures)
+
+
+def regularizers(figures: Figures) -> str:
+    adc = ", ".join(f"{s} {_f(figures.mean(f'{s}-adc-random', 'psnr'))} dB" for s in figures.scale.ablation_scenes)
+    return (_ablation(figures, "regularizers", list(REGULARIZER_VARIANTS) + ["with-regs"], P.REGULARIZERS) +
+            "\n\n" + _reference_line(figures) + f" The with-regs row is ADC (unbounded) against ADC: {adc}.")
+
+
+def timing(figures: Figures) -> str:
+    rows = []
+    for row in figures.rows("count"):
+        adc_ms, mcmc_ms = figures.pair(row, "ms_per_step")
+        if adc_ms is None or mcmc_ms is None:
+            continue
+        rows.append([row.label, _f(figures.mean(row.baseline.base_name, "num_gaussians"), ",.0f"),
+                     _f(figures.mean(row.variant.base_name, "num_gaussians"), ",.0f"), _f(adc_ms, ".1f"),
+                     _f(mcmc_ms, ".1f"), _f(mcmc_ms / adc_ms, ".2f")])
+    a, b = P.MS_PER_STEP_1M
+    same = _table(["scene, init", "ADC final count", "MCMC count", "ADC ms/step", "MCMC ms/step", "MCMC / ADC"], rows)
+    reg_rows = []
+    for row in figures.rows("time"):
+        base_s, weak_s = figures.pair(row, "train_seconds")
+        reg_rows.append([row.label.split(",")[0], _f(figures.mean(row.baseline.base_name, "psnr")),
+                         _f(figures.mean(row.variant.base_name, "psnr")), _f(base_s, ".0f"), _f(weak_s, ".0f"),
+                         "-" if not base_s or weak_s is None else _f(weak_s / base_s, ".2f")])
+    (t01, p01), (t001, p001) = P.ROOM_OPACITY_REG[0.01], P.ROOM_OPACITY_REG[0.001]
+    reg = _table(["scene (SfM init, ADC's count)", "PSNR at 0.01", "PSNR at 0.001", "train s at 0.01",
+                  "train s at 0.001", "time 0.001 / 0.01"], reg_rows)
+    return (f"The paper: {b:g} ms (MCMC) against {a:g} ms (3DGS) a step at 1M Gaussians, {b / a:.2f}x; on the room "
+            f"scene (SfM init, 1.5M cap) the opacity regulariser at 0.001 took {t001:g} min for {p001} dB, at 0.01 "
+            f"{t01:g} min for {p01} dB ({t001 / t01:.2f}x the time); 3DGS {P.ROOM_3DGS[0]:g} min for "
+            f"{P.ROOM_3DGS[1]} dB.\n\nOurs, at the same count:\n\n{same}\n\nThe opacity regulariser:\n\n{reg}")
+
+
+def settings(figures: Figures) -> str:
+    s = figures.scale
+    rows = [[name, setting.size, f"every {setting.test_stride} of the test views" if setting.test_stride > 1
+             else "all test views", "real" if setting.real else "synthetic"] for name, setting in s.scenes.items()]
+    machines = sorted({C.machine_line(r["machine"]) for r in figures.records.by_name.values() if r.get("machine")})
+    done = len(figures.records.by_name)
+    return (f"{s.steps:,} steps (the paper's step schedules multiplied by {s.steps / 30_000:.3g}), random init: "
+            f"{s.random_points:,} points in a cube of 3x the camera extent; every 8th image held out (lego: its "
+            f"test split); LPIPS with VGG. {done} runs recorded. Machine: {'; '.join(machines) or '-'}.\n\n" +
+            _table(["scene", "training size", "scored", "kind"], rows))
+
+
+SECTIONS: dict[str, Callable[[Figures], str]] = {
+    "settings": settings, "same-count": same_count, "budget": budget, "initialisation": initialisation,
+    "noise": noise, "regularizers": regularizers, "time": timing}
+
+
+# ------------------------------------------------------------------------------------------------ the page
+def block(name: str, scale: str, body: str) -> str:
+    return f"<!-- generated: {name} {scale} -->\n{body}\n<!-- end: {name} {scale} -->"
+
+
+def render_blocks() -> dict[tuple[str, str], str]:
+    out = {}
+    for scale_name, scale in SCALES.items():
+        figures = Figures(scale)
+        for name, section in SECTIONS.items():
+            if figures.empty:
+                body = f"Not run yet at {scale_name} scale: `{COMMAND} --scale {scale_name}`" + \
+                       (" on a machine with a GPU (`--device` is chosen by mcsplat: CUDA when present)."
+                        if scale_name == "gpu" else ".")
+            else:
+                body = section(figures)
+            out[(name, scale_name)] = body
+    return out
+
+
+def write_page(path: Path = PAGE) -> Path:
+    """Replace the generated blocks of the page (appending the ones it lacks) and keep the rest."""
+    text = path.read_text() if path.is_file() else "# The paper's claims, reproduced\n"
+    for (name, scale), body in render_blocks().items():
+        pattern = re.compile(rf"<!-- generated: {re.escape(name)} {scale} -->.*?<!-- end: {re.escape(name)} {scale} -->",
+                             re.S)
+        new = block(name, scale, body)
+        if pattern.search(text):
+            text = pattern.sub(lambda _: new, text)
+        else:
+            text = text.rstrip("\n") + f"\n\n{new}\n"
+    C.write_text(path, text if text.endswith("\n") else text + "\n")
+    return path

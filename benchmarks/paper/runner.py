@@ -1,0 +1,104 @@
+"""Train one run of experiments.py and record its figures (records.jsonl: one line per finished run, the last
+line of a name wins)."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+import _common as C
+import mcsplat.run_dir as run_folders
+from budget import test_subset
+from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.strategy.adc import ADCConfig
+from mcsplat.strategy.mcmc import MCMCConfig
+from mcsplat.train import train
+
+from .experiments import Run, Scale
+
+NESTED = {"model": ModelConfig, "mcmc": MCMCConfig, "adc": ADCConfig}
+
+
+class Records:
+    """records.jsonl of a scale: the last record of every run name."""
+
+    def __init__(self, folder: Path) -> None:
+        self.path = folder / "records.jsonl"
+        self.by_name = {r["name"]: r for r in C.read_jsonl(self.path)}
+
+    def add(self, record: dict) -> None:
+        C.append_jsonl(self.path, [record])
+        self.by_name[record["name"]] = record
+
+    def get(self, name: str) -> dict | None:
+        return self.by_name.get(name)
+
+
+def resolve_cap(run: Run, records: Records) -> int | None:
+    if not isinstance(run.cap, str):
+        return run.cap
+    reference = records.get(run.cap.removeprefix("count:"))
+    if reference is None:
+        raise RuntimeError(f"{run.name}: its cap is the final count of {run.cap[6:]}, which has not run")
+    return int(reference["num_gaussians"])
+
+
+def make_config(run: Run, scale: Scale, cap: int | None, run_dir: Path, resume: bool) -> TrainConfig:
+    setting = scale.scenes[run.scene]
+    nested: dict[str, dict[str, Any]] = {key: {} for key in NESTED}
+    top: dict[str, Any] = {}
+    for option, value in run.options:
+        group, _, key = option.rpartition(".")
+        (nested[group] if group else top)[key] = value
+    nested["model"].setdefault("init", "random" if run.init == "random" else "auto")
+    nested["model"].setdefault("num_init_points", scale.random_points)
+    return TrainConfig(
+        data=C.DATA_ROOT / setting.folder, out=run_dir, strategy=run.strategy, cap_max=cap, steps=scale.steps,
+        downscale=setting.downscale, seed=run.seed, quiet=True, lpips_net="vgg", save_renders=False,
+        save_every=max(1, scale.steps // 4), save_every_minutes=0, resume=resume, overwrite=not resume,
+        **top, **{key: cls(**nested[key]) for key, cls in NESTED.items()})
+
+
+def train_run(run: Run, scale: Scale, folder: Path, records: Records, machine: dict) -> dict:
+    """Train `run` (resuming a checkpoint left by an interrupted one) and record it."""
+    run_dir = folder / "runs" / run.name
+    cap = resolve_cap(run, records)
+    resume = run_folders.RunDir(run_dir).checkpoint_file.is_file() and not (run_dir / "metrics.json").is_file()
+    config = make_config(run, scale, cap, run_dir, resume)
+    started = time.perf_counter()
+    with test_subset(scale.scenes[run.scene].test_stride, 0):
+        metrics = train(config)
+    record = {
+        "name": run.name, "base_name": run.base_name, "scene": run.scene, "strategy": run.strategy,
+        "init": run.init, "variant": run.variant, "seed": run.seed, "cap": cap,
+        "options": {key: value for key, value in run.options},
+        "psnr": round(metrics["psnr"], 3), "ssim": round(metrics["ssim"], 4),
+        "lpips": round(metrics["lpips"], 4) if metrics.get("lpips") is not None else None,
+        "num_gaussians": metrics["num_gaussians"], "steps": metrics["steps"],
+        "train_seconds": metrics["train_seconds"],
+        "ms_per_step": round(1000.0 * metrics["train_seconds"] / max(1, metrics["steps"]), 1),
+        "test_views": metrics.get("test_views"), "size": scale.scenes[run.scene].size, "scale": scale.name,
+        "device": metrics.get("device"), "threads": torch.get_num_threads(), "resumed": resume,
+        "wall_seconds": round(time.perf_counter() - started, 1), "machine": machine, "commit": C.git_commit(),
+        "date": C.timestamp(), **churn(run_dir),
+    }
+    records.add(record)
+    return record
+
+
+def churn(run_dir: Path) -> dict:
+    """How often MCMC moved its Gaussians: the relocations of the whole run (log.jsonl sums them between its lines),
+    and per Gaussian of the final count."""
+    lines = C.read_jsonl(run_dir / "log.jsonl")
+    relocated = sum(int(line.get("relocated") or 0) for line in lines)
+    count = next((line["num_gaussians"] for line in reversed(lines) if "num_gaussians" in line), 0)
+    return {"relocated_total": relocated, "relocated_per_gaussian": round(relocated / count, 2) if count else None}
+
+
+def short(record: dict) -> str:
+    return json.dumps({k: record[k] for k in ("name", "cap", "psnr", "ssim", "lpips", "num_gaussians",
+                                              "train_seconds")})
