@@ -1,7 +1,7 @@
 """Run every experiment of the paper's claims at one scale, then write docs/paper.md.
 
     .venv/bin/python -m benchmarks.paper --scale cpu             # everything (hours on 2 cores); resumes where it stopped
-    .venv/bin/python -m benchmarks.paper --scale gpu --device cuda
+    .venv/bin/python -m benchmarks.paper --scale gpu             # on a machine with an NVIDIA GPU (mcsplat takes it)
     .venv/bin/python -m benchmarks.paper --scale cpu --list      # the runs and whether they are done
     .venv/bin/python -m benchmarks.paper --report                # docs/paper.md from the records, train nothing
 
@@ -20,7 +20,7 @@ import sys
 import _common as C
 
 from .experiments import SCALES, Run, comparisons, runs
-from .runner import Records, short, train_run
+from .runner import NotReady, Records, short, train_run
 
 
 def results_folder(scale: str):
@@ -40,7 +40,8 @@ def extra_seed_runs(scale, records: Records) -> list[Run]:
 
 
 def train_all(todo: list[Run], scale, records: Records, machine: dict) -> int:
-    """Train the runs not yet recorded; returns how many were left out (their options are unknown to this code)."""
+    """Train the runs not yet recorded; returns how many were left out (NotReady: an option this checkout lacks, or
+    a cap that comes from a run not trained yet)."""
     left_out = 0
     for i, run in enumerate(todo, 1):
         if records.get(run.name):
@@ -48,7 +49,7 @@ def train_all(todo: list[Run], scale, records: Records, machine: dict) -> int:
         print(f"[{i}/{len(todo)}] {run.name}", file=sys.stderr, flush=True)
         try:
             record = train_run(run, scale, results_folder(scale.name), records, machine)
-        except TypeError as error:  # a dataclass without the option: this checkout predates the variant
+        except NotReady as error:
             print(f"  left out: {error}", file=sys.stderr)
             left_out += 1
             continue
@@ -85,7 +86,7 @@ def main() -> None:
         if not args.no_extra_seeds:
             left_out += train_all(extra_seed_runs(scale, records), scale, records, machine)
         if left_out:
-            print(f"{left_out} runs left out (options this checkout does not have)", file=sys.stderr)
+            print(f"{left_out} runs left out (see above)", file=sys.stderr)
     print(f"wrote {write_page()}", file=sys.stderr)
 
 

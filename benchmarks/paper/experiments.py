@@ -1,7 +1,9 @@
 """What is run: the scenes and settings of each scale, and the runs of every claim.
 
-A run is named by what it varies (`cup-mcmc-random-no-gate`); runs shared by several claims (the same-count pair
-is the baseline of the initialisation, noise, regulariser and time rows) are defined once. The MCMC runs of the
+A run is named by what it varies (`cup-mcmc-random-no-gate`); runs shared by several claims are defined once (the
+same-count ADC run is the reference of the initialisation claim's ADC row and of ADC with the regularizers; the
+ablation reference, MCMC at the ablation cap, that of the noise and regulariser rows and of the initialisation
+claim's MCMC row). The MCMC runs of the
 same-count claim take ADC's final count as their cap (`cap="count:<ADC run>"`), as the paper's configs do.
 """
 
@@ -92,8 +94,8 @@ class Run:
 NOISE_VARIANTS = {
     "no-noise": (("mcmc.noise_lr", 0.0),),
     "no-covariance": (("mcmc.noise_covariance", False),),
-    "no-gate": (("mcmc.noise_gate", False), ("mcmc.noise_lr", 0.05)),
-    "no-gate-paper-lambda": (("mcmc.noise_gate", False),),
+    "no-gate": (("mcmc.noise_gated", False), ("mcmc.noise_lr", 0.05)),
+    "no-gate-paper-lambda": (("mcmc.noise_gated", False),),
     "all-params": (("mcmc.noise_all_params", True),),
     "linear-schedule": (("mcmc.noise_schedule", "linear"),),
     "neelakantan-schedule": (("mcmc.noise_schedule", "neelakantan"),),
@@ -124,8 +126,10 @@ def runs(scale: Scale) -> list[Run]:
     """Every run of the scale at seed 0, in the order they are trained: first one run of every claim on the first
     scenes (the same-count pairs, the ablations on the first ablation scene, the initialisation and budget runs on
     the first two real captures), then the same on the other scenes, so that a stopped pass has covered every claim."""
-    out = [(priority, run) for priority, run in _every_run(scale)]
-    return [run for _, run in sorted(out, key=lambda pair: pair[0])]  # sorted() keeps the order within a priority
+    out: dict[str, Run] = {}
+    for _, run in sorted(_every_run(scale), key=lambda pair: pair[0]):  # sorted() keeps the order within a priority
+        out.setdefault(run.name, run)  # a run two claims share is trained where it first comes
+    return list(out.values())
 
 
 def _every_run(scale: Scale):
@@ -148,8 +152,7 @@ def _every_run(scale: Scale):
     for scene in scale.real_scenes:                                  # 3. initialisation in 1x the camera extent
         priority = 2 if scene in first_real else 3
         reference = ablation_reference(scale, scene)
-        if scene not in scale.ablation_scenes:
-            yield priority, reference
+        yield priority, reference
         yield priority, Run(scene, "adc", "random", "extent1x", None, (("model.init_extent", 1.0),))
         yield priority, Run(scene, "mcmc", "random", "extent1x", reference.cap, (("model.init_extent", 1.0),))
     for scene in scale.real_scenes:                                  # 2. limited budget

@@ -38,19 +38,26 @@ class Figures:
     def seeds(self, base_name: str) -> list[dict]:
         return [r for r in self.records.by_name.values() if r["base_name"] == base_name]
 
-    def mean(self, base_name: str, key: str) -> float | None:
-        values = [r[key] for r in self.seeds(base_name) if r.get(key) is not None]
+    def mean(self, base_name: str, key: str, seeds: set[int] | None = None) -> float | None:
+        values = [r[key] for r in self.seeds(base_name) if r.get(key) is not None
+                  and (seeds is None or r["seed"] in seeds)]
         return statistics.fmean(values) if values else None
 
+    def common_seeds(self, row: Comparison) -> set[int]:
+        """The seeds both sides of a comparison have: a mean over more seeds on one side would not be a pair."""
+        return ({r["seed"] for r in self.seeds(row.baseline.base_name)} &
+                {r["seed"] for r in self.seeds(row.variant.base_name)})
+
     def pair(self, row: Comparison, key: str = "psnr") -> tuple[float | None, float | None]:
-        return self.mean(row.baseline.base_name, key), self.mean(row.variant.base_name, key)
+        seeds = self.common_seeds(row)
+        return self.mean(row.baseline.base_name, key, seeds), self.mean(row.variant.base_name, key, seeds)
 
     def delta(self, row: Comparison, key: str = "psnr") -> float | None:
         base, variant = self.pair(row, key)
         return None if base is None or variant is None else variant - base
 
     def seed_count(self, row: Comparison) -> int:
-        return min(len(self.seeds(row.baseline.base_name)), len(self.seeds(row.variant.base_name)))
+        return len(self.common_seeds(row))
 
     def rows(self, claim: str) -> list[Comparison]:
         return [row for row in comparisons(self.scale) if row.claim == claim]
@@ -125,8 +132,9 @@ def initialisation(figures: Figures) -> str:
     rows = []
     for row in figures.rows("init"):
         scene, strategy = row.label.split(", ")[0], row.baseline.strategy
-        cap = "-" if row.variant.cap is None else C.human(int(row.variant.cap))
-        rows.append([scene, strategy.upper(), "unbounded" if row.variant.cap is None else cap,
+        cap = row.variant.cap
+        cap_text = "unbounded" if cap is None else "ADC's count" if isinstance(cap, str) else C.human(cap)
+        rows.append([scene, strategy.upper(), cap_text,
                      _f(figures.mean(row.baseline.base_name, "psnr")), _f(figures.mean(row.variant.base_name, "psnr")),
                      _f(figures.delta(row), signed=True), str(figures.seed_count(row))])
     ours = _table(["scene", "strategy", "cap", "random, 3x extent", "random, 1x extent", "1x - 3x (dB)", "seeds"],
@@ -148,8 +156,8 @@ def _ablation(figures: Figures, claim: str, variants, paper: dict) -> str:
         else:
             cells.append(where)
         for scene in figures.scale.ablation_scenes:
-            row = next((r for r in figures.rows(claim) if r.variant.base_name.endswith(f"-{name}")
-                        and r.variant.scene == scene), None)
+            row = next((r for r in figures.rows(claim) if r.variant.variant == name and r.variant.scene == scene),
+                       None)
             delta = figures.delta(row) if row else None
             psnr = figures.mean(row.variant.base_name, "psnr") if row else None
             seeds = figures.seed_count(row) if row else 0

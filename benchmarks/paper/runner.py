@@ -3,6 +3,7 @@ line of a name wins)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -38,13 +39,29 @@ class Records:
         return self.by_name.get(name)
 
 
+class NotReady(Exception):
+    """A run that cannot be trained by this checkout or at this point of the pass (the message says why)."""
+
+
 def resolve_cap(run: Run, records: Records) -> int | None:
+    """The run's cap: a number, or the final count of the run it names (of the same seed where that has run)."""
     if not isinstance(run.cap, str):
         return run.cap
-    reference = records.get(run.cap.removeprefix("count:"))
+    name = run.cap.removeprefix("count:")
+    reference = records.get(f"{name}-seed{run.seed}" if run.seed else name) or records.get(name)
     if reference is None:
-        raise RuntimeError(f"{run.name}: its cap is the final count of {run.cap[6:]}, which has not run")
+        raise NotReady(f"its cap is the final count of {name}, which has not run (leave it in --only)")
     return int(reference["num_gaussians"])
+
+
+def check_options(run: Run) -> None:
+    """Every option of the run is one this checkout's configuration has."""
+    known = {"": {f.name for f in dataclasses.fields(TrainConfig)},
+             **{group: {f.name for f in dataclasses.fields(cls)} for group, cls in NESTED.items()}}
+    for option, _ in run.options:
+        group, _, key = option.rpartition(".")
+        if key not in known.get(group, ()):
+            raise NotReady(f"this checkout has no option {option}")
 
 
 def make_config(run: Run, scale: Scale, cap: int | None, run_dir: Path, resume: bool) -> TrainConfig:
@@ -65,6 +82,7 @@ def make_config(run: Run, scale: Scale, cap: int | None, run_dir: Path, resume: 
 
 def train_run(run: Run, scale: Scale, folder: Path, records: Records, machine: dict) -> dict:
     """Train `run` (resuming a checkpoint left by an interrupted one) and record it."""
+    check_options(run)
     run_dir = folder / "runs" / run.name
     cap = resolve_cap(run, records)
     resume = run_folders.RunDir(run_dir).checkpoint_file.is_file() and not (run_dir / "metrics.json").is_file()

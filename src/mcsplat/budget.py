@@ -108,7 +108,8 @@ class BudgetPlanner:
         self.ceiling = ceiling  # the most Gaussians allowed whatever the time: --cap-max and 3 per pixel
         record = config.budget_plan or {}
         # The paper's schedule values the plan fits to each new number of steps (kept across a resume).
-        self.base = record.get("base") or {key: _get(config, key) for key in SCHEDULE_KEYS}
+        # A plan saved before a key was added lacks it: the configuration gives its value.
+        self.base = {**{key: _get(config, key) for key in SCHEDULE_KEYS}, **(record.get("base") or {})}
         self.history: list[dict] = list(record.get("history", []))
         self.cost = StepCost()
         self.last_plan_at = -math.inf

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, ClassVar, Literal, Mapping
+from typing import Any, Callable, ClassVar, Mapping
 
 import torch
 
@@ -38,7 +38,8 @@ from ..optim import append_rows, copy_rows, remove_rows, set_rows, zero_moments
 from .auto_cap import (DEFAULT_DEMAND_SHARE, DEFAULT_DEMAND_THRESHOLD, DEFAULT_GAUSSIANS_PER_PIXEL, growth_demand,
                        pixel_ceiling)
 from .base import ALONE, RefineReport, l1_regularizers
-from .noise import NOISE_GATE_CENTER, NOISE_GATE_K, inject_parameter_noise, inject_position_noise, noise_gate
+from .noise import (NOISE_GATE_CENTER, NOISE_GATE_K, NOISE_SCHEDULES, NoiseSchedule, inject_parameter_noise,
+                    inject_position_noise, noise_gate)
 from .relocation import DEFAULT_MAX_COPIES, relocation_params, sample_by_weight
 from .screen_gradients import ScreenGradients
 
@@ -74,10 +75,10 @@ class MCMCConfig:
     gaussians_per_pixel: float = DEFAULT_GAUSSIANS_PER_PIXEL  # the automatic cap's ceiling per training pixel (0: off)
     # The noise ablations of the paper's rebuttal and Table 3 (strategy/noise.py); the defaults are the method.
     noise_covariance: bool = True   # shape the position noise by the covariance Sigma
-    noise_gate: bool = True         # move only the nearly transparent Gaussians
+    noise_gated: bool = True        # move only the nearly transparent Gaussians (the opacity gate)
     noise_all_params: bool = False  # also add decaying noise to scales, rotations and opacities (Table 3)
     param_noise_decay: float = 0.9995  # that noise's decay per step (of a 30,000-step run: fitted with the schedules)
-    noise_schedule: Literal["lr", "linear", "neelakantan"] = "lr"  # what the noise factor follows over the run
+    noise_schedule: NoiseSchedule = "lr"  # what the noise factor follows over the run
 
     def __post_init__(self) -> None:
         if int(self.cap_max) != self.cap_max or self.cap_max < 1:
@@ -102,6 +103,8 @@ class MCMCConfig:
             raise ValueError(f"demand_share must be in [0, 1), got {self.demand_share}")
         if not (math.isfinite(self.gaussians_per_pixel) and self.gaussians_per_pixel >= 0):
             raise ValueError(f"gaussians_per_pixel must be a finite number >= 0, got {self.gaussians_per_pixel}")
+        if self.noise_schedule not in NOISE_SCHEDULES:
+            raise ValueError(f"noise_schedule must be one of {', '.join(NOISE_SCHEDULES)}, got {self.noise_schedule!r}")
         if not 0.0 < self.param_noise_decay <= 1.0:
             raise ValueError(f"param_noise_decay must be in (0, 1], got {self.param_noise_decay}")
         if not 1 <= self.max_copies <= 1000:
@@ -279,9 +282,9 @@ class MCMCStrategy:
             if c.auto_cap and self.chosen_cap is None:
                 self.gradients.reset(model.num_gaussians, model.means.device)
         inject_position_noise(model, c.noise_lr * means_lr, self.generator, covariance=c.noise_covariance,
-                              gated=c.noise_gate)
+                              gated=c.noise_gated)
         if c.noise_all_params:
-            inject_parameter_noise(model, c.param_noise_decay ** step, self.generator, gated=c.noise_gate)
+            inject_parameter_noise(model, c.param_noise_decay ** step, self.generator, gated=c.noise_gated)
         return MCMCReport(num_gaussians=model.num_gaussians, **counts)
 
     def _auto_cap(self, model: GaussianModel) -> tuple[int, int | None]:

@@ -6,7 +6,7 @@ learning rate (exponential decay), gate(o) = sigmoid(-100 (o - 0.005)) and Sigma
 
 - noise_covariance=False: the Sigma factor dropped, means += lambda_noise lr(t) gate(o) eta (the paper's "without the
   covariance"; the noise no longer follows each Gaussian's shape and size);
-- noise_gate=False: every Gaussian moves, not only the nearly transparent ones (the paper could train it only with
+- noise_gated=False: every Gaussian moves, not only the nearly transparent ones (the paper could train it only with
   lambda_noise = 0.05);
 - noise_all_params=True: Table 3's "noise on all parameters": also N(0, 1) on the log-scales and the rotation
   quaternions and N(0, 0.1^2) on the opacity logits, each decayed x0.9995 per step of a 30,000-step run
@@ -21,22 +21,24 @@ learning rate (exponential decay), gate(o) = sigmoid(-100 (o - 0.005)) and Sigma
 from __future__ import annotations
 
 import math
+from typing import Literal, get_args
 
 import torch
 
 from ..gaussians import GaussianModel
 from ..optim import OptimConfig, means_lr_at
 
-__all__ = ["NOISE_SCHEDULES", "noise_gate", "inject_position_noise", "inject_parameter_noise", "noise_lr_at",
+__all__ = ["NOISE_SCHEDULES", "NoiseSchedule", "noise_gate", "inject_position_noise", "inject_parameter_noise", "noise_lr_at",
            "NOISE_GATE_K", "NOISE_GATE_CENTER"]
 
 # The noise gate sigmoid(-k (o - t)), k = 100, t = 0.005: the official code's, not the paper's printed t = 0.995.
 NOISE_GATE_K = 100.0
 NOISE_GATE_CENTER = 0.005
-NOISE_SCHEDULES = ("lr", "linear", "neelakantan")
+NoiseSchedule = Literal["lr", "linear", "neelakantan"]
+NOISE_SCHEDULES: tuple[str, ...] = get_args(NoiseSchedule)
 NEELAKANTAN_GAMMA = 0.55      # the variance decays as (1 + t)^-gamma, so the standard deviation as its square root
 PAPER_STEPS = 30_000
-OPACITY_NOISE_STD = 0.1       # Table 3's all-parameters variant: N(0, 0.1) on the opacity
+OPACITY_NOISE_STD = 0.1       # Table 3's all-parameters variant: "N(0, 0.1)" on the opacity, taken as the std
 SHAPE_NOISE_STD = 1.0         # ... and N(0, 1) on the scale and the rotation
 
 
