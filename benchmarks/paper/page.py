@@ -73,9 +73,15 @@ def _f(value: float | None, spec: str = ".2f", signed: bool = False) -> str:
     return format(value, ("+" if signed else "") + spec)
 
 
-def _quality(figures: Figures, base_name: str) -> str:
-    psnr, ssim, lpips = (figures.mean(base_name, key) for key in ("psnr", "ssim", "lpips"))
+def _quality(figures: Figures, base_name: str, seeds: set[int] | None = None) -> str:
+    psnr, ssim, lpips = (figures.mean(base_name, key, seeds) for key in ("psnr", "ssim", "lpips"))
     return f"{_f(psnr)} / {_f(ssim, '.3f')} / {_f(lpips, '.3f')}" if psnr is not None else "not run"
+
+
+def _qualities(figures: Figures, row: Comparison) -> tuple[str, str]:
+    """Both sides of a comparison over the seeds they share."""
+    seeds = figures.common_seeds(row)
+    return _quality(figures, row.baseline.base_name, seeds), _quality(figures, row.variant.base_name, seeds)
 
 
 def _table(header: list[str], rows: list[list[str]]) -> str:
@@ -91,8 +97,8 @@ def same_count(figures: Figures) -> str:
         count = figures.mean(row.baseline.base_name, "num_gaussians")
         width, height = (int(v) for v in figures.scale.scenes[row.baseline.scene].size.split("x"))
         rows.append([row.label, _f(count, ",.0f"), _f(None if count is None else count / (width * height), ".1f"),
-                     _quality(figures, row.baseline.base_name), _quality(figures, row.variant.base_name),
-                     _f(delta, signed=True), _f(figures.mean(row.variant.base_name, "relocated_per_gaussian"), ".1f"),
+                     *_qualities(figures, row), _f(delta, signed=True),
+                     _f(figures.mean(row.variant.base_name, "relocated_per_gaussian"), ".1f"),
                      str(figures.seed_count(row)),
                      "-" if delta is None else ("MCMC ahead" if delta > 0 else "ADC ahead")])
     ours = _table(["scene, init", "count (ADC's final)", "per training pixel", "ADC PSNR / SSIM / LPIPS",
@@ -114,8 +120,7 @@ def budget(figures: Figures) -> str:
             delta = figures.delta(row)
             if delta is not None:
                 gaps.append(delta)
-            rows.append([scene, cap, _quality(figures, row.baseline.base_name),
-                         _quality(figures, row.variant.base_name), _f(delta, signed=True),
+            rows.append([scene, cap, *_qualities(figures, row), _f(delta, signed=True),
                          str(figures.seed_count(row))])
         if len(gaps) == len(scene_rows) + 1:
             ahead = all(g > 0 for g in gaps)
@@ -134,8 +139,7 @@ def initialisation(figures: Figures) -> str:
         scene, strategy = row.label.split(", ")[0], row.baseline.strategy
         cap = row.variant.cap
         cap_text = "unbounded" if cap is None else "ADC's count" if isinstance(cap, str) else C.human(cap)
-        rows.append([scene, strategy.upper(), cap_text,
-                     _f(figures.mean(row.baseline.base_name, "psnr")), _f(figures.mean(row.variant.base_name, "psnr")),
+        rows.append([scene, strategy.upper(), cap_text, *(_f(v) for v in figures.pair(row)),
                      _f(figures.delta(row), signed=True), str(figures.seed_count(row))])
     ours = _table(["scene", "strategy", "cap", "random, 3x extent", "random, 1x extent", "1x - 3x (dB)", "seeds"],
                   rows)
@@ -159,7 +163,7 @@ def _ablation(figures: Figures, claim: str, variants, paper: dict) -> str:
             row = next((r for r in figures.rows(claim) if r.variant.variant == name and r.variant.scene == scene),
                        None)
             delta = figures.delta(row) if row else None
-            psnr = figures.mean(row.variant.base_name, "psnr") if row else None
+            psnr = figures.pair(row)[1] if row else None
             seeds = figures.seed_count(row) if row else 0
             cells.append("-" if delta is None else f"{_f(delta, signed=True)} ({_f(psnr)}, {seeds} seed"
                          f"{'s' if seeds != 1 else ''})")

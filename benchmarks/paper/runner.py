@@ -32,6 +32,7 @@ class Records:
         self.by_name = {r["name"]: r for r in C.read_jsonl(self.path)}
 
     def add(self, record: dict) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
         C.append_jsonl(self.path, [record])
         self.by_name[record["name"]] = record
 
