@@ -145,7 +145,16 @@ def initialisation(figures: Figures) -> str:
                   rows)
     paper = _table(["strategy (paper, Mip-NeRF 360)", "random, 3x", "random, 1x", "1x - 3x"],
                    [[name.upper(), f"{a:.2f}", f"{b:.2f}", f"{b - a:+.2f}"] for name, (a, b) in P.INIT_EXTENT.items()])
-    return f"{paper}\n\nOurs:\n\n{ours}"
+    text = f"{paper}\n\nOurs:\n\n{ours}"
+    longer = figures.rows("init-steps")
+    if longer:
+        scene, cap = longer[0].baseline.scene, C.human(int(longer[0].baseline.cap))
+        rows = [[row.label, *(_f(v) for v in figures.pair(row)), _f(figures.delta(row), signed=True),
+                 str(figures.seed_count(row))] for row in longer]
+        text += (f"\n\nMCMC from random points (3x extent) against SfM points, {scene}, {cap} cap, the step schedules "
+                 "fitted to each length:\n\n" +
+                 _table(["steps", "SfM init", "random init", "random - SfM (dB)", "seeds"], rows))
+    return text
 
 
 def _ablation(figures: Figures, claim: str, variants, paper: dict) -> str:

@@ -74,10 +74,11 @@ def make_config(run: Run, scale: Scale, cap: int | None, run_dir: Path, resume: 
         (nested[group] if group else top)[key] = value
     nested["model"].setdefault("init", "random" if run.init == "random" else "auto")
     nested["model"].setdefault("num_init_points", scale.random_points)
+    steps = top.pop("steps", scale.steps)
     return TrainConfig(
-        data=C.DATA_ROOT / setting.folder, out=run_dir, strategy=run.strategy, cap_max=cap, steps=scale.steps,
+        data=C.DATA_ROOT / setting.folder, out=run_dir, strategy=run.strategy, cap_max=cap, steps=steps,
         downscale=setting.downscale, seed=run.seed, quiet=True, lpips_net="vgg", save_renders=False,
-        save_every=max(1, scale.steps // 4), save_every_minutes=0, resume=resume, overwrite=not resume,
+        save_every=max(1, steps // 4), save_every_minutes=0, resume=resume, overwrite=not resume,
         **top, **{key: cls(**nested[key]) for key, cls in NESTED.items()})
 
 
