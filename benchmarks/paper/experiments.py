@@ -122,6 +122,14 @@ def ablation_reference(scale: Scale, scene: str) -> Run:
     return Run(scene, "mcmc", "random", f"cap{C.human(scale.ablation_cap)}", scale.ablation_cap)
 
 
+WIDE_START = (("model.init_scale", 1.0),)  # 3DGS's initial scale, 1.0 x the nearest-neighbour distance
+
+
+def wide_start_run(scene: str, cap: int) -> Run:
+    """MCMC at a budget cap starting from Gaussians as wide as ADC's (MCMC's own start at 0.1 x)."""
+    return Run(scene, "mcmc", "sfm", f"cap{C.human(cap)}-init-scale-1", cap, WIDE_START)
+
+
 LONGER_STEPS = 3  # the longer runs of the random-against-SfM question train this many times the scale's steps
 
 
@@ -177,6 +185,9 @@ def _every_run(scale: Scale):
         for cap in scale.budget_caps:
             for strategy in ("mcmc", "adc"):
                 yield (2 if scene in first_real else 3), Run(scene, strategy, "sfm", f"cap{C.human(cap)}", cap)
+    for scene in first_real:                                         # 2. why: MCMC with 3DGS's initial scale
+        for cap in scale.budget_caps:
+            yield 2.75, wide_start_run(scene, cap)
 
 
 @dataclass(frozen=True)
@@ -223,4 +234,7 @@ def comparisons(scale: Scale) -> list[Comparison]:
             adc = by_variant[f"{scene}-adc-sfm-cap{C.human(cap)}"]
             mcmc = by_variant[f"{scene}-mcmc-sfm-cap{C.human(cap)}"]
             rows.append(Comparison("budget", f"{scene}, cap {C.human(cap)}", adc, mcmc))
+            if scene in scale.real_scenes[:2]:
+                rows.append(Comparison("budget-start", f"{scene}, cap {C.human(cap)}", mcmc,
+                                       wide_start_run(scene, cap)))
     return rows

@@ -130,7 +130,16 @@ def budget(figures: Figures) -> str:
                           " dB, smallest cap first)")
     table = _table(["scene", "cap", "ADC PSNR / SSIM / LPIPS", "MCMC PSNR / SSIM / LPIPS", "MCMC - ADC (dB)", "seeds"],
                    rows)
-    return table + "\n\n" + "\n".join(trends)
+    text = table + "\n\n" + "\n".join(trends)
+    wide = figures.rows("budget-start")
+    if wide:
+        adc = {r.label: r.baseline for r in figures.rows("budget")}
+        rows = [[row.label, _f(figures.mean(adc[row.label].base_name, "psnr")), *(_f(v) for v in figures.pair(row)),
+                 _f(figures.delta(row), signed=True)] for row in wide]
+        text += ("\n\nMCMC at the small caps starting from Gaussians as wide as ADC's (`--model.init-scale 1.0`, 3DGS's "
+                 "1.0 x the nearest-neighbour distance, against MCMC's own 0.1 x):\n\n" +
+                 _table(["scene, cap", "ADC", "MCMC (0.1 x)", "MCMC (1.0 x)", "1.0 x - 0.1 x (dB)"], rows))
+    return text
 
 
 def initialisation(figures: Figures) -> str:
@@ -219,6 +228,12 @@ def timing(figures: Figures) -> str:
     (t01, p01), (t001, p001) = P.ROOM_OPACITY_REG[0.01], P.ROOM_OPACITY_REG[0.001]
     reg = _table(["scene (SfM init, ADC's count)", "PSNR at 0.01", "PSNR at 0.001", "train s at 0.01",
                   "train s at 0.001", "time 0.001 / 0.01"], reg_rows)
+    frozen = {r["run"]: r for r in C.read_jsonl(figures.records.path.parent / "step_time.jsonl")}
+    if frozen:
+        reg += ("\n\nThe final models side by side (`python -m benchmarks.paper.step_time RUN ...`: render + loss + "
+                "backward on the same training views, the runs in turn view by view, median):\n\n" +
+                _table(["run", "Gaussians", "views", "ms"], [[r["run"], f"{r['num_gaussians']:,}", str(r["views"]),
+                                                             f"{r['ms_render_backward']:.1f}"] for r in frozen.values()]))
     return (f"The paper: {b:g} ms (MCMC) against {a:g} ms (3DGS) a step at 1M Gaussians, {b / a:.2f}x; on the room "
             f"scene (SfM init, 1.5M cap) the opacity regulariser at 0.001 took {t001:g} min for {p001} dB, at 0.01 "
             f"{t01:g} min for {p01} dB ({t001 / t01:.2f}x the time); 3DGS {P.ROOM_3DGS[0]:g} min for "
