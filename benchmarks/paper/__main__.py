@@ -84,7 +84,9 @@ def main() -> None:
         machine = C.machine("cuda" if scale.name == "gpu" else "cpu")
         left_out = train_all(todo, scale, records, machine)
         if not args.no_extra_seeds:
-            left_out += train_all(extra_seed_runs(scale, records), scale, records, machine)
+            extra = [r for r in extra_seed_runs(scale, records)
+                     if args.only is None or any(part in r.name for part in args.only)]
+            left_out += train_all(extra, scale, records, machine)
         if left_out:
             print(f"{left_out} runs left out (see above)", file=sys.stderr)
     print(f"wrote {write_page()}", file=sys.stderr)

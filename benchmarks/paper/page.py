@@ -193,9 +193,14 @@ def _ablation(figures: Figures, claim: str, variants, paper: dict) -> str:
 def _reference_line(figures: Figures) -> str:
     scale = figures.scale
     cap = "ADC's count" if scale.ablation_cap is None else f"a {C.human(scale.ablation_cap)} cap"
-    bases = ", ".join(f"{scene} {_f(figures.mean(ablation_reference(scale, scene).base_name, 'psnr'))} dB"
-                      for scene in scale.ablation_scenes)
-    return f"The full method they are compared with (MCMC, random init, {cap}): {bases}."
+    parts = []
+    for scene in scale.ablation_scenes:
+        runs = sorted(figures.seeds(ablation_reference(scale, scene).base_name), key=lambda r: r["seed"])
+        seeds = "" if len(runs) < 2 else f" (seeds {', '.join(str(r['seed']) for r in runs)}: " + \
+            ", ".join(f"{r['psnr']:.2f}" for r in runs) + ")"
+        parts.append(f"{scene} {_f(runs[0]['psnr'] if runs else None)} dB{seeds}")
+    return (f"The full method they are compared with (MCMC, random init, {cap}), seed 0: {', '.join(parts)}. Each "
+            "row compares the seeds both runs have.")
 
 
 def noise(figures: Figures) -> str:
