@@ -1,6 +1,6 @@
 """Run every experiment of the paper's claims at one scale, then write docs/paper.md.
 
-    .venv/bin/python -m benchmarks.paper --scale cpu             # everything (hours on 2 cores); resumes where it stopped
+    .venv/bin/python -m benchmarks.paper --scale cpu             # everything (hours on 2 cores); resumable
     .venv/bin/python -m benchmarks.paper --scale gpu             # on a machine with an NVIDIA GPU (mcsplat takes it)
     .venv/bin/python -m benchmarks.paper --scale cpu --list      # the runs and whether they are done
     .venv/bin/python -m benchmarks.paper --report                # docs/paper.md from the records, train nothing

@@ -140,8 +140,9 @@ def random_against_sfm_runs(scale: Scale) -> list[Run]:
     scene, cap = scale.ablation_scenes[0], scale.ablation_cap
     longer = (("steps", scale.steps * LONGER_STEPS),)
     name = f"cap{C.human(cap)}"
-    return [Run(scene, "mcmc", "sfm", name, cap), Run(scene, "mcmc", "random", f"{name}-{LONGER_STEPS}x-steps", cap, longer),
-            Run(scene, "mcmc", "sfm", f"{name}-{LONGER_STEPS}x-steps", cap, longer)]
+    longer_name = f"{name}-{LONGER_STEPS}x-steps"
+    return [Run(scene, "mcmc", "sfm", name, cap), Run(scene, "mcmc", "random", longer_name, cap, longer),
+            Run(scene, "mcmc", "sfm", longer_name, cap, longer)]
 
 
 def runs(scale: Scale) -> list[Run]:

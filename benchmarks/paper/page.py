@@ -125,9 +125,9 @@ def budget(figures: Figures) -> str:
         if len(gaps) == len(scene_rows) + 1:
             ahead = all(g > 0 for g in gaps)
             growing = all(a >= b for a, b in zip(gaps, gaps[1:]))
+            listed = ", ".join(_f(g, signed=True) for g in gaps)
             trends.append(f"- {scene}: MCMC ahead at every cap: **{'yes' if ahead else 'no'}**; the gap grows as "
-                          f"the cap shrinks: **{'yes' if growing else 'no'}** ({', '.join(_f(g, signed=True) for g in gaps)}"
-                          " dB, smallest cap first)")
+                          f"the cap shrinks: **{'yes' if growing else 'no'}** ({listed} dB, smallest cap first)")
     table = _table(["scene", "cap", "ADC PSNR / SSIM / LPIPS", "MCMC PSNR / SSIM / LPIPS", "MCMC - ADC (dB)", "seeds"],
                    rows)
     text = table + "\n\n" + "\n".join(trends)
@@ -136,8 +136,8 @@ def budget(figures: Figures) -> str:
         adc = {r.label: r.baseline for r in figures.rows("budget")}
         rows = [[row.label, _f(figures.mean(adc[row.label].base_name, "psnr")), *(_f(v) for v in figures.pair(row)),
                  _f(figures.delta(row), signed=True)] for row in wide]
-        text += ("\n\nMCMC at the small caps starting from Gaussians as wide as ADC's (`--model.init-scale 1.0`, 3DGS's "
-                 "1.0 x the nearest-neighbour distance, against MCMC's own 0.1 x):\n\n" +
+        text += ("\n\nMCMC at the small caps starting from Gaussians as wide as ADC's (`--model.init-scale 1.0`, "
+                 "3DGS's 1.0 x the nearest-neighbour distance, against MCMC's own 0.1 x):\n\n" +
                  _table(["scene, cap", "ADC", "MCMC (0.1 x)", "MCMC (1.0 x)", "1.0 x - 0.1 x (dB)"], rows))
     return text
 
@@ -237,8 +237,9 @@ def timing(figures: Figures) -> str:
     if frozen:
         reg += ("\n\nThe final models side by side (`python -m benchmarks.paper.step_time RUN ...`: render + loss + "
                 "backward on the same training views, the runs in turn view by view, median):\n\n" +
-                _table(["run", "Gaussians", "views", "ms"], [[r["run"], f"{r['num_gaussians']:,}", str(r["views"]),
-                                                             f"{r['ms_render_backward']:.1f}"] for r in frozen.values()]))
+                _table(["run", "Gaussians", "views", "ms"],
+                       [[r["run"], f"{r['num_gaussians']:,}", str(r["views"]), f"{r['ms_render_backward']:.1f}"]
+                        for r in frozen.values()]))
     return (f"The paper: {b:g} ms (MCMC) against {a:g} ms (3DGS) a step at 1M Gaussians, {b / a:.2f}x; on the room "
             f"scene (SfM init, 1.5M cap) the opacity regulariser at 0.001 took {t001:g} min for {p001} dB, at 0.01 "
             f"{t01:g} min for {p01} dB ({t001 / t01:.2f}x the time); 3DGS {P.ROOM_3DGS[0]:g} min for "
@@ -286,8 +287,8 @@ def write_page(path: Path = PAGE) -> Path:
     """Replace the generated blocks of the page (appending the ones it lacks) and keep the rest."""
     text = path.read_text() if path.is_file() else "# The paper's claims, reproduced\n"
     for (name, scale), body in render_blocks().items():
-        pattern = re.compile(rf"<!-- generated: {re.escape(name)} {scale} -->.*?<!-- end: {re.escape(name)} {scale} -->",
-                             re.S)
+        tag = f"{re.escape(name)} {scale}"
+        pattern = re.compile(rf"<!-- generated: {tag} -->.*?<!-- end: {tag} -->", re.S)
         new = block(name, scale, body)
         if pattern.search(text):
             text = pattern.sub(lambda _: new, text)

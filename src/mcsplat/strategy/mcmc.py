@@ -104,7 +104,8 @@ class MCMCConfig:
         if not (math.isfinite(self.gaussians_per_pixel) and self.gaussians_per_pixel >= 0):
             raise ValueError(f"gaussians_per_pixel must be a finite number >= 0, got {self.gaussians_per_pixel}")
         if self.noise_schedule not in NOISE_SCHEDULES:
-            raise ValueError(f"noise_schedule must be one of {', '.join(NOISE_SCHEDULES)}, got {self.noise_schedule!r}")
+            raise ValueError(f"noise_schedule must be one of {', '.join(NOISE_SCHEDULES)}, "
+                             f"got {self.noise_schedule!r}")
         if not 0.0 < self.param_noise_decay <= 1.0:
             raise ValueError(f"param_noise_decay must be in (0, 1], got {self.param_noise_decay}")
         if not 1 <= self.max_copies <= 1000:

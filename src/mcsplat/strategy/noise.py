@@ -28,8 +28,8 @@ import torch
 from ..gaussians import GaussianModel
 from ..optim import OptimConfig, means_lr_at
 
-__all__ = ["NOISE_SCHEDULES", "NoiseSchedule", "noise_gate", "inject_position_noise", "inject_parameter_noise", "noise_lr_at",
-           "NOISE_GATE_K", "NOISE_GATE_CENTER"]
+__all__ = ["NOISE_SCHEDULES", "NoiseSchedule", "noise_gate", "inject_position_noise", "inject_parameter_noise",
+           "noise_lr_at", "NOISE_GATE_K", "NOISE_GATE_CENTER"]
 
 # The noise gate sigmoid(-k (o - t)), k = 100, t = 0.005: the official code's, not the paper's printed t = 0.995.
 NOISE_GATE_K = 100.0
@@ -81,7 +81,8 @@ def inject_parameter_noise(model: GaussianModel, strength: float, generator: tor
     if n == 0 or strength == 0:
         return
     gate = strength * _gate(model, gated)
-    for key, std in (("log_scales", SHAPE_NOISE_STD), ("quats", SHAPE_NOISE_STD), ("opacity_logits", OPACITY_NOISE_STD)):
+    stds = {"log_scales": SHAPE_NOISE_STD, "quats": SHAPE_NOISE_STD, "opacity_logits": OPACITY_NOISE_STD}
+    for key, std in stds.items():
         param = model.params[key]
         noise = _normal(tuple(param.shape), generator, param) * std
         param.add_(noise * gate.view(-1, *([1] * (param.dim() - 1))))
