@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from PIL import Image
 from scipy.spatial.transform import Rotation
 
 
@@ -89,3 +90,23 @@ def _rotation_of(qvec: np.ndarray) -> np.ndarray:
 
 def _quaternion_of(rotation: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(rotation).as_quat()[[3, 0, 1, 2]]
+
+
+def altered_cup(shared_data: Path, root: Path, alter, every: int = 3) -> tuple[Path, set[str]]:
+    """A copy of the cup (its 1/4-size photos) where every `every`-th training photo went through `alter` (float
+    pixels [H, W, 3] in 0..255 -> the same), the test views (every 8th photo, the loader's split) untouched.
+    Returns the scene folder and the names of the altered photos."""
+    source = shared_data / "colmap_cup"
+    shutil.copytree(source / "sparse", root / "sparse", copy_function=shutil.copyfile)
+    (root / "images_4").mkdir(parents=True)
+    photos = sorted((source / "images_4").iterdir(), key=lambda p: p.stem)
+    train_photos = [p for i, p in enumerate(photos) if i % 8 != 0]
+    altered = {p.stem for p in train_photos[::every]}
+    for photo in photos:
+        if photo.stem in altered:
+            pixels = alter(np.asarray(Image.open(photo).convert("RGB")).astype(np.float64))
+            Image.fromarray(np.clip(np.rint(pixels), 0, 255).astype(np.uint8)).save(root / "images_4" / photo.name,
+                                                                                   quality=95)
+        else:
+            shutil.copyfile(photo, root / "images_4" / photo.name)
+    return root, altered

@@ -1,22 +1,22 @@
-"""--appearance affine (appearance.py): on a real capture with the colour of a third of its photos shifted, the
+"""--appearance affine (appearance/): on a real capture with the colour of a third of its photos shifted, the
 transforms learn the shift and the scene does not; the compensated score fits a test view's colour on its left half;
-a resumed run takes the same steps."""
+a resumed run takes the same steps, with either mode."""
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from PIL import Image
 
 from mcsplat.appearance import AffineAppearance, apply_transform, fitted_transform, lr_at
 from mcsplat.config import TrainConfig
 from mcsplat.errors import MCSplatError
 from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.train import train
+
+from helpers import altered_cup
 
 SHIFT = np.array([1.0, 0.8, 0.6])  # what the shifted photos' camera did to red, green and blue
 
@@ -34,21 +34,8 @@ def test_fitted_transform_recovers_an_affine_colour_change():
 
 
 def _shifted_cup(shared_data: Path, root: Path) -> tuple[Path, set[str]]:
-    """The cup at 200x150 with every third training photo's colours scaled by SHIFT (the test views untouched)."""
-    source = shared_data / "colmap_cup"
-    shutil.copytree(source / "sparse", root / "sparse", copy_function=shutil.copyfile)
-    (root / "images_4").mkdir(parents=True)
-    photos = sorted((source / "images_4").iterdir(), key=lambda p: p.stem)
-    train_photos = [p for i, p in enumerate(photos) if i % 8 != 0]  # the loader's split: every 8th is a test view
-    shifted = {p.stem for p in train_photos[::3]}
-    for photo in photos:
-        if photo.stem in shifted:
-            pixels = np.asarray(Image.open(photo).convert("RGB")) * SHIFT
-            Image.fromarray(np.clip(np.rint(pixels), 0, 255).astype(np.uint8)).save(root / "images_4" / photo.name,
-                                                                                   quality=95)
-        else:
-            shutil.copyfile(photo, root / "images_4" / photo.name)
-    return root, shifted
+    """The cup with every third training photo's colours scaled by SHIFT (the test views untouched)."""
+    return altered_cup(shared_data, root, lambda pixels: pixels * SHIFT)
 
 
 def _config(root: Path, out: Path, **options) -> TrainConfig:
@@ -78,11 +65,12 @@ def test_affine_appearance_learns_the_colour_shift_instead_of_the_scene(shared_d
     assert np.all(np.abs(kept - 1) < 0.05), kept  # the typical photo's transform stays near identity
 
 
-def test_a_resumed_run_with_appearance_takes_the_same_steps(shared_data, tmp_path):
+@pytest.mark.parametrize("mode", ["affine", "bilateral-grid"])
+def test_a_resumed_run_with_appearance_takes_the_same_steps(shared_data, tmp_path, mode):
     from mcsplat.events import Control, StepDone
 
     root, _ = _shifted_cup(shared_data, tmp_path / "cup")
-    options = dict(appearance="affine", steps=60)
+    options = dict(appearance=mode, steps=60)
     train(_config(root, tmp_path / "straight", **options))
     control = Control()
 

@@ -253,7 +253,8 @@ def settings(figures: Figures) -> str:
     machines = sorted({C.machine_line(r["machine"]) for r in figures.records.by_name.values() if r.get("machine")})
     done = len(figures.records.by_name)
     return (f"{s.steps:,} steps (the paper's step schedules multiplied by {s.steps / 30_000:.3g}), random init: "
-            f"{s.random_points:,} points in a cube of 3x the camera extent; every 8th image held out (lego: its "
+            f"{s.random_points:,} points in a cube of 3x the camera extent (lego and DTU, object-centric: the "
+            f"official [-1.3, 1.3]^3 cube); every 8th image held out (lego: its "
             f"test split); LPIPS with VGG. {done} runs recorded. Machine: {'; '.join(machines) or '-'}.\n\n" +
             _table(["scene", "training size", "scored", "kind"], rows))
 

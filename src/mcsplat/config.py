@@ -104,17 +104,24 @@ class TrainConfig:
     """The active SH degree grows by one every N steps up to the model's degree."""
     ssim_weight: float = 0.2
     """Weight of D-SSIM in the loss; L1 gets the rest (the paper: 0.2)."""
-    appearance: Literal["none", "affine"] = "none"
+    appearance: Literal["none", "affine", "bilateral-grid"] = "none"
     """Exposure / white-balance compensation: 'affine' learns a colour transform (3x3 + bias) per training image,
-    applied to the render before the loss; renders and exports show the scene without it. Evaluation adds the
-    compensated score (the transform of a test view fitted on its left half, its right half scored)."""
+    'bilateral-grid' a 16x16x8 grid of them over the image and its brightness; applied to the render before the
+    loss; renders and exports show the scene without it. Evaluation adds the compensated score (an affine transform
+    of each test view fitted on its left half, its right half scored)."""
     appearance_lr: float = 0.003
     """Learning rate of the per-image transforms at the first step (3DGS's exposure rate, 0.01, was worse on a test
     capture with shifted colours: 24.3 against 24.8 dB) ..."""
     appearance_lr_final: float = 0.0003
     """... decaying log-linearly to this at the last step."""
     appearance_reg: float = 0.01
-    """Weight of the pull of each image's transform toward identity (squared distance of A from I and of b from 0)."""
+    """Weight of the pull of each image's transform toward identity (squared distance of A from I and of b from 0;
+    for a bilateral grid, of its mean transform)."""
+    appearance_grid_shape: tuple[int, int, int] = (16, 16, 8)
+    """A bilateral grid's cells across the image, down it and over brightness (gsplat's 16 16 8, made for photos of
+    about a megapixel: a grid holds 12 numbers a cell, so small images want a coarser one)."""
+    appearance_grid_tv: float = 10.0
+    """Weight of a bilateral grid's total variation (mean squared difference of neighbouring cells; gsplat's 10)."""
     pose_opt: bool = False
     """Learn a small rigid correction of each training image's pose with the scene (SfM poses of phone captures are
     slightly off); test views keep theirs."""
@@ -173,8 +180,12 @@ class TrainConfig:
                   (self.sh_increase_every >= 1, "--sh-increase-every must be at least 1"),
                   (self.dist_timeout > 0, "--dist-timeout must be positive"),
                   (0.0 <= self.ssim_weight <= 1.0, "--ssim-weight must be in [0, 1]"),
-                  (self.appearance_lr > 0 and self.appearance_lr_final > 0 and self.appearance_reg >= 0,
-                   "--appearance-lr and --appearance-lr-final must be positive, --appearance-reg 0 or more"),
+                  (self.appearance_lr > 0 and self.appearance_lr_final > 0 and self.appearance_reg >= 0
+                   and self.appearance_grid_tv >= 0,
+                   "--appearance-lr and --appearance-lr-final must be positive, --appearance-reg and "
+                   "--appearance-grid-tv 0 or more"),
+                  (min(self.appearance_grid_shape) >= 2,
+                   "--appearance-grid-shape needs at least 2 cells along each of its three axes"),
                   (self.pose_opt_lr > 0 and self.pose_opt_reg >= 0,
                    "--pose-opt-lr must be positive, --pose-opt-reg 0 or more"),
                   (self.resolution_start is None or 0.0 < self.resolution_start <= 1.0,

@@ -38,8 +38,8 @@ class Evaluation:
     masked_psnr: float | None = None
     masked_ssim: float | None = None
     masked_views: int = 0
-    # 3DGS's train_test_exp protocol (appearance.py): each test view's right half, after the colour transform fitted
-    # on its left half.
+    # 3DGS's train_test_exp protocol (appearance/heldout.py): each test view's right half, after the colour
+    # transform fitted on its left half.
     compensated_psnr: float | None = None
     compensated_ssim: float | None = None
 
@@ -104,7 +104,7 @@ def summarize(scores: list[ViewScore], lpips_net: str | None) -> Evaluation:
 
 def compensated_half(image: torch.Tensor, photo: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The right half of the render through the colour transform fitted on the left half, and the photo's right
-    half (appearance.py)."""
+    half (appearance/heldout.py)."""
     left, right = split_halves(image)
     left_photo, right_photo = split_halves(photo)
     return apply_transform(fitted_transform(left, left_photo), right).clamp(0, 1), right_photo

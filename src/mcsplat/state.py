@@ -126,10 +126,12 @@ def start(config: TrainConfig, scene: Scene, device: torch.device, team: Team,
     model.antialiased = config.antialiased
     state.compensation = _compensation(config, len(scene.train), device)
     if state.compensation is not None and checkpoint is not None:
-        if checkpoint.get("appearance") is None:
-            raise MCSplatError("--appearance affine: the checkpoint was trained without it; resume without "
-                               "--appearance, or train a new run")
-        state.compensation.load_state_dict(checkpoint["appearance"])
+        saved = checkpoint.get("appearance")
+        if saved is None or saved.get("mode", "affine") != config.appearance:
+            trained = "without it" if saved is None else f"with --appearance {saved.get('mode', 'affine')}"
+            raise MCSplatError(f"--appearance {config.appearance}: the checkpoint was trained {trained}; resume "
+                               "with the run's own --appearance, or train a new run")
+        state.compensation.load_state_dict(saved)
     if config.pose_opt:
         state.poses = PoseRefinement(len(scene.train), radius, device, config.pose_opt_lr, config.pose_opt_reg)
         if checkpoint is not None:
@@ -142,7 +144,8 @@ def start(config: TrainConfig, scene: Scene, device: torch.device, team: Team,
 
 
 def _compensation(config: TrainConfig, images: int, device: torch.device) -> Compensation | None:
-    transforms = make_appearance(config.appearance, images, device)
+    transforms = make_appearance(config.appearance, images, device, config.appearance_reg, config.appearance_grid_tv,
+                                 config.appearance_grid_shape)
     if transforms is None:
         return None
-    return Compensation(transforms, config.appearance_lr, config.appearance_lr_final, config.appearance_reg)
+    return Compensation(config.appearance, transforms, config.appearance_lr, config.appearance_lr_final)

@@ -25,7 +25,7 @@ from typing import Any, Callable, Protocol, Sequence
 import torch
 
 from . import __version__, losses, render, run_dir
-from .appearance import Compensation
+from .appearance import Compensation, training_kernels as appearance_kernels
 from .pose_refinement import PoseRefinement
 from .budget import BudgetPlanner
 from .compute.compile import compile_kernels, modules_to_compile
@@ -135,9 +135,9 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
     return StepResult(loss=loss_value, train_psnr=train_psnr, refine=refine)
 
 
-def step_kernels(device: torch.device) -> list:
+def step_kernels(device: torch.device, appearance: str = "none") -> list:
     """Every Warp kernel a training step launches on `device` (compiled before the first step)."""
-    return render.training_kernels(device) + losses.training_kernels(device)
+    return render.training_kernels(device) + losses.training_kernels(device) + appearance_kernels(appearance)
 
 
 class _CtrlC:
@@ -311,7 +311,7 @@ class TrainingRun:
 
     def _compile_kernels(self, emit: Listener) -> None:
         """Compile (first run on a machine) or load the kernels before the first step, saying so when it compiles."""
-        kernels = step_kernels(self.device)
+        kernels = step_kernels(self.device, self.config.appearance)
         pending = modules_to_compile(kernels, self.device)
         if pending:
             emit(KernelsCompiling(modules=pending))

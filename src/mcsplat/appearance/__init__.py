@@ -1,0 +1,83 @@
+"""Exposure and white-balance compensation: a colour transform per training image, learned with the scene.
+
+Phone captures change exposure and white balance between frames; a scene fitted to every frame as it is bends its
+colours (or grows floaters) to explain what is really the camera's doing. `--appearance affine` gives each training
+image its own affine colour transform (affine.py), `--appearance bilateral-grid` a grid of them over the image and
+its brightness (bilateral_grid.py). Either is applied to the render before the loss, with its own Adam and learning
+rate (log-linear decay, as 3DGS's per-image exposure), a small pull toward identity, and the transforms' median
+held at identity, so that a transform only explains how its photo departs from the typical one. The transforms are
+not part of the scene: renders, the viewer and every export show the scene without them.
+
+Held-out views have no learned transform; heldout.py has 3DGS's `train_test_exp` protocol for scoring them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .affine import AffineAppearance
+from .bilateral_grid import GRID_SHAPE, BilateralGridAppearance
+from .heldout import apply_transform, fitted_transform, split_halves
+from .slicing import slicing_kernels
+
+__all__ = ["MODES", "AffineAppearance", "BilateralGridAppearance", "Compensation", "apply_transform",
+           "fitted_transform", "lr_at", "make_appearance", "split_halves", "training_kernels"]
+
+MODES = ("none", "affine", "bilateral-grid")
+Transforms = AffineAppearance | BilateralGridAppearance
+
+
+def make_appearance(mode: str, count: int, device: torch.device, pull_weight: float = 0.01,
+                    tv_weight: float = 10.0, grid_shape: tuple[int, int, int] = GRID_SHAPE) -> Transforms | None:
+    if mode == "affine":
+        return AffineAppearance(count, device, pull_weight)
+    if mode == "bilateral-grid":
+        return BilateralGridAppearance(count, device, pull_weight, tv_weight, grid_shape)
+    return None
+
+
+def training_kernels(mode: str, dtype: torch.dtype = torch.float32) -> list:
+    """The Warp kernels a training step of this appearance mode launches."""
+    return slicing_kernels(dtype) if mode == "bilateral-grid" else []
+
+
+def lr_at(step: int, steps: int, lr: float, lr_final: float) -> float:
+    """Log-linear from lr at step 0 to lr_final at the last step."""
+    t = min(max(step / max(steps, 1), 0.0), 1.0)
+    return math.exp((1 - t) * math.log(lr) + t * math.log(lr_final))
+
+
+def _set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+
+
+class Compensation:
+    """What a training step needs of the appearance model: the transforms, their Adam and its schedule."""
+
+    def __init__(self, mode: str, transforms: Transforms, lr: float, lr_final: float):
+        self.mode, self.transforms, self.lr, self.lr_final = mode, transforms, lr, lr_final
+        self.optimizer = transforms.optimizer(lr)
+
+    def apply(self, index: int, rgb: torch.Tensor) -> torch.Tensor:
+        return self.transforms(index, rgb)
+
+    def regularization(self, index: int) -> torch.Tensor:
+        return self.transforms.penalty(index)
+
+    def step(self, step: int, steps: int) -> None:
+        """The Adam step of this training step (at its scheduled learning rate)."""
+        _set_lr(self.optimizer, lr_at(step, steps, self.lr, self.lr_final))
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        self.transforms.centre(step)
+
+    def state_dict(self) -> dict:
+        return {"mode": self.mode, "transforms": self.transforms.state_dict(),
+                "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.transforms.load_state_dict(state["transforms"])
+        self.optimizer.load_state_dict(state["optimizer"])
