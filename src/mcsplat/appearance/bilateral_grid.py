@@ -94,8 +94,8 @@ class BilateralGridAppearance(torch.nn.Module):
     """`grids` [N, 12 L H' W']: one bilateral grid per training image (flattened), the identity at start.
 
     A step reads one image's grid: it is taken out as a leaf tensor (`current`) for the render's slicing and the
-    regulariser, and its gradient steps that row alone (RowAdam; torch's dense Adam over every image's grid, or its
-    SparseAdam, cost more per step than slicing an 800x600 render)."""
+    regulariser, and its gradient steps that row alone (RowAdam: torch's SparseAdam over every image's grid took 26 ms
+    a step, whatever the image size)."""
 
     def __init__(self, count: int, device: torch.device | str = "cpu", pull_weight: float = 0.01,
                  tv_weight: float = 10.0, shape: tuple[int, int, int] = GRID_SHAPE):

@@ -9,8 +9,8 @@ and becomes A c + b. The gradient reaches the grid (each pixel's 8 corners) and 
 through the brightness that chose the level.
 
 torch's grid_sample does the same (`slice_reference`); forward and backward of an 800x600 render take it 0.25 s on
-2 cores, these kernels (one thread per pixel) 0.063 s, against 0.15 s for a whole training step of the cup at that
-size without a grid. On the CPU the pixels run as contiguous ranges from the
+2 cores, these kernels (one thread per pixel) 0.056 s (benchmarks/bilateral_slice.py), against 0.15 s for a whole
+training step of the cup at that size without a grid. On the CPU the pixels run as contiguous ranges from the
 rasterizer's thread pool; in the backward each range adds its grid gradient into a buffer of its own and the buffers
 are summed in range order, so the result does not depend on timing (on CUDA: one launch, atomic adds).
 
