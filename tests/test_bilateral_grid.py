@@ -50,6 +50,18 @@ def test_slicing_kernels_match_grid_sample_in_float64(seed, threads):
         set_cpu_threads(None)
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device: the CUDA path is checked on a GPU machine")
+def test_slicing_kernels_on_cuda_match_grid_sample():
+    grid, rgb = _random_case(torch.float64, 5, height=150, width=120)
+    grid, rgb = grid.detach().cuda().requires_grad_(), rgb.detach().cuda().requires_grad_()
+    out, expected = slice_grid(grid, rgb), slice_reference(grid, rgb)
+    assert torch.allclose(out, expected, rtol=0, atol=1e-12)
+    upstream = torch.randn_like(out)
+    for got, want in zip(torch.autograd.grad(out, (grid, rgb), upstream),
+                         torch.autograd.grad(expected, (grid, rgb), upstream)):
+        assert torch.allclose(got, want, rtol=0, atol=1e-10 * want.abs().max().item())
+
+
 def test_slicing_float32_and_gradcheck():
     grid, rgb = _random_case(torch.float32, 3)
     assert torch.allclose(slice_grid(grid, rgb), slice_reference(grid, rgb), atol=1e-5)
