@@ -3,6 +3,7 @@ comes after it, the seeds of a comparison are paired, and the page keeps its pro
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -12,7 +13,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # `benchmarks` as a package, as `python -m benchmarks.paper` imports it
 
 from benchmarks.paper import experiments, page  # noqa: E402
-from benchmarks.paper.runner import NotReady, Records, check_options, resolve_cap  # noqa: E402
+from benchmarks.paper.__main__ import extra_seed_runs  # noqa: E402
+from benchmarks.paper.runner import NotReady, Records, check_options, churn, resolve_cap  # noqa: E402
 
 
 @pytest.mark.parametrize("scale", sorted(experiments.SCALES))
@@ -27,8 +29,9 @@ def test_every_comparison_has_its_runs_and_counts_come_first(scale):
         if isinstance(run.cap, str):
             assert position[run.cap.removeprefix("count:")] < position[run.name], run.name
     rows = experiments.comparisons(settings)
-    claims = {"count", "budget", "init", "noise", "regularizers", "time"}
-    claims |= {"budget-start"} | ({"init-steps"} if settings.ablation_cap else set())
+    claims = {"count", "budget", "init", "noise", "regularizers", "time", "budget-start", "noise-amount",
+              "regularizers-count"}
+    claims |= {"init-steps", "init-start"} if settings.ablation_cap else set()
     assert {row.claim for row in rows} == claims
     for row in rows:
         assert row.baseline.name in position and row.variant.name in position, row.label
@@ -51,6 +54,34 @@ def test_caps_of_the_same_seed_and_runs_that_cannot_train(tmp_path):
         resolve_cap(experiments.same_count_pair("bird", "sfm")[1], records)
     with pytest.raises(NotReady, match="no option mcmc.not_an_option"):
         check_options(experiments.Run("cup", "mcmc", "random", "x", 10, (("mcmc.not_an_option", 1),)))
+
+
+def test_extra_seeds_where_a_difference_is_small_or_inside_the_baselines_spread(tmp_path):
+    scale, records = experiments.SCALES["cpu"], Records(tmp_path)
+    reference = experiments.ablation_reference(scale, "cup")
+    variants = {name: experiments.Run("cup", "mcmc", "random", name, reference.cap, opts)
+                for name, opts in experiments.NOISE_VARIANTS.items()}
+    records.add(_record(reference.name, reference.base_name, 0, 25.0))
+    records.add(_record(variants["no-noise"].name, variants["no-noise"].base_name, 0, 24.0))     # 1 dB below
+    records.add(_record(variants["no-gate"].name, variants["no-gate"].base_name, 0, 24.9))       # 0.1 dB below
+    extra = {run.name for run in extra_seed_runs(scale, records)}
+    assert "cup-mcmc-random-no-gate-seed1" in extra and f"{reference.name}-seed2" in extra
+    assert "cup-mcmc-random-no-noise-seed1" not in extra
+    for seed, psnr in ((1, 26.5), (2, 25.2)):  # the reference's own seeds spread 1.5 dB: 1 dB settles nothing
+        records.add(_record(reference.with_seed(seed).name, reference.base_name, seed, psnr))
+    assert "cup-mcmc-random-no-noise-seed1" in {run.name for run in extra_seed_runs(scale, records)}
+
+
+def test_churn_counts_the_dead_share_once_the_cap_is_reached(tmp_path):
+    (tmp_path / "config.json").write_text('{"mcmc": {"refine_start": 5, "refine_stop": 1000, "refine_every": 10}}')
+    lines = [{"step": 100, "num_gaussians": 500, "relocated": 50},     # growing: left out of the share
+             {"step": 200, "num_gaussians": 1000, "relocated": 400},    # reached the cap here: left out too
+             {"step": 300, "num_gaussians": 1000, "relocated": 2000},   # 10 refine steps x 1000: 20% dead
+             {"step": 400, "num_gaussians": 1000, "relocated": 1000}]   # 10%
+    (tmp_path / "log.jsonl").write_text("".join(json.dumps(line) + "\n" for line in lines))
+    figures = churn(tmp_path)
+    assert figures["relocated_total"] == 3450 and figures["relocated_per_gaussian"] == pytest.approx(3.45)
+    assert figures["dead_per_refine"] == pytest.approx(0.15)
 
 
 def test_the_page_pairs_seeds_and_keeps_its_prose(tmp_path, monkeypatch):

@@ -6,8 +6,9 @@
     .venv/bin/python -m benchmarks.paper --report                # docs/paper.md from the records, train nothing
 
 Runs are trained one at a time, in this process: run nothing else on the machine (the time claim compares step
-times). After the seed-0 pass, every comparison closer than 0.3 dB is run again with seeds 1 and 2 (--no-extra-seeds
-skips that); the page reports the mean over the seeds a comparison has.
+times). After the seed-0 pass, every comparison closer than 0.3 dB, or closer than its baseline's own seeds are to
+each other, is run again with seeds 1 and 2 (--no-extra-seeds skips that); the page reports the mean over the seeds a
+comparison has.
 """
 
 from __future__ import annotations
@@ -27,12 +28,20 @@ def results_folder(scale: str):
     return C.results_dir(f"paper/{scale}")
 
 
+def seed_spread(records: Records, run: Run, seeds) -> float:
+    """How far apart the PSNRs of a run's seeds are (0 until it has more than one)."""
+    found = [r["psnr"] for r in (records.get(run.with_seed(seed).name) for seed in (0, *seeds)) if r]
+    return max(found) - min(found) if len(found) > 1 else 0.0
+
+
 def extra_seed_runs(scale, records: Records) -> list[Run]:
-    """Seeds 1 and 2 of both sides of every comparison whose seed-0 PSNRs are closer than scale.close_db."""
+    """Seeds 1 and 2 of both sides of every comparison whose seed-0 PSNRs are closer than scale.close_db, or closer
+    than the baseline's own seeds are to each other (then one seed of the variant settles nothing)."""
     out: dict[str, Run] = {}
     for row in comparisons(scale):
         base, variant = records.get(row.baseline.name), records.get(row.variant.name)
-        if base and variant and abs(base["psnr"] - variant["psnr"]) < scale.close_db:
+        close = max(scale.close_db, seed_spread(records, row.baseline, scale.extra_seeds))
+        if base and variant and abs(base["psnr"] - variant["psnr"]) < close:
             for run in (row.baseline, row.variant):
                 for seed in scale.extra_seeds:
                     out.setdefault(run.with_seed(seed).name, run.with_seed(seed))

@@ -108,6 +108,29 @@ NOISE_VARIANTS = {
     "linear-schedule": (("mcmc.noise_schedule", "linear"),),
     "neelakantan-schedule": (("mcmc.noise_schedule", "neelakantan"),),
 }
+
+
+def noise_amount(schedule: str, steps: int) -> float:
+    """How much noise a schedule gives over a run: the mean of its noise learning rate over the steps, over the
+    start value (the same for every schedule). The paper's exponential decay gives 0.21."""
+    from mcsplat.optim import OptimConfig
+    from mcsplat.strategy.noise import noise_lr_at
+
+    optim = OptimConfig()
+    start = noise_lr_at("lr", 0, steps, optim, 1.0)
+    return sum(noise_lr_at(schedule, step, steps, optim, 1.0) for step in range(steps)) / steps / start
+
+
+def same_amount_variant(schedule: str, steps: int) -> tuple[str, tuple[tuple[str, Any], ...]]:
+    """The paper's schedule with lambda_noise scaled so that it gives as much noise over the run as `schedule`: does
+    a schedule's result come from its shape or from its amount?"""
+    from mcsplat.strategy.mcmc import MCMCConfig
+
+    ratio = noise_amount(schedule, steps) / noise_amount("lr", steps)
+    return f"noise-as-much-as-{schedule}", (("mcmc.noise_lr", round(MCMCConfig().noise_lr * ratio, 1)),)
+
+
+AMOUNT_SCHEDULES = ("linear", "neelakantan")  # the schedules compared with the paper's at the same amount
 REGULARIZER_VARIANTS = {
     "no-opacity-reg": (("mcmc.opacity_reg", 0.0),),
     "no-scale-reg": (("mcmc.scale_reg", 0.0),),
@@ -136,6 +159,23 @@ WIDE_START = (("model.init_scale", 1.0),)  # 3DGS's initial scale, 1.0 x the nea
 def wide_start_run(scene: str, cap: int) -> Run:
     """MCMC at a budget cap starting from Gaussians as wide as ADC's (MCMC's own start at 0.1 x)."""
     return Run(scene, "mcmc", "sfm", f"cap{C.human(cap)}-init-scale-1", cap, WIDE_START)
+
+
+TIGHT_CUBE = (("model.init_extent", 1.0),)
+# In a cube of a third the size, the same number of random points lie a third as far apart, so MCMC's 0.1 x their
+# spacing makes Gaussians a third as wide; 0.3 x gives them the width they have in the 3x cube.
+TIGHT_CUBE_WIDE_START = TIGHT_CUBE + (("model.init_scale", 0.3),)
+
+
+def tight_cube_wide_start_run(scale: Scale, scene: str) -> Run:
+    """MCMC from random points in the 1x cube, its initial Gaussians as wide as those of the 3x cube."""
+    return Run(scene, "mcmc", "random", "extent1x-init-scale-0.3", scale.ablation_cap, TIGHT_CUBE_WIDE_START)
+
+
+def adc_at_regularized_count(scene: str) -> Run:
+    """ADC without the regularizers, densification stopped at the final count of ADC with them: how much of what the
+    regularizers cost ADC is the Gaussians they make it prune."""
+    return Run(scene, "adc", "random", "with-regs-count", f"count:{scene}-adc-random-with-regs")
 
 
 LONGER_STEPS = 3  # the longer runs of the random-against-SfM question train this many times the scale's steps
@@ -177,16 +217,23 @@ def _every_run(scale: Scale):
         for name, opts in REGULARIZER_VARIANTS.items():
             yield priority, Run(scene, "mcmc", "random", name, reference.cap, opts)
         yield priority, Run(scene, "adc", "random", "with-regs", None, ADC_WITH_REGULARIZERS)
+        yield max(priority, 2.78), adc_at_regularized_count(scene)   # 5. why: the count ADC keeps
         for name, opts in NOISE_VARIANTS.items():
             yield priority, Run(scene, "mcmc", "random", name, reference.cap, opts)
+        if i == 0:                                                   # 4. why: the amount of noise
+            for schedule in AMOUNT_SCHEDULES:
+                name, opts = same_amount_variant(schedule, scale.steps)
+                yield 2.79, Run(scene, "mcmc", "random", name, reference.cap, opts)
         sfm_cap = same_count_pair(scene, "sfm")[1].cap
         yield priority, Run(scene, "mcmc", "sfm", "opacity-reg-0.001", sfm_cap, WEAK_OPACITY_REG)
     for scene in scale.extent_scenes:                                # 3. initialisation in 1x the camera extent
         priority = 2 if scene in first_real else 3
         reference = ablation_reference(scale, scene)
         yield priority, reference
-        yield priority, Run(scene, "adc", "random", "extent1x", None, (("model.init_extent", 1.0),))
-        yield priority, Run(scene, "mcmc", "random", "extent1x", reference.cap, (("model.init_extent", 1.0),))
+        yield priority, Run(scene, "adc", "random", "extent1x", None, TIGHT_CUBE)
+        yield priority, Run(scene, "mcmc", "random", "extent1x", reference.cap, TIGHT_CUBE)
+        if scene in first_real and scale.ablation_cap is not None:      # 3. why: the width of the start
+            yield 2.77, tight_cube_wide_start_run(scale, scene)
     if scale.ablation_cap is not None:                               # 3. why random init lags at this scale
         for run in random_against_sfm_runs(scale):
             yield 2.7, run
@@ -220,6 +267,9 @@ def comparisons(scale: Scale) -> list[Comparison]:
         for run in (same_count_pair(scene, "random")[0], ablation_reference(scale, scene)):
             rows.append(Comparison("init", f"{scene}, {run.strategy.upper()}: 1x against 3x",
                                    run, by_variant[f"{scene}-{run.strategy}-random-extent1x"]))
+    for scene in [s for s in scale.extent_scenes if s in scale.real_scenes[:2] and scale.ablation_cap is not None]:
+        rows.append(Comparison("init-start", scene, by_variant[f"{scene}-mcmc-random-extent1x"],
+                               tight_cube_wide_start_run(scale, scene)))
     if scale.ablation_cap is not None:
         sfm, random_longer, sfm_longer = random_against_sfm_runs(scale)
         rows.append(Comparison("init-steps", f"{scale.steps:,} steps", sfm, ablation_reference(scale, sfm.scene)))
@@ -228,12 +278,17 @@ def comparisons(scale: Scale) -> list[Comparison]:
         mcmc = ablation_reference(scale, scene)
         for name in NOISE_VARIANTS:
             rows.append(Comparison("noise", f"{scene}, {name}", mcmc, by_variant[f"{scene}-mcmc-random-{name}"]))
+        for schedule in AMOUNT_SCHEDULES if scene == scale.ablation_scenes[0] else ():
+            name = same_amount_variant(schedule, scale.steps)[0]
+            rows.append(Comparison("noise-amount", schedule, by_variant[f"{scene}-mcmc-random-{schedule}-schedule"],
+                                   by_variant[f"{scene}-mcmc-random-{name}"]))
         for name in REGULARIZER_VARIANTS:
             rows.append(Comparison("regularizers", f"{scene}, {name}", mcmc,
                                    by_variant[f"{scene}-mcmc-random-{name}"]))
         adc = same_count_pair(scene, "random")[0]
         rows.append(Comparison("regularizers", f"{scene}, ADC with the MCMC regularizers", adc,
                                by_variant[f"{adc.base_name}-with-regs"]))
+        rows.append(Comparison("regularizers-count", scene, adc, adc_at_regularized_count(scene)))
     for scene in scale.ablation_scenes:
         mcmc = same_count_pair(scene, "sfm")[1]
         rows.append(Comparison("time", f"{scene}, opacity reg 0.001 against 0.01", mcmc,

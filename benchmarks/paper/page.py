@@ -16,7 +16,7 @@ import _common as C
 
 from . import paper_numbers as P
 from .experiments import (NOISE_VARIANTS, REGULARIZER_VARIANTS, SCALES, Comparison, Scale, ablation_reference,
-                          comparisons)
+                          comparisons, noise_amount)
 from .runner import Records, churn
 
 PAGE = C.REPO / "docs" / "paper.md"
@@ -31,8 +31,8 @@ class Figures:
         self.scale = scale
         folder = C.RESULTS / "paper" / scale.name
         self.records = Records(folder)
-        for record in self.records.by_name.values():  # records written before the runner counted relocations
-            if "relocated_per_gaussian" not in record and (folder / "runs" / record["name"]).is_dir():
+        for record in self.records.by_name.values():  # records written before the runner measured the churn
+            if "dead_per_refine" not in record and (folder / "runs" / record["name"]).is_dir():
                 record.update(churn(folder / "runs" / record["name"]))
 
     def seeds(self, base_name: str) -> list[dict]:
@@ -73,6 +73,10 @@ def _f(value: float | None, spec: str = ".2f", signed: bool = False) -> str:
     return format(value, ("+" if signed else "") + spec)
 
 
+def _percent(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.1f}%"
+
+
 def _quality(figures: Figures, base_name: str, seeds: set[int] | None = None) -> str:
     psnr, ssim, lpips = (figures.mean(base_name, key, seeds) for key in ("psnr", "ssim", "lpips"))
     return f"{_f(psnr)} / {_f(ssim, '.3f')} / {_f(lpips, '.3f')}" if psnr is not None else "not run"
@@ -99,11 +103,11 @@ def same_count(figures: Figures) -> str:
         rows.append([row.label, _f(count, ",.0f"), _f(None if count is None else count / (width * height), ".1f"),
                      *_qualities(figures, row), _f(delta, signed=True),
                      _f(figures.mean(row.variant.base_name, "relocated_per_gaussian"), ".1f"),
-                     str(figures.seed_count(row)),
+                     _percent(figures.mean(row.variant.base_name, "dead_per_refine")), str(figures.seed_count(row)),
                      "-" if delta is None else ("MCMC ahead" if delta > 0 else "ADC ahead")])
     ours = _table(["scene, init", "count (ADC's final)", "per training pixel", "ADC PSNR / SSIM / LPIPS",
-                   "MCMC PSNR / SSIM / LPIPS", "MCMC - ADC (dB)", "MCMC relocations per Gaussian", "seeds",
-                   "verdict"], rows)
+                   "MCMC PSNR / SSIM / LPIPS", "MCMC - ADC (dB)", "MCMC relocations per Gaussian",
+                   "MCMC dead at a refine step", "seeds", "verdict"], rows)
     paper = _table(["dataset (paper)", "3DGS", "MCMC", "MCMC - 3DGS"],
                    [[name, f"{a:.2f}", f"{b:.2f}", f"{b - a:+.2f}"] for name, (a, b) in P.SAME_COUNT.items()])
     return f"{paper}\n\nOurs:\n\n{ours}"
@@ -155,6 +159,17 @@ def initialisation(figures: Figures) -> str:
     paper = _table(["strategy (paper, Mip-NeRF 360)", "random, 3x", "random, 1x", "1x - 3x"],
                    [[name.upper(), f"{a:.2f}", f"{b:.2f}", f"{b - a:+.2f}"] for name, (a, b) in P.INIT_EXTENT.items()])
     text = f"{paper}\n\nOurs:\n\n{ours}"
+    start = figures.rows("init-start")
+    if start:
+        rows = []
+        for row in start:
+            reference = ablation_reference(figures.scale, row.label)
+            seeds = figures.common_seeds(row)
+            rows.append([row.label, _f(figures.mean(reference.base_name, "psnr", seeds)),
+                         *(_f(v) for v in figures.pair(row)), _f(figures.delta(row), signed=True), str(len(seeds))])
+        text += ("\n\nMCMC in the 1x cube with its initial Gaussians as wide as in the 3x cube (the same points a "
+                 "third as far apart: `--model.init-scale 0.3` against MCMC's own 0.1):\n\n" +
+                 _table(["scene", "3x cube", "1x cube", "1x cube, 0.3 x", "0.3 x - 0.1 x (dB)", "seeds"], rows))
     longer = figures.rows("init-steps")
     if longer:
         scene, cap = longer[0].baseline.scene, C.human(int(longer[0].baseline.cap))
@@ -204,13 +219,37 @@ def _reference_line(figures: Figures) -> str:
 
 
 def noise(figures: Figures) -> str:
-    return _ablation(figures, "noise", NOISE_VARIANTS, P.NOISE) + "\n\n" + _reference_line(figures)
+    text = _ablation(figures, "noise", NOISE_VARIANTS, P.NOISE) + "\n\n" + _reference_line(figures)
+    rows = []
+    for row in figures.rows("noise-amount"):
+        amount = noise_amount(row.label, figures.scale.steps) / noise_amount("lr", figures.scale.steps)
+        rows.append([f"{row.label}, {row.variant.scene}", f"{amount:.2f} x", *(_f(v) for v in figures.pair(row)),
+                     _f(figures.delta(row), signed=True), str(figures.seed_count(row))])
+    if rows:
+        text += ("\n\nEach schedule against the paper's exponential decay giving as much noise over the run "
+                 "(lambda_noise scaled by the ratio of the two schedules' mean noise):\n\n" +
+                 _table(["schedule, scene", "its noise / the paper's", "the schedule", "the paper's at that amount",
+                         "the paper's - the schedule (dB)", "seeds"], rows))
+    return text
 
 
 def regularizers(figures: Figures) -> str:
     adc = ", ".join(f"{s} {_f(figures.mean(f'{s}-adc-random', 'psnr'))} dB" for s in figures.scale.ablation_scenes)
-    return (_ablation(figures, "regularizers", list(REGULARIZER_VARIANTS) + ["with-regs"], P.REGULARIZERS) +
+    text = (_ablation(figures, "regularizers", list(REGULARIZER_VARIANTS) + ["with-regs"], P.REGULARIZERS) +
             "\n\n" + _reference_line(figures) + f" The with-regs row is ADC (unbounded) against ADC: {adc}.")
+    rows = []
+    for row in figures.rows("regularizers-count"):
+        with_regs = f"{row.baseline.base_name}-with-regs"
+        seeds = figures.common_seeds(row)
+        rows.append([row.label, *(_f(figures.mean(name, key, seeds), spec) for name in
+                                  (row.baseline.base_name, with_regs, row.variant.base_name)
+                                  for key, spec in (("num_gaussians", ",.0f"), ("psnr", ".2f"))),
+                     str(len(seeds))])
+    if rows:
+        text += ("\n\nADC without the regularizers, its densification stopped at the count ADC with them ends with "
+                 "(random init):\n\n" + _table(["scene", "ADC count", "ADC PSNR", "with regularizers: count", "PSNR",
+                                                   "without, at that count: count", "PSNR", "seeds"], rows))
+    return text
 
 
 def timing(figures: Figures) -> str:
@@ -237,9 +276,12 @@ def timing(figures: Figures) -> str:
     if frozen:
         reg += ("\n\nThe final models side by side (`python -m benchmarks.paper.step_time RUN ...`: render + loss + "
                 "backward on the same training views, the runs in turn view by view, median):\n\n" +
-                _table(["run", "Gaussians", "views", "ms"],
-                       [[r["run"], f"{r['num_gaussians']:,}", str(r["views"]), f"{r['ms_render_backward']:.1f}"]
-                        for r in frozen.values()]))
+                _table(["run", "Gaussians", "views", "ms", "tile pairs", "Gaussians drawn", "mean opacity",
+                        "opacity over 0.5", "median largest axis"],
+                       [[r["run"], f"{r['num_gaussians']:,}", str(r["views"]), f"{r['ms_render_backward']:.1f}",
+                         _f(r.get("tile_pairs"), ",.0f"), _f(r.get("composited"), ",.0f"),
+                         _f(r.get("mean_opacity"), ".3f"), _percent(r.get("opaque_share")),
+                         _f(r.get("median_largest_axis"), ".4f")] for r in frozen.values()]))
     return (f"The paper: {b:g} ms (MCMC) against {a:g} ms (3DGS) a step at 1M Gaussians, {b / a:.2f}x; on the room "
             f"scene (SfM init, 1.5M cap) the opacity regulariser at 0.001 took {t001:g} min for {p001} dB, at 0.01 "
             f"{t01:g} min for {p01} dB ({t001 / t01:.2f}x the time); 3DGS {P.ROOM_3DGS[0]:g} min for "

@@ -112,11 +112,21 @@ def train_run(run: Run, scale: Scale, folder: Path, records: Records, machine: d
 
 def churn(run_dir: Path) -> dict:
     """How often MCMC moved its Gaussians: the relocations of the whole run (log.jsonl sums them between its lines),
-    and per Gaussian of the final count."""
-    lines = C.read_jsonl(run_dir / "log.jsonl")
+    per Gaussian of the final count, and the share of the Gaussians found dead at a refine step once the count had
+    reached its cap (each dead one is relocated, so relocations / (refine steps x count) over those lines)."""
+    lines = [line for line in C.read_jsonl(run_dir / "log.jsonl") if "num_gaussians" in line]
     relocated = sum(int(line.get("relocated") or 0) for line in lines)
-    count = next((line["num_gaussians"] for line in reversed(lines) if "num_gaussians" in line), 0)
-    return {"relocated_total": relocated, "relocated_per_gaussian": round(relocated / count, 2) if count else None}
+    count = lines[-1]["num_gaussians"] if lines else 0
+    mcmc = json.loads((run_dir / "config.json").read_text()).get("mcmc", {})
+    moved = slots = 0
+    for before, line in zip(lines, lines[1:]):
+        if before["num_gaussians"] != count:  # still growing: relocations there are not a share of the cap
+            continue
+        refines = sum(1 for step in range(before["step"] + 1, line["step"] + 1)
+                      if mcmc["refine_start"] < step < mcmc["refine_stop"] and step % mcmc["refine_every"] == 0)
+        moved, slots = moved + int(line.get("relocated") or 0), slots + refines * count
+    return {"relocated_total": relocated, "relocated_per_gaussian": round(relocated / count, 2) if count else None,
+            "dead_per_refine": round(moved / slots, 4) if slots else None}
 
 
 def short(record: dict) -> str:
