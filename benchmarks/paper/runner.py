@@ -117,9 +117,10 @@ def churn(run_dir: Path) -> dict:
     lines = [line for line in C.read_jsonl(run_dir / "log.jsonl") if "num_gaussians" in line]
     relocated = sum(int(line.get("relocated") or 0) for line in lines)
     count = lines[-1]["num_gaussians"] if lines else 0
-    mcmc = json.loads((run_dir / "config.json").read_text()).get("mcmc", {})
+    config = run_dir / "config.json"
+    mcmc = json.loads(config.read_text()).get("mcmc") if config.is_file() else None
     moved = slots = 0
-    for before, line in zip(lines, lines[1:]):
+    for before, line in zip(lines, lines[1:] if mcmc else ()):
         if before["num_gaussians"] != count:  # still growing: relocations there are not a share of the cap
             continue
         refines = sum(1 for step in range(before["step"] + 1, line["step"] + 1)
