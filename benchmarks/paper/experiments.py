@@ -268,7 +268,7 @@ def comparisons(scale: Scale) -> list[Comparison]:
             rows.append(Comparison("init", f"{scene}, {run.strategy.upper()}: 1x against 3x",
                                    run, by_variant[f"{scene}-{run.strategy}-random-extent1x"]))
     for scene in [s for s in scale.extent_scenes if s in scale.real_scenes[:2] and scale.ablation_cap is not None]:
-        rows.append(Comparison("init-start", scene, by_variant[f"{scene}-mcmc-random-extent1x"],
+        rows.append(Comparison("init-start", scene, ablation_reference(scale, scene),
                                tight_cube_wide_start_run(scale, scene)))
     if scale.ablation_cap is not None:
         sfm, random_longer, sfm_longer = random_against_sfm_runs(scale)
