@@ -10,6 +10,7 @@ same-count claim take ADC's final count as their cap (`cap="count:<ADC run>"`), 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import _common as C
@@ -110,6 +111,7 @@ NOISE_VARIANTS = {
 }
 
 
+@lru_cache(maxsize=None)  # the run list and the page ask for it many times
 def noise_amount(schedule: str, steps: int) -> float:
     """How much noise a schedule gives over a run: the mean of its noise learning rate over the steps, over the
     start value (the same for every schedule). The paper's exponential decay gives 0.21."""

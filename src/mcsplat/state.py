@@ -148,4 +148,4 @@ def _compensation(config: TrainConfig, images: int, device: torch.device) -> Com
                                  config.appearance_grid_shape)
     if transforms is None:
         return None
-    return Compensation(config.appearance, transforms, config.appearance_lr, config.appearance_lr_final)
+    return Compensation(transforms, config.appearance_lr, config.appearance_lr_final)

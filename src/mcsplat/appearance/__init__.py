@@ -25,7 +25,7 @@ from .slicing import slicing_kernels
 __all__ = ["MODES", "AffineAppearance", "BilateralGridAppearance", "Compensation", "apply_transform",
            "fitted_transform", "lr_at", "make_appearance", "split_halves", "training_kernels"]
 
-MODES = ("none", "affine", "bilateral-grid")
+MODES = ("none", AffineAppearance.MODE, BilateralGridAppearance.MODE)
 Transforms = AffineAppearance | BilateralGridAppearance
 
 
@@ -57,8 +57,8 @@ def _set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
 class Compensation:
     """What a training step needs of the appearance model: the transforms, their Adam and its schedule."""
 
-    def __init__(self, mode: str, transforms: Transforms, lr: float, lr_final: float):
-        self.mode, self.transforms, self.lr, self.lr_final = mode, transforms, lr, lr_final
+    def __init__(self, transforms: Transforms, lr: float, lr_final: float):
+        self.transforms, self.lr, self.lr_final = transforms, lr, lr_final
         self.optimizer = transforms.optimizer(lr)
 
     def apply(self, index: int, rgb: torch.Tensor) -> torch.Tensor:
@@ -75,7 +75,7 @@ class Compensation:
         self.transforms.centre(step)
 
     def state_dict(self) -> dict:
-        return {"mode": self.mode, "transforms": self.transforms.state_dict(),
+        return {"mode": self.transforms.MODE, "transforms": self.transforms.state_dict(),
                 "optimizer": self.optimizer.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:

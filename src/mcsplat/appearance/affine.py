@@ -9,6 +9,8 @@ class AffineAppearance(torch.nn.Module):
     """One affine colour transform per training image: `matrix` [N, 3, 3] (identity at start), `bias` [N, 3].
     `pull_weight` weighs the squared distance of an image's transform from identity (its regulariser)."""
 
+    MODE = "affine"  # the --appearance value (checkpoints record it)
+
     def __init__(self, count: int, device: torch.device | str = "cpu", pull_weight: float = 0.01):
         super().__init__()
         self.pull_weight = pull_weight

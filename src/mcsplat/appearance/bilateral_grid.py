@@ -97,6 +97,8 @@ class BilateralGridAppearance(torch.nn.Module):
     regulariser, and its gradient steps that row alone (RowAdam: torch's SparseAdam over every image's grid took 26 ms
     a step, whatever the image size)."""
 
+    MODE = "bilateral-grid"  # the --appearance value (checkpoints record it)
+
     def __init__(self, count: int, device: torch.device | str = "cpu", pull_weight: float = 0.01,
                  tv_weight: float = 10.0, shape: tuple[int, int, int] = GRID_SHAPE):
         super().__init__()
