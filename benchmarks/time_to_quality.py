@@ -181,7 +181,9 @@ def report(out: Path, records: list[dict], info: dict) -> None:
              "arm on the capture as a transforms.json without points (triangulated from the known poses); `init`: "
              "the budget arm on a capture without points, initialised by `--model.init auto` (triangulated) or "
              "`random` (the cube the code before it used); `budget-capped`: `--budget Tm --cap-max N`, run by hand "
-             "(each record's note has its command).", "",
+             "(each record's note has its command); `budget-repeat`: other runs of a budget arm, kept for the spread "
+             "between runs of one budget (each record's note says which run and code); `budget-standin`: the budget "
+             "arm with a calibration tried and not kept (the record's note says what it did).", "",
              C.markdown_table(ordered, columns), ""]
     lines += target_lines(records)
     C.write_text(out / "results.md", "\n".join(lines) + "\n")
@@ -203,27 +205,36 @@ def target_lines(records: list[dict]) -> list[str]:
 
 def plot(out: Path, records: list[dict]) -> None:
     plt = C.pyplot()
+    from matplotlib.ticker import FixedLocator, NullFormatter, ScalarFormatter
     scenes = sorted({base_scene(r["scene"]) for r in records})
     fig, axes = plt.subplots(1, len(scenes), figsize=(4 * len(scenes), 3.4), squeeze=False)
     styles = {"budget": ("tab:blue", "o", "--budget"), "before": ("tab:gray", "s", "before (--steps)"),
               "pointless": ("tab:orange", "^", "--budget, no points"),
-              "init": ("tab:green", "v", "--budget, no points (auto / random init)")}
+              "init": ("tab:green", "v", "--budget, no points (auto / random init)"),
+              "budget-repeat": ("tab:blue", "x", "--budget, run again")}
     for ax, scene in zip(axes[0], scenes):
         for arm, (color, marker, label) in styles.items():
             rows = sorted((r for r in records if r["arm"] == arm and base_scene(r["scene"]) == scene),
                           key=lambda r: r["train_seconds"])
             if rows:  # at the minutes each run trained (a before run may overrun its planned time)
                 ax.plot([r["train_seconds"] / 60 for r in rows], [r["psnr"] for r in rows], marker=marker,
-                        color=color, label=label, linestyle="none" if arm == "init" else "-")
+                        color=color, label=label, linestyle="none" if arm in ("init", "budget-repeat") else "-")
             for r in rows if arm == "init" else ():  # two inits at one time: named, not joined
                 ax.annotate(r["scene"].split("-")[1], (r["train_seconds"] / 60, r["psnr"]), fontsize=7,
                             xytext=(4, 0), textcoords="offset points")
         ax.set_xscale("log")
+        ax.xaxis.set_major_locator(FixedLocator([2, 5, 10, 20, 30, 40]))  # minutes, not 10^x
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_title(scene)
         ax.set_xlabel("minutes of training")
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("test PSNR (dB)")
-    axes[0][-1].legend(fontsize=8)
+    named = {}  # every arm in one legend, whichever panel drew it
+    for ax in axes[0]:
+        for handle, label in zip(*ax.get_legend_handles_labels()):
+            named.setdefault(label, handle)
+    axes[0][-1].legend(named.values(), named.keys(), fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "quality_vs_time.png", dpi=110)
     plt.close(fig)
