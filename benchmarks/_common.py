@@ -53,6 +53,26 @@ def load(path: str | os.PathLike, downscale: int = 1):
 
 
 # ------------------------------------------------------------------------------------------------- output files
+def train_with_tree(tree: Path, args: Sequence[str], log: Path, script: str) -> None:
+    """`mcsplat train ARGS` with the package of checkout `tree` (its src/ first on the path), output to `log`;
+    `script` names the benchmark in the error when training fails."""
+    env = dict(os.environ, PYTHONPATH=str(tree / "src"))
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as out:
+        done = subprocess.run([sys.executable, "-m", "mcsplat.cli", "train", *args], env=env, stdout=out,
+                              stderr=subprocess.STDOUT)
+    if done.returncode != 0:
+        sys.exit(f"{script}: training failed, see {log}")
+
+
+def logged_step_seconds(run: Path) -> float:
+    """Seconds per step between a run's first and last log.jsonl records (the first at step 100: past the first
+    steps' one-time costs)."""
+    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    first, last = log[0], log[-1]
+    return (last["elapsed_seconds"] - first["elapsed_seconds"]) / (last["step"] - first["step"])
+
+
 def emit(record: dict) -> None:
     """One JSON line on stdout (the figures of a configuration)."""
     print(json.dumps(record), flush=True)

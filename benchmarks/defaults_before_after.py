@@ -22,8 +22,6 @@ import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see 
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -38,15 +36,9 @@ TREES = ("before", "after")
 def train(tree: Path, scene: Path, run: Path, steps: int, cap: int) -> dict:
     """`mcsplat train` of `tree` with its defaults for `steps` steps up to `cap` Gaussians; its metrics.json."""
     if not (run / "metrics.json").is_file():
-        env = dict(os.environ, PYTHONPATH=str(tree / "src"))
-        run.parent.mkdir(parents=True, exist_ok=True)
-        with open(run.with_suffix(".log"), "w") as log:
-            done = subprocess.run([sys.executable, "-m", "mcsplat.cli", "train", str(scene), "--out", str(run),
-                                   "--steps", str(steps), "--cap-max", str(cap), "--quiet", "--overwrite",
-                                   "--no-save-renders", "--lpips-net", "alex"],
-                                  env=env, stdout=log, stderr=subprocess.STDOUT)
-        if done.returncode != 0:
-            sys.exit(f"defaults_before_after: training failed, see {run.with_suffix('.log')}")
+        C.train_with_tree(tree, [str(scene), "--out", str(run), "--steps", str(steps), "--cap-max", str(cap),
+                                 "--quiet", "--overwrite", "--no-save-renders", "--lpips-net", "alex"],
+                          run.with_suffix(".log"), "defaults_before_after")
     return json.loads((run / "metrics.json").read_text())
 
 
@@ -57,17 +49,9 @@ def same_model(first: Path, second: Path) -> bool:
     return a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
 
 
-def step_seconds(run: Path) -> float:
-    """Seconds per step between the run's first and last log records (steps 100 and N: past the first steps'
-    one-time costs)."""
-    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
-    first, last = log[0], log[-1]
-    return (last["elapsed_seconds"] - first["elapsed_seconds"]) / (last["step"] - first["step"])
-
-
 def compare(scene: str, steps: int, cap: int, runs: dict[str, Path], metrics: dict[str, dict]) -> dict:
     before, after = metrics["before"], metrics["after"]
-    step_ms = {tree: 1000 * step_seconds(runs[tree]) for tree in TREES}
+    step_ms = {tree: 1000 * C.logged_step_seconds(runs[tree]) for tree in TREES}
     return {"benchmark": "defaults_before_after", "scene": scene, "steps": steps, "cap": cap,
             "identical": same_model(runs["before"], runs["after"]),
             **{f"{key}_{tree}": round(m[key], 4) for tree, m in (("before", before), ("after", after))

@@ -29,8 +29,6 @@ import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see 
 import argparse
 import json
 import math
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -50,14 +48,7 @@ CALIBRATION_STEPS = 200
 
 
 def run_train(tree: Path, args: list[str], log: Path) -> None:
-    """`mcsplat train ARGS` with the package of `tree` (its src/ first on the path), output to `log`."""
-    env = dict(os.environ, PYTHONPATH=str(tree / "src"))
-    log.parent.mkdir(parents=True, exist_ok=True)
-    with open(log, "w") as out:
-        done = subprocess.run([sys.executable, "-m", "mcsplat.cli", "train", *args], env=env, stdout=out,
-                              stderr=subprocess.STDOUT)
-    if done.returncode != 0:
-        sys.exit(f"time_to_quality: training failed, see {log}")
+    C.train_with_tree(tree, args, log, "time_to_quality")
 
 
 def scene_folder(name: str, data_root: Path, work: Path) -> Path:
@@ -134,9 +125,7 @@ def before_step_seconds(tree: Path, scene: Path, cap: int, work: Path) -> float:
                          "--model.num-init-points", str(max(1, cap // 2)), "--mcmc.refine-start", "2",
                          "--mcmc.refine-every", "2", "--mcmc.refine-stop", str(CALIBRATION_STEPS), "--quiet",
                          "--overwrite", "--no-save-renders", "--lpips-net", "alex"], run.with_suffix(".log"))
-    log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
-    first, last = log[0], log[-1]  # records at steps 100 and 200: the second half runs at the cap
-    return (last["elapsed_seconds"] - first["elapsed_seconds"]) / (last["step"] - first["step"])
+    return C.logged_step_seconds(run)  # records at steps 100 and 200: the second half runs at the cap
 
 
 def before_run(tree: Path, scene: Path, run: Path, minutes: float, cap: int, work: Path,
