@@ -13,7 +13,7 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from mcsplat.budget import BudgetPlanner, StepCost
+from mcsplat.budget import END_SLACK, BudgetPlanner, StepCost
 from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.data import load_scene
 from mcsplat.data.undistort import CACHE_ENV
@@ -96,6 +96,23 @@ def test_the_budget_planner_fills_the_time_with_the_balanced_cap():
     assert config.mcmc.refine_every == max(1, round(100 * config.steps / 30_000))
     assert config.budget_plan["history"][0]["steps"] == config.steps
 
+
+
+def test_a_run_ahead_of_its_plan_plans_again_to_end_on_time():
+    """Steps that ran faster than measured bring the run to its planned step early: with most of the budget left
+    it plans more steps; within END_SLACK of the budget it ends there."""
+    config = TrainConfig(data=DEMO, budget="120s", model=ModelConfig(num_init_points=1000))
+    planner = BudgetPlanner(config, ceiling=100_000)
+    for n, s in ((1000, 1.0), (1000, 0.25), (100_000, 1.0), (100_000, 0.25)):
+        planner.calibrate(0.010 + 0.040 * s * s + 0.2e-6 * n, n, s)
+    planner.start(0, 0.0, 1000)
+    planner.replan(100, 10.0, 1000)
+    reached = config.steps
+    assert not planner.due(reached - 1, 10.5), "planned half a second ago: not due yet"
+    assert planner.due(reached, 10.5) and planner.finished(reached, 10.5), "at the planned step, 90% of the time left"
+    planner.replan(reached, 10.5, config.mcmc.cap_max)
+    assert config.steps > reached and not planner.finished(reached, 10.5)
+    assert not planner.due(config.steps, (1 - END_SLACK / 2) * 120.0), "the time is nearly up: the run ends"
 
 def test_the_step_cost_model_recovers_known_costs():
     """Calibrated at two sizes and two counts, then measured along a run that grows and sharpens as runs do."""

@@ -17,7 +17,9 @@ number of steps. What the budget decides is that number and the cap, from the ti
   planned, fill the time left. The plan is made again every 2% of the budget (more often near its end) as the
   measured times come in, and the schedules are fitted again to the new number of steps. The SH schedule is kept
   once the degree has first risen, so the degree never steps back.
-- The run stops at the planned step or when the budget is spent, whichever comes first. The budget counts the
+- The run stops at the planned step or when the budget is spent, whichever comes first. A run that reaches its
+  planned step with more than END_SLACK of the budget left (its steps ran faster than measured: a machine whose
+  other work stopped) plans again, so that it ends on time rather than early. The budget counts the
   training loop's wall-clock time (steps, periodic evaluations and checkpoints; pauses not counted); set-up (loading,
   initialisation, compiling, the calibration) and the final evaluation and export come on top.
 """
@@ -38,6 +40,7 @@ BALANCE = 2.0                     # balanced_cap: Gaussians' time in a full-size
 MIN_STEPS, MAX_STEPS = 1000, 30_000  # the cap leaves at least MIN_STEPS; the search for steps stops at 10 x MAX
 REPLAN_SHARE = 0.02               # a new plan every 2% of the budget
 LATE_REPLAN_SHARE = 0.005         # ... every 0.5% in its last 10%
+END_SLACK = 0.02                  # a run at its planned step with more than 2% of the budget left plans again
 FIRST_PLAN_STEP = 10              # the first plan from measured steps
 BUCKET = 10                       # steps summarised by their median time in the cost model
 WARM_UP_STEPS = 3                 # the run's first steps (one-time costs) are left out of it
@@ -135,8 +138,12 @@ class BudgetPlanner:
                              self.base["mcmc.grow_rate"]), step)
 
     def due(self, step: int, wall_seconds: float) -> bool:
+        if step < FIRST_PLAN_STEP:
+            return False
+        if step >= self.config.steps:  # ahead of the plan: plan again unless the time is (nearly) up
+            return wall_seconds < (1.0 - END_SLACK) * self.budget
         share = LATE_REPLAN_SHARE if wall_seconds > 0.9 * self.budget else REPLAN_SHARE
-        return step >= FIRST_PLAN_STEP and wall_seconds - self.last_plan_at >= max(share * self.budget, 1.0)
+        return wall_seconds - self.last_plan_at >= max(share * self.budget, 1.0)
 
     def replan(self, step: int, wall_seconds: float, gaussians: int) -> None:
         """A new plan from the costs measured so far, applied to the run's configuration."""
