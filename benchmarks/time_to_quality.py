@@ -172,7 +172,9 @@ def report(out: Path, records: list[dict], info: dict) -> None:
              "`random` (the cube the code before it used); `budget-capped`: `--budget Tm --cap-max N`, run by hand "
              "(each record's note has its command); `budget-repeat`: other runs of a budget arm, kept for the spread "
              "between runs of one budget (each record's note says which run and code); `budget-standin`: the budget "
-             "arm with a calibration tried and not kept (the record's note says what it did).", "",
+             "arm with a calibration tried and not kept (the record's note says what it did); `budget-full-at`: "
+             "`--budget Tm --resolution-full-at F`, full size reached at F of the run instead of 0.4 (the scene's "
+             "label says F, the record's note the command).", "",
              C.markdown_table(ordered, columns), ""]
     lines += target_lines(records)
     C.write_text(out / "results.md", "\n".join(lines) + "\n")
@@ -200,16 +202,18 @@ def plot(out: Path, records: list[dict]) -> None:
     styles = {"budget": ("tab:blue", "o", "--budget"), "before": ("tab:gray", "s", "before (--steps)"),
               "pointless": ("tab:orange", "^", "--budget, no points"),
               "init": ("tab:green", "v", "--budget, no points (auto / random init)"),
-              "budget-repeat": ("tab:blue", "x", "--budget, run again")}
+              "budget-repeat": ("tab:blue", "x", "--budget, run again"),
+              "budget-full-at": ("tab:purple", "D", "--budget, full size at F (0.4 default)")}
+    annotated = {"init": lambda r: r["scene"].split("-")[1], "budget-full-at": lambda r: r["scene"].split("-full")[1]}
     for ax, scene in zip(axes[0], scenes):
         for arm, (color, marker, label) in styles.items():
             rows = sorted((r for r in records if r["arm"] == arm and base_scene(r["scene"]) == scene),
                           key=lambda r: r["train_seconds"])
             if rows:  # at the minutes each run trained (a before run may overrun its planned time)
                 ax.plot([r["train_seconds"] / 60 for r in rows], [r["psnr"] for r in rows], marker=marker,
-                        color=color, label=label, linestyle="none" if arm in ("init", "budget-repeat") else "-")
-            for r in rows if arm == "init" else ():  # two inits at one time: named, not joined
-                ax.annotate(r["scene"].split("-")[1], (r["train_seconds"] / 60, r["psnr"]), fontsize=7,
+                        color=color, label=label, linestyle="-" if arm in ("budget", "before", "pointless") else "none")
+            for r in rows if arm in annotated else ():  # several variants at one time: named, not joined
+                ax.annotate(annotated[arm](r), (r["train_seconds"] / 60, r["psnr"]), fontsize=7,
                             xytext=(4, 0), textcoords="offset points")
         ax.set_xscale("log")
         ax.xaxis.set_major_locator(FixedLocator([2, 5, 10, 20, 30, 40]))  # minutes, not 10^x
