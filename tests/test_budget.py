@@ -97,7 +97,6 @@ def test_the_budget_planner_fills_the_time_with_the_balanced_cap():
     assert config.budget_plan["history"][0]["steps"] == config.steps
 
 
-
 def test_a_run_ahead_of_its_plan_plans_again_to_end_on_time():
     """Steps that ran faster than measured bring the run to its planned step early: with most of the budget left
     it plans more steps; within END_SLACK of the budget it ends there."""
@@ -113,6 +112,7 @@ def test_a_run_ahead_of_its_plan_plans_again_to_end_on_time():
     planner.replan(reached, 10.5, config.mcmc.cap_max)
     assert config.steps > reached and not planner.finished(reached, 10.5)
     assert not planner.due(config.steps, (1 - END_SLACK / 2) * 120.0), "the time is nearly up: the run ends"
+
 
 def test_the_step_cost_model_recovers_known_costs():
     """Calibrated at two sizes and two counts, then measured along a run that grows and sharpens as runs do."""
