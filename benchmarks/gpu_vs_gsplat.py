@@ -45,7 +45,8 @@ class Setup:
 
     def __init__(self, args):
         self.config = TrainConfig(data=Path(args.data), steps=args.steps, cap_max=args.cap, device=args.device,
-                                  seed=args.seed, model=ModelConfig(num_init_points=args.init))
+                                  seed=args.seed, model=ModelConfig(num_init_points=args.init,
+                                                                    init=args.init_method))
         self.device = torch.device(args.device)
         self.scene = load_scene(self.config.data)
         self.background = background_of(self.config, self.scene)
@@ -181,6 +182,9 @@ def main() -> None:
     parser.add_argument("--data", required=True, help="a Blender scene folder (lego 400 in the README's figures)")
     parser.add_argument("--cap", type=int, default=300_000)
     parser.add_argument("--init", type=int, default=None, help="random initial points (default: cap / 2)")
+    parser.add_argument("--init-method", default="auto", choices=["auto", "random"],
+                        help="random: --init random points also for a capture with SfM points (to reach a large cap "
+                             "within the run)")
     parser.add_argument("--steps", type=int, default=5000)
     parser.add_argument("--timed", type=int, default=1000, help="the median is taken over the last N steps")
     parser.add_argument("--seed", type=int, default=0)

@@ -2,12 +2,15 @@
 
     .venv/bin/python benchmarks/rasterizer.py                      # the default grid on CPU
     .venv/bin/python benchmarks/rasterizer.py --sizes 100000 --resolutions 400 --threads 1 2
+    python benchmarks/rasterizer.py --device cuda --cuda-kernels tile tile-all scalar   # the CUDA kernels side by side
 
 Scene: N Gaussians in a ball in front of the camera, scaled so that about 32 Gaussians are composited per pixel at
 100k and 400x400 (the reference configuration of the targets). Timed separately: the compositing kernels alone
 (forward, backward) and the whole render + backward (projection, SH, binning, compositing, autograd). On the CPU the
 same scene is also timed, in the same process, through the kernels as they were before the SIMD work (the scalar
-compositing kernels; torch projection, SH and binning), and the speed-ups are reported as ratios.
+compositing kernels; torch projection, SH and binning), and the speed-ups are reported as ratios. On CUDA,
+`--cuda-kernels` times each named set of compositing kernels (render/launch.py's set_cuda_kernels) on the same bins,
+as `<name>_composite_forward_ms` / `<name>_composite_backward_ms`; the first named also runs the whole render.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ import torch
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import Splats, render, set_cpu_threads
 from mcsplat.render.binning import bin_gaussians
-from mcsplat.render.launch import CompositeFunction, set_cpu_kernels
+from mcsplat.render.launch import CompositeFunction, cuda_kernels, set_cpu_kernels, set_cuda_kernels
 from mcsplat.render.paths import TORCH_BASELINE_PATH, use_render_path
 from mcsplat.render.constants import BLOCK_SIZE, TILE_SIZE
 from mcsplat.render.project import project_gaussians, view_dependent_colors
@@ -67,7 +70,8 @@ def timed(fn, device: str, repeats: int) -> list[float]:
     return times
 
 
-def bench(n: int, size: int, threads: int, device: str, repeats: int, baseline: bool = True) -> dict:
+def bench(n: int, size: int, threads: int, device: str, repeats: int, baseline: bool = True,
+          cuda_variants: tuple[str, ...] = ("tile",)) -> dict:
     set_cpu_threads(threads)
     torch.set_num_threads(threads)
     splats, camera = make_scene(n, size, device)
@@ -85,7 +89,10 @@ def bench(n: int, size: int, threads: int, device: str, repeats: int, baseline: 
     grad_rgb = torch.rand(size, size, 3, device=device)
 
     def composite_times(kernels: str) -> tuple[list[float], list[float]]:
-        set_cpu_kernels(kernels)
+        if device == "cpu":
+            set_cpu_kernels(kernels)
+        else:
+            set_cuda_kernels(kernels)
         state = {}
 
         def forward_only():
@@ -101,13 +108,15 @@ def bench(n: int, size: int, threads: int, device: str, repeats: int, baseline: 
             fwd += timed(forward_only, device, 1)
             bwd += timed(backward_only, device, 1)
         set_cpu_kernels("simd")
+        set_cuda_kernels(cuda_variants[0])
         return fwd, bwd
 
     def full_step():
         out = render(splats, camera, background, 3)
         (out.rgb * grad_rgb).sum().backward()
 
-    fwd, bwd = composite_times("simd")
+    variant_times = {name: composite_times(name) for name in cuda_variants[1:]} if device != "cpu" else {}
+    fwd, bwd = composite_times("simd" if device == "cpu" else cuda_variants[0])
     full_step()
     full = timed(full_step, device, repeats)
     peak_rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # before the baseline runs
@@ -124,12 +133,17 @@ def bench(n: int, size: int, threads: int, device: str, repeats: int, baseline: 
         "gaussians": n, "image": f"{size}x{size}", "threads": threads if device == "cpu" else None,
         "visible": int((proj.radii > 0).sum()), "tile_pairs": bins.num_pairs,
         "evaluated_per_pixel": round(walked, 1), "composited_per_pixel": round(composited, 1),
-        "composite_forward_ms": round(statistics.median(fwd), 1),
-        "composite_backward_ms": round(statistics.median(bwd), 1),
-        "composite_total_ms": round(statistics.median(fwd) + statistics.median(bwd), 1),
-        "render_forward_backward_ms": round(statistics.median(full), 1),
+        "composite_forward_ms": round(statistics.median(fwd), 3),
+        "composite_backward_ms": round(statistics.median(bwd), 3),
+        "composite_total_ms": round(statistics.median(fwd) + statistics.median(bwd), 3),
+        "render_forward_backward_ms": round(statistics.median(full), 3),
         "repeats": repeats,
     }
+    if device != "cpu":
+        record["cuda_kernels"] = cuda_kernels()
+        for name, (variant_fwd, variant_bwd) in variant_times.items():
+            record[f"{name}_composite_forward_ms"] = round(statistics.median(variant_fwd), 3)
+            record[f"{name}_composite_backward_ms"] = round(statistics.median(variant_bwd), 3)
     if record_baseline:
         base_total = statistics.median(base_fwd) + statistics.median(base_bwd)
         record.update({
@@ -176,6 +190,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, nargs="+", default=[1, torch.get_num_threads()])
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--cuda-kernels", nargs="+", default=["tile"], choices=["tile", "tile-all", "scalar"],
+                        help="on CUDA: the compositing kernels to time side by side (the first is the main record)")
     parser.add_argument("--no-baseline", action="store_true",
                         help="skip the in-process baseline (the scalar kernels and the torch projection/binning)")
     args = parser.parse_args()
@@ -183,7 +199,8 @@ def main() -> None:
     for size in args.resolutions:
         for n in args.sizes:
             for t in threads:
-                print(json.dumps(bench(n, size, t, args.device, args.repeats, not args.no_baseline)), flush=True)
+                print(json.dumps(bench(n, size, t, args.device, args.repeats, not args.no_baseline,
+                                       tuple(args.cuda_kernels))), flush=True)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ LAYERS = [
     ("run", {"run_dir", "state", "evaluation", "events"}),
     ("set-up", {"distributed", "initialization", "schedule", "budget", "config", "config_types"}),
     ("method", {"strategy", "visibility", "metrics", "optim", "mesh", "appearance", "pose_refinement"}),
-    ("building blocks", {"render", "data", "losses", "ssim_cpu", "io", "capture", "camera_path"}),
+    ("building blocks", {"render", "data", "losses", "ssim_cpu", "ssim_warp", "io", "capture", "camera_path"}),
     ("model", {"gaussians"}),
     ("foundation", {"geometry", "compute", "camera", "errors", ""}),
 ]

@@ -1,4 +1,7 @@
-"""Photometric losses of 3DGS: L1 and SSIM with an 11x11 Gaussian window (sigma 1.5), "same" padding."""
+"""Photometric losses of 3DGS: L1 and SSIM with an 11x11 Gaussian window (sigma 1.5), "same" padding.
+
+The SSIM's window and constants live in ssim_warp.py (the fused kernels need them and may not import this module);
+they are re-exported here."""
 
 from __future__ import annotations
 
@@ -8,18 +11,14 @@ import torch
 import torch.nn.functional as F
 
 from .ssim_cpu import fused_ssim, fused_ssim_applies
-
-SSIM_WINDOW = 11
-SSIM_SIGMA = 1.5
-SSIM_C1 = 0.01 ** 2
-SSIM_C2 = 0.03 ** 2
+from .ssim_warp import KERNELS as WARP_SSIM_KERNELS
+from .ssim_warp import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW  # noqa: F401  (defined there, used as losses.SSIM_*)
+from .ssim_warp import fused_ssim_warp, fused_ssim_warp_applies, window_taps
 
 
 @functools.lru_cache(maxsize=8)
 def _window_1d(channels: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    coords = torch.arange(SSIM_WINDOW, dtype=torch.float64) - SSIM_WINDOW // 2
-    g = torch.exp(-coords ** 2 / (2 * SSIM_SIGMA ** 2))
-    return (g / g.sum()).to(dtype=dtype, device=device).expand(channels, 1, SSIM_WINDOW).contiguous()
+    return window_taps().to(dtype=dtype, device=device).expand(channels, 1, SSIM_WINDOW).contiguous()
 
 
 def gaussian_blur(t: torch.Tensor) -> torch.Tensor:
@@ -47,18 +46,25 @@ def ssim_map(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of two [H, W, C] images (the 3DGS definition). float32 RGB on the CPU takes the fused kernels of
-    ssim_cpu.py (same value and gradient, several times faster than torch's depthwise convolutions)."""
+    """Mean SSIM of two [H, W, C] images (the 3DGS definition). float32 RGB takes fused kernels with the same value
+    and gradient, several times faster than torch's depthwise convolutions: ssim_cpu.py on the CPU, the Warp kernels
+    of ssim_warp.py on CUDA."""
     if fused_ssim_applies(image, target):
         return fused_ssim(image, target)
+    if fused_ssim_warp_applies(image, target):
+        return fused_ssim_warp(image, target)
     return ssim_map(image, target).mean()
 
 
 def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -> list:
-    """The Warp kernels the loss and its backward launch on `device` (the fused SSIM: float32 on the CPU)."""
-    if device.type == "cpu" and dtype == torch.float32:
+    """The Warp kernels the loss and its backward launch on `device` (the fused SSIM: float32 on the CPU or CUDA)."""
+    if dtype != torch.float32:
+        return []
+    if device.type == "cpu":
         from . import ssim_cpu
         return [ssim_cpu._pass1, ssim_cpu._pass2, ssim_cpu._pass3, ssim_cpu._pass4]
+    if device.type == "cuda":
+        return list(WARP_SSIM_KERNELS)
     return []
 
 

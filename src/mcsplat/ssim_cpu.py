@@ -24,11 +24,10 @@ import torch
 import warp as wp
 
 from .compute.runtime import ensure_warp, run_ranges
+from .ssim_warp import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
 
-_WINDOW = 11
-_SIGMA = 1.5
-_C1 = 0.01 ** 2
-_C2 = 0.03 ** 2
+# The window and constants are defined once, in ssim_warp.py.
+_WINDOW, _SIGMA, _C1, _C2 = SSIM_WINDOW, SSIM_SIGMA, SSIM_C1, SSIM_C2
 
 
 def _window() -> list[float]:

@@ -19,17 +19,20 @@ from .runtime import ensure_warp, warp_device
 
 
 def _modules(kernels: Sequence) -> list:
+    """(module, block size) pairs: a tile kernel names its block size (`launch_block_dim`), and Warp builds a module
+    once per block size it is launched with; None is Warp's default."""
     unique = {}
     for kernel in kernels:
-        unique[id(kernel.module)] = kernel.module
+        block_dim = getattr(kernel, "launch_block_dim", None)
+        unique[(id(kernel.module), block_dim)] = (kernel.module, block_dim)
     return list(unique.values())
 
 
-def _is_cached(module, device) -> bool:
+def _is_cached(module, device, block_dim=None) -> bool:
     """Whether Warp's kernel cache already holds this module's binary for the device (Warp 1.19's own layout)."""
     try:
-        folder = os.path.join(wp.config.kernel_cache_dir, module.get_module_identifier())
-        return os.path.exists(os.path.join(folder, module._get_compile_output_name(device)))
+        folder = os.path.join(wp.config.kernel_cache_dir, module.get_module_identifier(block_dim=block_dim))
+        return os.path.exists(os.path.join(folder, module._get_compile_output_name(device, block_dim=block_dim)))
     except Exception:  # a Warp whose internals differ: assume a compile may follow
         return False
 
@@ -42,12 +45,12 @@ def modules_to_compile(kernels: Sequence, device: torch.device) -> int:
     """How many of the modules holding `kernels` are not yet in Warp's cache for this device."""
     ensure_warp()
     wp_device = _warp_device(device)
-    return sum(not _is_cached(m, wp_device) for m in _modules(kernels))
+    return sum(not _is_cached(m, wp_device, b) for m, b in _modules(kernels))
 
 
 def compile_kernels(kernels: Sequence, device: torch.device) -> None:
     """Compile (or load from the cache) the modules holding `kernels` for this device."""
     ensure_warp()
     wp_device = _warp_device(device)
-    for module in _modules(kernels):
-        module.load(wp_device)
+    for module, block_dim in _modules(kernels):
+        module.load(wp_device, block_dim)

@@ -59,6 +59,9 @@ def ensure_warp() -> None:
         if _initialised:
             return
         wp.config.log_level = wp.LOG_WARNING
+        # Launches with a block size above one run on the CPU as cooperative fibers, as CUDA blocks: the tile
+        # kernels (render/tile_kernels.py) are checked on the CPU this way. Other launches name no block size.
+        wp.config.enable_cpu_blocks = True
         if _cuda_driver_present():
             wp.init()
         else:
@@ -107,9 +110,10 @@ def warp_device(device: torch.device) -> wp.Device:
     return wp.device_from_torch(device)
 
 
-def warp_view(tensor: torch.Tensor) -> wp.array:
-    """A Warp array over the tensor's memory (no copy)."""
-    return wp.from_torch(tensor.detach(), requires_grad=False)
+def warp_view(tensor: torch.Tensor, dtype=None):
+    """The tensor's memory as a Warp kernel argument (no copy): Warp's bare array descriptor, several times cheaper
+    to make than a wp.array (about 80 per training step; on a GPU their making is time the step waits for)."""
+    return wp.from_torch(tensor.detach(), dtype=dtype, requires_grad=False, return_ctype=True)
 
 
 def run_bands(kernel, inputs_for_worker, num_tiles: int, tile_ranges: torch.Tensor, device: torch.device,
@@ -135,6 +139,18 @@ def run_bands(kernel, inputs_for_worker, num_tiles: int, tile_ranges: torch.Tens
 
     for future in [thread_pool(num_workers).submit(run, w) for w in range(num_workers)]:
         future.result()
+
+
+def run_tiled(kernel, num_blocks: int, arguments: list, device: torch.device, block_dim: int) -> None:
+    """Launch a tile kernel as `num_blocks` blocks of `block_dim` threads, in one launch (on the CPU: one core)."""
+    if num_blocks == 0:
+        return
+    if device.type == "cuda":
+        with wp.ScopedStream(wp.stream_from_torch(device)):
+            wp.launch_tiled(kernel, dim=[num_blocks], inputs=arguments, block_dim=block_dim,
+                            device=warp_device(device))
+        return
+    wp.launch_tiled(kernel, dim=[num_blocks], inputs=arguments, block_dim=block_dim, device="cpu")
 
 
 def num_workers_for(device: torch.device, num_tiles: int) -> int:

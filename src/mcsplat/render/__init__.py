@@ -2,8 +2,9 @@
 
 Projection and SH colour run in one Warp kernel (project_kernel.py), binning in Warp kernels and a radix sort
 (binning.py), and alpha compositing in Warp kernels with a hand-written backward: SIMD kernels on the CPU (cpu/),
-scalar kernels on CUDA and for float64 (kernels.py). Everything runs on every CPU core or on CUDA, wherever the
-tensors are. The three stages are one choosable value (paths.py); the fixed numbers are in constants.py.
+tile kernels on CUDA (tile_kernels.py), scalar kernels for float64 on the CPU (kernels.py). Everything runs on
+every CPU core or on CUDA, wherever the tensors are. The three stages are one choosable value (paths.py); the fixed
+numbers are in constants.py.
 """
 
 from __future__ import annotations
@@ -144,11 +145,14 @@ def _check_inputs(means, quats, scales, opacities, sh, sh_rest=None) -> None:
 def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -> list:
     """The Warp kernels one render and its backward launch on `device` (compute.compile loads them ahead)."""
     from ..compute.runtime import warp_scalar
-    from . import binning, kernels, project_kernel
+    from . import binning, kernels, project_kernel, tile_kernels
     from .cpu import composite
+    from .launch import cuda_kernels
 
     scalar = warp_scalar(dtype)
     found = [*project_kernel.projection_kernels(scalar), binning._count_pairs, binning._write_pairs]
     if device.type == "cpu" and dtype == torch.float32:
         return found + [composite.composite_forward_simd, composite.composite_backward_simd]
+    if device.type == "cuda" and cuda_kernels() == "tile":
+        return found + [tile_kernels.forward_kernel(scalar), tile_kernels.backward_kernel(scalar)]
     return found + list(kernels.composite_kernels(scalar))

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ..compute.runtime import ensure_warp, run_ranges
+from ..compute.runtime import ensure_warp, run_ranges, warp_view
 from .constants import ALL_BLOCKS, BLOCK_SIZE, TILE_SIZE
 
 
@@ -136,10 +136,10 @@ def bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.
         spans = [means2d.detach().float().contiguous(), alpha_extent.detach().float().contiguous()]
     else:
         spans = [torch.zeros(1, 2, device=device)] * 2
-    rectangles = [wp.from_torch(t.contiguous()) for t in (tile_min, tile_max)]
-    rectangles += [wp.from_torch(t) for t in spans] + [int(use_masks)]
+    rectangles = [warp_view(t.contiguous()) for t in (tile_min, tile_max)]
+    rectangles += [warp_view(t) for t in spans] + [int(use_masks)]
     counts = torch.zeros(n, dtype=torch.int32, device=device)
-    run_ranges(_count_pairs, n, device, rectangles + [wp.from_torch(counts)])
+    run_ranges(_count_pairs, n, device, rectangles + [warp_view(counts)])
     ends = torch.cumsum(counts, 0, dtype=torch.int64)
     total = int(ends[-1]) if n else 0
     # The radix sort needs room for twice the pairs; the pair's slot rides along as the value.
@@ -150,8 +150,8 @@ def bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.
     if total:
         offsets = (ends - counts).to(torch.int32)
         run_ranges(_write_pairs, n, device, rectangles + [
-            wp.from_torch(_depth_keys(depths, radii > 0)), tiles_x, wp.from_torch(offsets), wp.from_torch(keys),
-            wp.from_torch(ids), wp.from_torch(masks)])
+            warp_view(_depth_keys(depths, radii > 0)), tiles_x, warp_view(offsets), warp_view(keys),
+            warp_view(ids), warp_view(masks)])
         torch.arange(total, dtype=torch.int32, device=device, out=slots[:total])
         wp.utils.radix_sort_pairs(wp.from_torch(keys), wp.from_torch(slots), total,
                                   end_bit=32 + max(1, (num_tiles - 1).bit_length()))

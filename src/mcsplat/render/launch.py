@@ -1,26 +1,33 @@
 """The compositing step as a torch.autograd.Function, and the choice of kernels for it.
 
-float32 tensors on the CPU get the SIMD kernels of render/cpu/ (a 4x4 pixel block per vector); float64 and CUDA get
-the scalar Warp kernels of kernels.py (a thread per pixel). `set_cpu_kernels("scalar")` forces the scalar kernels on
-the CPU too: the benchmarks' in-process baseline, and the tests' second opinion.
+float32 tensors on the CPU get the SIMD kernels of render/cpu/ (a 4x4 pixel block per vector), float64 on the CPU
+the scalar Warp kernels of kernels.py (a thread per pixel), and CUDA the tile kernels of tile_kernels.py (a block of
+threads per tile, batches of Gaussians in shared memory). `set_cpu_kernels("scalar")` forces the scalar kernels on
+the CPU too (the benchmarks' in-process baseline, the tests' second opinion), `set_cpu_kernels("tile")` runs the CUDA
+kernels on the CPU as cooperative fibers (how the tests check them without a GPU), and `set_cuda_kernels("scalar")`
+puts the scalar kernels back on CUDA (the GPU benchmarks' in-process baseline).
 """
 
 from __future__ import annotations
 
 import torch
 
-from ..compute.runtime import (cpu_threads, ensure_warp, num_workers_for, run_bands, set_cpu_threads, warp_scalar,
-                      warp_view)
+from ..compute.runtime import (cpu_threads, ensure_warp, num_workers_for, run_bands, run_tiled, set_cpu_threads,
+                               warp_scalar, warp_view)
 from .binning import TileBins
 from .constants import PIXELS_PER_TILE
 from .cpu import run as simd
+from . import tile_kernels
 from .kernels import composite_kernels, median_forward_kernel
 
-__all__ = ["CompositeFunction", "composite", "set_cpu_kernels", "cpu_kernels", "ensure_warp", "set_cpu_threads",
-           "cpu_threads"]
+__all__ = ["CompositeFunction", "composite", "set_cpu_kernels", "cpu_kernels", "set_cuda_kernels", "cuda_kernels",
+           "ensure_warp", "set_cpu_threads", "cpu_threads"]
 
-CPU_KERNELS = ("simd", "scalar")
+CPU_KERNELS = ("simd", "scalar", "tile")
+# "tile-all": the tile backward without its skip of pairs no pixel of a warp uses (tile_kernels.backward_kernel).
+CUDA_KERNELS = ("tile", "tile-all", "scalar")
 _cpu_kernels = "simd"
+_cuda_kernels = "tile"
 
 
 def set_cpu_kernels(name: str) -> None:
@@ -35,8 +42,24 @@ def cpu_kernels() -> str:
     return _cpu_kernels
 
 
-def _uses_simd(tensor: torch.Tensor, kernels: str | None) -> bool:
-    return tensor.device.type == "cpu" and tensor.dtype == torch.float32 and (kernels or _cpu_kernels) == "simd"
+def set_cuda_kernels(name: str) -> None:
+    """'tile' (the default), 'tile-all' or 'scalar': which compositing kernels CUDA renders use."""
+    global _cuda_kernels
+    if name not in CUDA_KERNELS:
+        raise ValueError(f"CUDA kernels must be one of {', '.join(CUDA_KERNELS)}, got {name!r}")
+    _cuda_kernels = name
+
+
+def cuda_kernels() -> str:
+    return _cuda_kernels
+
+
+def kernels_for(tensor: torch.Tensor, cpu_choice: str | None = None) -> str:
+    """'simd', 'scalar' or 'tile': the kernels a composite of `tensor` runs (`cpu_choice` overrides the CPU's)."""
+    if tensor.device.type == "cuda":
+        return _cuda_kernels
+    chosen = cpu_choice or _cpu_kernels
+    return "scalar" if chosen == "simd" and tensor.dtype != torch.float32 else chosen
 
 
 class CompositeFunction(torch.autograd.Function):
@@ -50,16 +73,17 @@ class CompositeFunction(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, depths, background, bins: TileBins, width: int,
                 height: int, cpu_kernels: str | None = None, median_gaussian: bool = False):
         ensure_warp()
-        ctx.simd = _uses_simd(means2d, cpu_kernels)
+        ctx.kernels = kernels_for(means2d, cpu_kernels)
         inputs = [t.detach().contiguous() for t in (means2d, conics, opacities, colors, depths, background)]
-        if ctx.simd:
+        if ctx.kernels == "simd":
             records = simd.pack_records(*inputs[:5])
             rgb, transmittance, depth, last, contributed, median = simd.forward(records, inputs[5], bins, width,
                                                                                 height, median_gaussian)
             ctx.save_for_backward(records, inputs[5], transmittance, last, rgb, depth)
         else:
-            rgb, transmittance, depth, last, contributed, median = _scalar_forward(inputs, bins, width, height,
-                                                                                   median_gaussian)
+            forward = _tile_forward if ctx.kernels.startswith("tile") else _scalar_forward
+            rgb, transmittance, depth, last, contributed, median = forward(inputs, bins, width, height,
+                                                                           median_gaussian)
             ctx.save_for_backward(*inputs, transmittance, last)
         ctx.bins, ctx.width, ctx.height = bins, width, height
         not_differentiable = (contributed.bool(),) + (() if median is None else (median,))
@@ -77,10 +101,12 @@ class CompositeFunction(torch.autograd.Function):
             torch.zeros_like(like) if grad_alpha is None else grad_alpha.contiguous(),
             torch.zeros_like(like) if grad_depth is None else grad_depth.contiguous(),
         ]
-        if ctx.simd:
+        if ctx.kernels == "simd":
             records, background, transmittance, last, rgb, depth = saved
             totals = simd.backward(records, background, transmittance, last, rgb, depth, *grads_in, bins, width,
                                    height)
+        elif ctx.kernels.startswith("tile"):
+            totals = _tile_backward(saved, grads_in, bins, width, height, skip_unused=ctx.kernels == "tile")
         else:
             totals = _scalar_backward(saved, grads_in, bins, width, height)
         return (*totals, None, None, None, None, None, None)
@@ -93,16 +119,53 @@ def composite(means2d, conics, opacities, colors, depths, background, bins: Tile
                                    cpu_kernels, median_gaussian)
 
 
+def _forward_outputs(means2d: torch.Tensor, width: int, height: int, with_median: bool) -> list[torch.Tensor]:
+    """(rgb, transmittance, depth, last contributor, contributed, median Gaussian) for a forward kernel to fill."""
+    dtype, device = means2d.dtype, means2d.device
+    # The plain kernels take the median's array too and never touch it: one element stands in.
+    return [torch.empty(height, width, 3, dtype=dtype, device=device),
+            torch.empty(height, width, dtype=dtype, device=device),
+            torch.empty(height, width, dtype=dtype, device=device),
+            torch.empty(height, width, dtype=torch.int32, device=device),
+            torch.zeros(means2d.shape[0], dtype=torch.int32, device=device),
+            torch.empty((height, width) if with_median else (1, 1), dtype=torch.int32, device=device)]
+
+
+def _bins_views(bins: TileBins) -> list:
+    return [warp_view(bins.tile_ranges), warp_view(bins.gaussian_ids), warp_view(bins.pair_masks)]
+
+
+def _tile_forward(inputs, bins: TileBins, width: int, height: int, with_median: bool):
+    means2d = inputs[0]
+    outputs = _forward_outputs(means2d, width, height, with_median)
+    kernel = tile_kernels.forward_kernel(warp_scalar(means2d.dtype), with_median)
+    arguments = ([bins.tiles_x, width, height] + _bins_views(bins) + [warp_view(t) for t in inputs]
+                 + [warp_view(t) for t in outputs])
+    run_tiled(kernel, bins.tiles_x * bins.tiles_y, arguments, means2d.device, tile_kernels.FORWARD_BLOCK)
+    rgb, transmittance, depth, last, contributed, median = outputs
+    return rgb, transmittance, depth, last, contributed, median if with_median else None
+
+
+def _tile_backward(saved, grads_in, bins: TileBins, width: int, height: int, skip_unused: bool = True):
+    means2d = saved[0]
+    dtype = means2d.dtype
+    record = tile_kernels.record_type(warp_scalar(dtype))
+    grads = torch.zeros(means2d.shape[0], tile_kernels.GRADIENT_WIDTH, dtype=dtype, device=means2d.device)
+    arguments = ([bins.tiles_x, width, height] + _bins_views(bins) + [warp_view(t) for t in saved]
+                 + [warp_view(g) for g in grads_in] + [warp_view(grads, record)])
+    run_tiled(tile_kernels.backward_kernel(warp_scalar(dtype), skip_unused),
+              bins.tiles_x * bins.tiles_y * tile_kernels.BACKWARD_BLOCKS_PER_TILE, arguments, means2d.device,
+              tile_kernels.BACKWARD_BLOCK)
+    # Views into the one buffer, in the order of CompositeFunction's inputs; opacities and depths lose their column.
+    columns = [tile_kernels.GRADIENT_COLUMNS[name] for name in ("means2d", "conics", "opacities", "colors", "depths")]
+    views = [grads[:, a:b] for a, b in columns]
+    return [views[0], views[1], views[2][:, 0], views[3], views[4][:, 0]]
+
+
 def _scalar_forward(inputs, bins: TileBins, width: int, height: int, with_median: bool):
     means2d = inputs[0]
     dtype, device = means2d.dtype, means2d.device
-    rgb = torch.empty(height, width, 3, dtype=dtype, device=device)
-    transmittance = torch.empty(height, width, dtype=dtype, device=device)
-    depth = torch.empty(height, width, dtype=dtype, device=device)
-    last = torch.empty(height, width, dtype=torch.int32, device=device)
-    contributed = torch.zeros(means2d.shape[0], dtype=torch.int32, device=device)
-    # The plain kernel takes the median's array too and never touches it: one element stands in.
-    median = torch.empty((height, width) if with_median else (1, 1), dtype=torch.int32, device=device)
+    rgb, transmittance, depth, last, contributed, median = _forward_outputs(means2d, width, height, with_median)
     num_tiles = bins.tiles_x * bins.tiles_y
     forward_kernel = median_forward_kernel(warp_scalar(dtype)) if with_median else \
         composite_kernels(warp_scalar(dtype))[0]

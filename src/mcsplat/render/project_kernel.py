@@ -19,7 +19,7 @@ import torch
 import warp as wp
 
 from ..camera import Camera
-from ..compute.runtime import ensure_warp, run_ranges, warp_scalar
+from ..compute.runtime import ensure_warp, run_ranges, warp_scalar, warp_view
 from ..geometry.covariance import rotation_function
 from ..geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
@@ -393,11 +393,11 @@ def projection_kernels(dtype):
 
 
 def _vector_view(tensor: torch.Tensor, length: int, dtype):
-    return wp.from_torch(tensor.detach(), dtype=wp.types.vector(length, dtype), requires_grad=False)
+    return warp_view(tensor, wp.types.vector(length, dtype))
 
 
 def _scalar_view(tensor: torch.Tensor):
-    return wp.from_torch(tensor.detach(), requires_grad=False)
+    return warp_view(tensor)
 
 
 class _ProjectFunction(torch.autograd.Function):

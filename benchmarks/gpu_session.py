@@ -1,0 +1,274 @@
+"""Every GPU check of the project in one prepared command that fits a lent GPU machine's ten minutes.
+
+    python benchmarks/gpu_session.py --lego PATH/lego --capture PATH/colmap_bird [--minutes 9.5] [--out DIR]
+    python benchmarks/gpu_session.py --phases tests kernels ...     # some of the phases only
+    .venv/bin/python benchmarks/gpu_session.py --dry-run             # on the CPU at toy sizes (the test suite runs it)
+
+A GPU is rarely at hand, so nothing here may need a second try: each phase has a share of the time, is skipped (and
+says so) when too little is left, and a failing phase is recorded and does not stop the others. Nothing is
+downloaded: gsplat (and its JIT-compiled CUDA extension) must be installed or the gsplat arms are skipped.
+
+    tests     pytest --device cuda: the rasterizer and tile-kernel tests against the dense reference renderer on CUDA
+              tensors, the fused SSIM, and a short training run
+    kernels   the compositing kernels alone on the rasterizer benchmark's scene (100k and 300k at 800x800): the
+              tile kernels, the tile backward without its skip of unused pairs, and the scalar kernels before them
+    profile   step_profile.py on lego 400 at 300k: the GPU's busy time per step against the wall time, and what
+              takes the device's and the host's time
+    lego      mcsplat against gsplat 1.5.3 (gpu_vs_gsplat.py) on lego 400, cap 300k, 150k random points
+    capture   the same on a capture at full resolution, cap 1M, 500k random points
+    train     `mcsplat train CAPTURE --steps 30000 --cap-max 1000000`, stopped at the deadline (SIGTERM: the run saves
+              and stops); the steps reached, and the minutes 30,000 steps would take at the last logged speed
+
+Figures go to --out (default benchmarks/results/gpu_session): results.jsonl (one record per phase, with the
+machine) and results.md; each phase's output goes to <phase>.log there, the runs themselves to --runs.
+"""
+
+from __future__ import annotations
+
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import _common as C
+
+REPO = Path(__file__).resolve().parents[1]
+PHASES = ("tests", "kernels", "profile", "lego", "capture", "train")
+# Share of the whole time each phase may take (what one phase leaves is free for the next), and the least it needs.
+SHARES = {"tests": 0.16, "kernels": 0.08, "profile": 0.06, "lego": 0.2, "capture": 0.3, "train": 0.2}
+LEAST_SECONDS = {"tests": 30, "kernels": 20, "profile": 20, "lego": 60, "capture": 90, "train": 40}
+# The lego and capture phases are the end-to-end training runs on the GPU (their test PSNR beside gsplat's).
+TEST_FILES = ["tests/test_render_tile.py", "tests/test_render.py", "tests/test_render_kernels.py",
+              "tests/test_ssim_warp.py"]
+
+
+class Clock:
+    def __init__(self, minutes: float) -> None:
+        self.end = time.monotonic() + 60.0 * minutes
+        self.total = 60.0 * minutes
+
+    def left(self) -> float:
+        return self.end - time.monotonic()
+
+    def allowance(self, phase: str, remaining_phases: list[str]) -> float:
+        """This phase's share of what is left, in proportion to the shares of the phases still to come."""
+        shares = sum(SHARES[p] for p in remaining_phases)
+        return self.left() * SHARES[phase] / shares
+
+
+def run_logged(command: list[str], log: Path, seconds: float, env: dict | None = None) -> tuple[int, float]:
+    """(exit code, seconds) of a command whose output goes to `log`; SIGTERM at the limit, SIGKILL 20 s later."""
+    started = time.monotonic()
+    with open(log, "a") as out:
+        out.write(f"$ {' '.join(command)}\n")
+        out.flush()
+        process = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT, cwd=REPO,
+                                   env={**os.environ, **(env or {})}, start_new_session=True)
+        try:
+            code = process.wait(timeout=max(1.0, seconds))
+        except subprocess.TimeoutExpired:
+            process.send_signal(signal.SIGTERM)
+            try:
+                code = process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)
+                code = process.wait()
+    return code, time.monotonic() - started
+
+
+def tail_line(log: Path, starts: tuple[str, ...]) -> str | None:
+    """The last line of the log that starts with one of `starts` (a test summary, say)."""
+    found = None
+    for line in log.read_text(errors="replace").splitlines():
+        if line.lstrip("= ").startswith(starts) or any(s in line for s in starts):
+            found = line.strip("= ").strip()
+    return found
+
+
+def phase_tests(args, seconds: float, log: Path) -> dict:
+    device = "cpu" if args.dry_run else "cuda"
+    command = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", f"--device={device}",
+               *TEST_FILES] + (["--collect-only"] if args.dry_run else [])
+    code, took = run_logged(command, log, seconds)
+    summary = tail_line(log, (" passed", " failed", " error", "tests collected", "no tests ran"))
+    return {"exit_code": code, "seconds": round(took, 1), "summary": summary}
+
+
+def phase_kernels(args, seconds: float, log: Path) -> dict:
+    sizes, resolution = (["2000"], "64") if args.dry_run else (["100000", "300000"], "800")
+    command = [sys.executable, "benchmarks/rasterizer.py", "--device", "cpu" if args.dry_run else "cuda",
+               "--sizes", *sizes, "--resolutions", resolution, "--repeats", "3" if args.dry_run else "20",
+               "--no-baseline"] + ([] if args.dry_run else ["--cuda-kernels", "tile", "tile-all", "scalar"])
+    code, took = run_logged(command, log, seconds)
+    records = [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
+    return {"exit_code": code, "seconds": round(took, 1), "records": records}
+
+
+def phase_profile(args, seconds: float, log: Path) -> dict:
+    sizes = ["--cap", "4000", "--warm", "20", "--profiled", "5", "--device", "cpu"] if args.dry_run else \
+        ["--cap", "300000", "--warm", "400", "--profiled", "30", "--device", "cuda"]
+    code, took = run_logged([sys.executable, "benchmarks/step_profile.py", "--data", str(args.lego), *sizes], log,
+                            seconds)
+    records = [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
+    return {"exit_code": code, "seconds": round(took, 1), **(records[-1] if records else {})}
+
+
+def gsplat_available() -> bool:
+    try:
+        import gsplat  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def phase_compare(args, seconds: float, log: Path, data: Path, cap: int, init: int, steps: int, timed: int,
+                  init_method: str) -> dict:
+    arms = ["mcsplat"] + (["gsplat"] if gsplat_available() and not args.dry_run else [])
+    out = args.runs / log.stem
+    command = [sys.executable, "benchmarks/gpu_vs_gsplat.py", "--data", str(data), "--cap", str(cap),
+               "--init", str(init), "--init-method", init_method, "--steps", str(steps), "--timed", str(timed),
+               "--arms", *arms, "--out", str(out), "--device", "cpu" if args.dry_run else "cuda"]
+    code, took = run_logged(command, log, seconds)
+    records = [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
+    result = {"exit_code": code, "seconds": round(took, 1), "arms": arms, "records": records,
+              "note": None if "gsplat" in arms or args.dry_run else "gsplat is not installed: mcsplat alone"}
+    by_arm = {r["arm"]: r for r in records}
+    if len(by_arm) == 2:
+        result["step_ratio"] = round(by_arm["mcsplat"]["median_step_ms"] / by_arm["gsplat"]["median_step_ms"], 3)
+        result["memory_ratio"] = round(by_arm["mcsplat"]["peak_gpu_mb"] / by_arm["gsplat"]["peak_gpu_mb"], 3)
+        result["psnr_difference"] = round(by_arm["mcsplat"]["psnr"] - by_arm["gsplat"]["psnr"], 3)
+    return result
+
+
+def phase_train(args, seconds: float, log: Path) -> dict:
+    run = args.runs / "train_run"
+    steps, cap = (30, 3000) if args.dry_run else (30_000, 1_000_000)
+    command = [sys.executable, "-m", "mcsplat.cli", "train", str(args.capture), "--out", str(run), "--overwrite",
+               "--steps", str(steps), "--cap-max", str(cap), "--quiet", "--save-every", "0",
+               "--device", "cpu" if args.dry_run else "cuda", "--lpips-net", "alex"]
+    code, took = run_logged(command, log, seconds)
+    result = {"exit_code": code, "seconds": round(took, 1), "steps_asked": steps}
+    log_file = run / "log.jsonl"
+    if log_file.exists():
+        records = [json.loads(line) for line in log_file.read_text().splitlines() if line.strip()]
+        if records:
+            last = records[-1]
+            result.update(steps_reached=last["step"], train_seconds=last["elapsed_seconds"],
+                          num_gaussians=last["num_gaussians"], train_psnr=last.get("train_psnr"))
+            if len(records) >= 2:
+                before = records[-2]
+                ms = 1000 * (last["elapsed_seconds"] - before["elapsed_seconds"]) / max(1, last["step"] - before["step"])
+                result["last_ms_per_step"] = round(ms, 2)
+                result["minutes_for_all_steps"] = round(
+                    (last["elapsed_seconds"] + (steps - last["step"]) * ms / 1000) / 60, 1)
+    metrics = run / "metrics.json"
+    if metrics.exists():
+        result["metrics"] = {k: v for k, v in json.loads(metrics.read_text()).items()
+                             if k in ("psnr", "ssim", "lpips", "steps", "train_seconds", "num_gaussians")}
+    return result
+
+
+def run_phase(name: str, args, seconds: float, log: Path) -> dict:
+    if name == "tests":
+        return phase_tests(args, seconds, log)
+    if name == "kernels":
+        return phase_kernels(args, seconds, log)
+    if name == "profile":
+        return phase_profile(args, seconds, log)
+    if name == "lego":
+        steps, timed = (20, 10) if args.dry_run else (args.lego_steps, 1000)
+        cap = 3000 if args.dry_run else 300_000
+        return phase_compare(args, seconds, log, args.lego, cap, cap // 2, steps, timed, "auto")
+    if name == "capture":
+        steps, timed = (20, 10) if args.dry_run else (args.capture_steps, 500)
+        cap = 3000 if args.dry_run else 1_000_000
+        return phase_compare(args, seconds, log, args.capture, cap, cap // 2, steps, timed, "random")
+    return phase_train(args, seconds, log)
+
+
+def write_page(out: Path, records: list[dict]) -> str:
+    lines = ["| phase | seconds | result |", "|---|---|---|"]
+    for r in records:
+        if r.get("skipped"):
+            result = f"skipped: {r['skipped']}"
+        elif r["phase"] == "tests":
+            result = f"{r.get('summary')} (exit {r['exit_code']})"
+        elif r["phase"] == "kernels":
+            result = "; ".join(
+                f"{k['gaussians']:,} at {k['image']}: fwd {k['composite_forward_ms']} / bwd {k['composite_backward_ms']} ms"
+                + "".join(f", {v} {k.get(v + '_composite_forward_ms')} / {k.get(v + '_composite_backward_ms')}"
+                          for v in ("tile-all", "scalar") if v + "_composite_forward_ms" in k)
+                for k in r.get("records", []))
+        elif r["phase"] == "profile":
+            result = ", ".join(f"{k} {r[k]}" for k in ("gaussians", "wall_ms_per_step", "gpu_busy_ms_per_step",
+                                                        "host_op_ms_per_step", "kernel_launches_per_step") if k in r)
+            result += f" (exit {r['exit_code']})"
+        elif r["phase"] in ("lego", "capture"):
+            arms = "; ".join(f"{a['arm']} {a['median_step_ms']:.2f} ms, {a['peak_gpu_mb']:.0f} MB, {a['psnr']:.2f} dB"
+                             for a in r.get("records", []))
+            ratio = f"; step {r['step_ratio']}x, memory {r['memory_ratio']}x, PSNR {r['psnr_difference']:+.2f} dB" \
+                if "step_ratio" in r else ""
+            result = arms + ratio + (f" ({r['note']})" if r.get("note") else "") + f" (exit {r['exit_code']})"
+        else:
+            result = ", ".join(f"{k} {r[k]}" for k in ("steps_reached", "num_gaussians", "last_ms_per_step",
+                                                        "minutes_for_all_steps", "train_psnr") if k in r)
+            result += f" (exit {r['exit_code']})"
+        lines.append(f"| {r['phase']} | {r.get('seconds', 0)} | {result} |")
+    table = "\n".join(lines)
+    C.write_text(out / "results.md", table + "\n")
+    return table
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--lego", type=Path, help="NeRF-Synthetic lego at 400x400 (transforms_*.json)")
+    parser.add_argument("--capture", type=Path, help="a real capture at full resolution (COLMAP)")
+    parser.add_argument("--minutes", type=float, default=9.5, help="the whole session's time")
+    parser.add_argument("--phases", nargs="+", default=list(PHASES), choices=PHASES)
+    parser.add_argument("--lego-steps", type=int, default=3000)
+    parser.add_argument("--capture-steps", type=int, default=3000)
+    parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--runs", type=Path, default=None, help="where the training runs go (default: OUT/runs)")
+    parser.add_argument("--dry-run", action="store_true",
+                        help="on the CPU at toy sizes, tests only collected, no gsplat: checks the script itself")
+    args = parser.parse_args()
+    if args.dry_run:
+        demo = REPO / "data" / "lego_demo"
+        args.lego, args.capture = args.lego or demo, args.capture or demo
+    elif not args.lego or not args.capture:
+        parser.error("--lego and --capture are needed (or --dry-run)")
+    out = args.out or C.results_dir("gpu_session")
+    out.mkdir(parents=True, exist_ok=True)
+    args.runs = args.runs or out / "runs"
+    clock = Clock(args.minutes)
+    info = C.machine("cpu" if args.dry_run else "cuda")
+    print(C.machine_line(info), flush=True)
+    records = []
+    phases = [p for p in PHASES if p in args.phases]
+    for index, name in enumerate(phases):
+        seconds = clock.allowance(name, phases[index:])
+        record = {"phase": name, "dry_run": args.dry_run, "started": C.timestamp()}
+        if seconds < LEAST_SECONDS[name] * (0.1 if args.dry_run else 1.0):
+            record["skipped"] = f"{seconds:.0f} s left for it, it needs {LEAST_SECONDS[name]} s"
+        else:
+            log = out / f"{name}.log"
+            log.write_text("")
+            try:
+                record.update(run_phase(name, args, seconds, log))
+            except Exception as error:  # a broken phase is a finding; the others still run
+                record["error"] = f"{type(error).__name__}: {error}"
+        record.update(info)
+        print(json.dumps(record), flush=True)
+        records.append(record)
+        C.append_jsonl(out / "results.jsonl", [record])
+    print(write_page(out, records), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,32 @@
+"""The prepared GPU session (benchmarks/gpu_session.py) runs end to end on the CPU at toy sizes, so that the one
+command a lent GPU machine gets is known to work before a GPU is at hand."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_the_gpu_session_dry_run_completes_every_phase(tmp_path):
+    out = tmp_path / "session"
+    done = subprocess.run([sys.executable, str(REPO / "benchmarks" / "gpu_session.py"), "--dry-run", "--minutes", "4",
+                           "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    records = {r["phase"]: r for r in map(json.loads, (out / "results.jsonl").read_text().splitlines())}
+    assert list(records) == ["tests", "kernels", "profile", "lego", "capture", "train"]
+    for name, record in records.items():
+        assert record["dry_run"] and "skipped" not in record and "error" not in record, (name, record)
+        assert record["exit_code"] == 0, (name, (out / f"{name}.log").read_text()[-2000:])
+    assert "tests collected" in records["tests"]["summary"]
+    assert records["kernels"]["records"][0]["composite_forward_ms"] > 0
+    assert records["profile"]["wall_ms_per_step"] > 0 and records["profile"]["host_op_ms_per_step"] > 0
+    for name in ("lego", "capture"):
+        (arm,) = records[name]["records"]
+        assert arm["arm"] == "mcsplat" and arm["steps"] == 20 and arm["psnr"] > 5
+    assert records["train"]["steps_reached"] == 30 and records["train"]["metrics"]["psnr"] > 5
+    page = (out / "results.md").read_text()
+    assert page.count("\n") == 8 and "| train |" in page
