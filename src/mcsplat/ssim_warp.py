@@ -21,12 +21,11 @@ does not depend on timing, and the mean is a torch reduction of the S plane (no 
 
 from __future__ import annotations
 
-import functools
 
 import torch
 import warp as wp
 
-from .compute.runtime import ensure_warp, run_ranges, warp_device, warp_view
+from .compute.runtime import ensure_warp, launch_on_cuda, run_ranges, warp_view
 
 # The 3DGS SSIM: an 11x11 Gaussian window of sigma 1.5, zero "same" padding (losses.py re-exports these).
 SSIM_WINDOW = 11
@@ -200,32 +199,13 @@ KERNELS = [_statistics_along_rows, _ssim_down_columns, _partials_along_rows, _gr
 for _kernel in KERNELS:
     _kernel.launch_block_dim = TILE_WIDTH * TILE_HEIGHT  # compute/compile.py builds them for the block size launched
 
-_warp_streams: dict[tuple[int, int], wp.Stream] = {}
-
-
-def _warp_stream(device: torch.device) -> wp.Stream:
-    """torch's current stream on `device` as a Warp stream, made once per stream: wrapping it anew at every launch
-    (wp.stream_from_torch) registers and unregisters it with Warp each time."""
-    stream = torch.cuda.current_stream(device)
-    key = (stream.device_index, stream.cuda_stream)
-    if key not in _warp_streams:
-        _warp_streams[key] = wp.stream_from_torch(stream)  # holds the torch stream, which thus stays valid
-    return _warp_streams[key]
-
-
-@functools.lru_cache(maxsize=8)
-def _warp_device(device: torch.device) -> wp.Device:
-    return warp_device(device)
-
-
 def _launch(kernel, height: int, width: int, device: torch.device, arguments: list) -> None:
     """One thread per pixel and channel, in tiles of 32 x 8 (see _pixel): on CUDA one launch on torch's current
     stream, a block per tile; on the CPU ranges of threads from the thread pool."""
     tiles = -(-width // TILE_WIDTH) * -(-height // TILE_HEIGHT)
     n = 3 * tiles * TILE_WIDTH * TILE_HEIGHT
     if device.type == "cuda":
-        wp.launch(kernel, dim=n, inputs=[0] + arguments, device=_warp_device(device), stream=_warp_stream(device),
-                  block_dim=TILE_WIDTH * TILE_HEIGHT)
+        launch_on_cuda(kernel, n, [0] + arguments, device, block_dim=TILE_WIDTH * TILE_HEIGHT)
     else:
         run_ranges(kernel, n, device, arguments)
 

@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 import warp as wp
 
-from ..compute.runtime import cpu_threads, ensure_warp, thread_pool, warp_device, warp_scalar
+from ..compute.runtime import cpu_threads, ensure_warp, launch_on_cuda, thread_pool, warp_scalar
 
 LUMA = (0.299, 0.587, 0.114)  # the brightness that picks a pixel's level (Rec. 601 luma)
 LUMA_R, LUMA_G, LUMA_B = LUMA
@@ -150,16 +150,16 @@ def _pixel_ranges(pixels: int, device: torch.device) -> list[tuple[int, int]]:
 def _launch_ranges(kernel, ranges: list[tuple[int, int]], arguments_for, device: torch.device) -> None:
     """Launch `kernel` once per pixel range (its first argument the range's first pixel), the ranges in parallel on
     the CPU; `arguments_for(part)` gives range `part`'s other arguments."""
-    wp_device = warp_device(device)
+    if device.type == "cuda":
+        first, last = ranges[0]
+        launch_on_cuda(kernel, last - first, [first] + arguments_for(0), device)
+        return
 
     def run(part: int) -> None:
         first, last = ranges[part]
-        wp.launch(kernel, dim=last - first, inputs=[first] + arguments_for(part), device=wp_device)
+        wp.launch(kernel, dim=last - first, inputs=[first] + arguments_for(part), device="cpu")
 
-    if device.type == "cuda":
-        with wp.ScopedStream(wp.stream_from_torch(device)):
-            run(0)
-    elif len(ranges) == 1:
+    if len(ranges) == 1:
         run(0)
     else:
         for future in [thread_pool(len(ranges)).submit(run, part) for part in range(len(ranges))]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import functools
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -107,7 +108,33 @@ def warp_device(device: torch.device) -> wp.Device:
     device_from_torch needs the index)."""
     if device.type == "cuda" and device.index is None:
         device = torch.device("cuda", torch.cuda.current_device())
+    return _warp_device_of(device)
+
+
+@functools.lru_cache(maxsize=16)
+def _warp_device_of(device: torch.device) -> wp.Device:
     return wp.device_from_torch(device)
+
+
+_warp_streams: dict[tuple[int, int], wp.Stream] = {}
+
+
+def warp_stream(device: torch.device) -> wp.Stream:
+    """torch's current stream on a CUDA device as a Warp stream, made once per stream: wp.stream_from_torch at every
+    launch registers and unregisters the stream with Warp each time, host time a training step waits for."""
+    stream = torch.cuda.current_stream(device)
+    key = (stream.device_index, stream.cuda_stream)
+    if key not in _warp_streams:
+        _warp_streams[key] = wp.stream_from_torch(stream)  # holds the torch stream, which thus stays valid
+    return _warp_streams[key]
+
+
+def launch_on_cuda(kernel, dim, inputs: list, device: torch.device, block_dim: int | None = None,
+                   tiled: bool = False) -> None:
+    """One launch on torch's current stream of `device` (so that it runs in order with torch's own kernels)."""
+    options = {} if block_dim is None else {"block_dim": block_dim}
+    launch = wp.launch_tiled if tiled else wp.launch
+    launch(kernel, dim=dim, inputs=inputs, device=warp_device(device), stream=warp_stream(device), **options)
 
 
 def warp_view(tensor: torch.Tensor, dtype=None):
@@ -121,9 +148,7 @@ def run_bands(kernel, inputs_for_worker, num_tiles: int, tile_ranges: torch.Tens
     """Launch `kernel` over all tiles, `threads_per_tile` Warp threads each (256: a thread per pixel; 1: a thread
     per tile); `inputs_for_worker(w, first_tile)` gives the argument list of worker w."""
     if device.type == "cuda":
-        with wp.ScopedStream(wp.stream_from_torch(device)):
-            wp.launch(kernel, dim=num_tiles * threads_per_tile, inputs=inputs_for_worker(0, 0),
-                      device=warp_device(device))
+        launch_on_cuda(kernel, num_tiles * threads_per_tile, inputs_for_worker(0, 0), device)
         return
     if num_workers == 1:
         wp.launch(kernel, dim=num_tiles * threads_per_tile, inputs=inputs_for_worker(0, 0), device="cpu")
@@ -146,9 +171,7 @@ def run_tiled(kernel, num_blocks: int, arguments: list, device: torch.device, bl
     if num_blocks == 0:
         return
     if device.type == "cuda":
-        with wp.ScopedStream(wp.stream_from_torch(device)):
-            wp.launch_tiled(kernel, dim=[num_blocks], inputs=arguments, block_dim=block_dim,
-                            device=warp_device(device))
+        launch_on_cuda(kernel, [num_blocks], arguments, device, block_dim, tiled=True)
         return
     wp.launch_tiled(kernel, dim=[num_blocks], inputs=arguments, block_dim=block_dim, device="cpu")
 
@@ -171,15 +194,13 @@ def run_ranges(kernel, n: int, device: torch.device, arguments: list, min_per_th
     one launch."""
     if n == 0:
         return
-    wp_device = warp_device(device)
+    if device.type == "cuda":
+        launch_on_cuda(kernel, n, [0] + arguments, device)
+        return
 
     def run(first: int, last: int) -> None:
-        wp.launch(kernel, dim=last - first, inputs=[first] + arguments, device=wp_device)
+        wp.launch(kernel, dim=last - first, inputs=[first] + arguments, device="cpu")
 
-    if device.type == "cuda":
-        with wp.ScopedStream(wp.stream_from_torch(device)):
-            run(0, n)
-        return
     parts = max(1, min(cpu_threads(), n // max(1, min_per_thread)))
     edges = [n * k // parts for k in range(parts + 1)]
     if parts == 1:
