@@ -25,6 +25,7 @@ benchmarks/README.md ("GPU"), read them as checked on CPU fibers and compiled fo
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import warp as wp
 
@@ -49,6 +50,20 @@ def _vector(length: int, dtype):
     return wp.types.vector(length, dtype)
 
 
+@functools.lru_cache(maxsize=None)
+def _record_reader(dtype):
+    """A Warp function reading Gaussian g's ten numbers into a record (both kernels load their batches with it)."""
+    record = record_type(dtype)
+
+    @wp.func
+    def gaussian_record(g: int, means2d: wp.array2d(dtype=Any), conics: wp.array2d(dtype=Any),
+                        opacities: wp.array(dtype=Any), colors: wp.array2d(dtype=Any), depths: wp.array(dtype=Any)):
+        return record(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
+                      colors[g, 0], colors[g, 1], colors[g, 2], depths[g])
+
+    return gaussian_record
+
+
 @wp.func
 def _pixel_in_tile(tile: int, local: int, tiles_x: int):
     """(pixel x, pixel y, bit of the pixel's 4x4 block) of pixel `local` (row-major) of `tile`."""
@@ -63,6 +78,7 @@ def forward_kernel(dtype, with_median: bool = False):
     """The forward kernel for wp.float32 or wp.float64; `with_median` also writes each pixel's median Gaussian."""
     vec3 = wp.types.vector(3, dtype)
     record = record_type(dtype)
+    gaussian_record = _record_reader(dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
     def composite_forward_tiled(
@@ -107,8 +123,7 @@ def forward_kernel(dtype, with_median: bool = False):
             if loads:
                 g = gaussian_ids[k]
                 mask = pair_masks[k]
-                numbers = record(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2],
-                                 opacities[g], colors[g, 0], colors[g, 1], colors[g, 2], depths[g])
+                numbers = gaussian_record(g, means2d, conics, opacities, colors, depths)
             wp.tile_scatter_masked(batch_ids, lane, g, loads)
             wp.tile_scatter_masked(batch_masks, lane, mask, loads)
             wp.tile_scatter_masked(batch, lane, numbers, loads)  # each call ends with a barrier
@@ -161,6 +176,7 @@ def backward_kernel(dtype, skip_unused: bool = True):
     passes the mask test is summed (fewer instructions where nearly every pair is used)."""
     vec3 = wp.types.vector(3, dtype)
     record = record_type(dtype)
+    gaussian_record = _record_reader(dtype)
 
     @wp.kernel(module="unique", enable_backward=False)
     def composite_backward_tiled(
@@ -221,8 +237,7 @@ def backward_kernel(dtype, skip_unused: bool = True):
                 k = start + batch_start + lane
                 g = gaussian_ids[k]
                 mask = pair_masks[k]
-                numbers = record(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2],
-                                 opacities[g], colors[g, 0], colors[g, 1], colors[g, 2], depths[g])
+                numbers = gaussian_record(g, means2d, conics, opacities, colors, depths)
             wp.tile_scatter_masked(batch_ids, lane, g, loads)
             wp.tile_scatter_masked(batch_masks, lane, mask, loads)
             wp.tile_scatter_masked(batch, lane, numbers, loads)
