@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+import warp as wp
 
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import set_cpu_threads
@@ -154,3 +155,20 @@ def test_covariance_times_matches_the_batched_matrix_product(device):
         set_cpu_threads(None)
     expected = torch.bmm(covariance_3d(quats, scales.double()), vectors[:, :, None])[:, :, 0]
     torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-14)
+
+
+def test_the_projection_reads_a_moved_cameras_numbers_from_its_host_copy():
+    """A camera moved to the GPU keeps the host copy it came from, and the projection's scalar arguments are read
+    from it: reading them from device tensors would wait for every kernel queued before (a stall per render). The
+    "meta" device has no data at all, so any read from the moved tensors would fail here."""
+    from mcsplat.render.project_kernel import _camera_arguments
+
+    camera = make_camera(width=40, height=30)
+    moved = camera.to("meta")
+    assert moved.K.device.type == "meta" and moved.on_host() is camera and camera.on_host() is camera
+    assert moved.to("meta").on_host() is camera
+    expected = _camera_arguments(camera, 0.01, 100.0, 0.3, wp.float32)
+    got = _camera_arguments(moved, 0.01, 100.0, 0.3, wp.float32)
+    assert [str(a) for a in got] == [str(a) for a in expected]
+    # A camera made from device tensors (a pose being refined) has no host copy and is read where it is.
+    assert type(moved)(K=moved.K, world_to_camera=moved.world_to_camera, width=40, height=30).on_host() is None

@@ -60,8 +60,19 @@ class Camera:
         return Camera(K=K, world_to_camera=self.world_to_camera, width=width, height=height)
 
     def to(self, device: torch.device | str) -> "Camera":
-        return Camera(K=self.K.to(device), world_to_camera=self.world_to_camera.to(device),
-                      width=self.width, height=self.height)
+        """The camera with its tensors on `device`; it remembers the host copy it came from (see `on_host`)."""
+        moved = Camera(K=self.K.to(device), world_to_camera=self.world_to_camera.to(device),
+                       width=self.width, height=self.height)
+        object.__setattr__(moved, "_host", self.on_host())
+        return moved
+
+    def on_host(self) -> "Camera | None":
+        """This camera with its tensors in host memory, without a copy from the device: itself when its tensors are
+        there, the camera it was moved from by `to`, else None. A kernel's scalar arguments are read from it, for
+        reading them from GPU tensors would wait for every kernel queued before."""
+        if self.K.device.type == "cpu" and self.world_to_camera.device.type == "cpu":
+            return self
+        return getattr(self, "_host", None)
 
 
 def intrinsics(fx: float, fy: float, cx: float, cy: float) -> torch.Tensor:

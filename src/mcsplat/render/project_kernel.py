@@ -471,7 +471,9 @@ class _ProjectFunction(torch.autograd.Function):
 
 
 def _camera_arguments(camera: Camera, near: float, far: float, eps2d: float, scalar) -> tuple:
-    """(rotation, translation, centre, fx, fy, cx, cy, width, height, tiles_x, tiles_y, near, far, eps2d)."""
+    """(rotation, translation, centre, fx, fy, cx, cy, width, height, tiles_x, tiles_y, near, far, eps2d), read from
+    the camera's host copy where it has one (a pose being refined has none: it is read from the device)."""
+    camera = camera.on_host() or camera
     w2c = camera.world_to_camera.detach().to(dtype=torch.float64).cpu()
     center = camera.center.detach().to(dtype=torch.float64).cpu()
     mat33 = wp.types.matrix((3, 3), scalar)
