@@ -110,3 +110,24 @@ def altered_cup(shared_data: Path, root: Path, alter, every: int = 3) -> tuple[P
         else:
             shutil.copyfile(photo, root / "images_4" / photo.name)
     return root, altered
+
+
+DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
+
+
+def demo_photos_scene(root: Path, count: int, split: str = "train") -> tuple[Path, list[dict]]:
+    """A transforms.json scene of `count` of the demo's `split` images without their alpha channel (on white): a
+    real capture as mcsplat sees one (poses, no points, no alpha), so that `train` would triangulate its points.
+    Returns the folder and its frames (file_path "<i>.png", so that a test may list them again)."""
+    import json
+
+    meta = json.loads((DEMO / f"transforms_{split}.json").read_text())
+    root.mkdir(parents=True, exist_ok=True)
+    frames = []
+    for i, frame in enumerate(meta["frames"][:count]):
+        with Image.open(DEMO / (frame["file_path"].removeprefix("./") + ".png")) as image:
+            white = Image.new("RGBA", image.size, (255, 255, 255, 255))
+            Image.alpha_composite(white, image.convert("RGBA")).convert("RGB").save(root / f"{i}.png")
+        frames.append({"file_path": f"{i}.png", "transform_matrix": frame["transform_matrix"]})
+    (root / "transforms.json").write_text(json.dumps({"camera_angle_x": meta["camera_angle_x"], "frames": frames}))
+    return root, frames

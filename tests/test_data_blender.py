@@ -153,3 +153,35 @@ def test_camera_angle_x_fallback_and_val_split(shared_data: Path, tmp_path: Path
     assert [v.name for v in scene.test] == ["val/r_0", "val/r_1", "val/r_2"] and len(scene.train) == 3
     assert scene.background == (0.25, 0.5, 0.75)
     assert scene.train[0].camera.fx == pytest.approx(555.555, abs=1e-3)
+
+
+def test_repeated_frames_are_used_once_and_never_in_both_splits(tmp_path: Path) -> None:
+    """30 frames plus 5 repeats (4 of an image path listed before, 1 of a byte-identical copy of an image): 30
+    views, with a warning, and none both a training and a test view."""
+    from helpers import demo_photos_scene
+
+    root, frames = demo_photos_scene(tmp_path / "scene", 30)
+    shutil.copyfile(root / "5.png", root / "copy_of_5.png")
+    repeats = frames[:4] + [{**frames[5], "file_path": "copy_of_5.png"}]
+    meta = json.loads((root / "transforms.json").read_text())
+    (root / "transforms.json").write_text(json.dumps({**meta, "frames": frames + repeats}))
+    with pytest.warns(UserWarning, match="5 frames repeat an image") as record:
+        scene = load_scene(root)
+    assert "copy_of_5.png" in str(record[0].message)
+    assert len(scene.train) + len(scene.test) == 30 and len(scene.test) == 4
+    train_files = {view.image_file.read_bytes() for view in scene.train}
+    assert not any(view.image_file.read_bytes() in train_files for view in scene.test), "a test view is trained on"
+
+
+def test_a_test_frame_repeating_a_training_image_is_left_out_of_the_test_split(tmp_path: Path) -> None:
+    from helpers import demo_photos_scene
+
+    root, frames = demo_photos_scene(tmp_path / "scene", 6)
+    meta = json.loads((root / "transforms.json").read_text())
+    (root / "transforms.json").unlink()
+    (root / "transforms_train.json").write_text(json.dumps({**meta, "frames": frames[:4]}))
+    (root / "transforms_test.json").write_text(json.dumps({**meta, "frames": frames[4:] + frames[1:2]}))
+    with pytest.warns(UserWarning, match="1 frame repeats an image"):
+        scene = load_scene(root)
+    assert [view.name for view in scene.train] == ["0", "1", "2", "3"]
+    assert [view.name for view in scene.test] == ["4", "5"]

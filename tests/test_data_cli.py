@@ -70,3 +70,17 @@ def test_warnings_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture) ->
     captured = capsys.readouterr()
     assert "3 train, 0 test" in captured.out
     assert captured.err.startswith("mcsplat: warning: ") and captured.err.count("\n") == 1 and "3.png" in captured.err
+
+
+def test_info_says_how_train_starts_a_scene_without_points(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A capture with poses and no points is triangulated by `train`, a synthetic scene starts from random points:
+    `info` says which."""
+    from helpers import demo_photos_scene
+
+    root, _ = demo_photos_scene(tmp_path / "photos", 8)
+    assert main(["info", str(root)]) == 0
+    points = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("points:"))
+    assert "triangulates them from the known poses" in points and "random initialisation" not in points, points
+    assert main(["info", str(DEMO)]) == 0
+    points = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("points:"))
+    assert "random" in points and "synthetic" in points, points

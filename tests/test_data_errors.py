@@ -337,3 +337,42 @@ def test_bad_options(options: dict) -> None:
     with pytest.raises(MCSplatError) as info:
         load_scene(DEMO, **options)
     assert list(options)[0] in str(info.value)
+
+
+# --- too few frames ------------------------------------------------------------------------------------------------
+
+def test_a_scene_of_one_frame_says_how_many_frames_are_needed(tmp_path: Path, capsys) -> None:
+    from helpers import demo_photos_scene
+    from mcsplat.cli import main
+
+    root, _ = demo_photos_scene(tmp_path / "one", 1)
+    message = load_error(root)
+    assert "1 view" in message and "at least 2" in message and "--test-every 0" in message
+    for init in ("auto", "random"):
+        capsys.readouterr()
+        assert main(["train", str(root), "--out", str(tmp_path / f"run_{init}"), "--model.init", init,
+                     "--steps", "5", "--quiet"]) == 2
+        error = capsys.readouterr().err
+        assert error.startswith("mcsplat: error:") and "at least 2" in error and error.count("\n") == 1, error
+
+
+def test_points_from_the_poses_of_one_training_view_say_two_are_needed(tmp_path: Path, monkeypatch) -> None:
+    """One frame with --test-every 0: one training view, from which nothing can be triangulated; `--model.init
+    triangulate` says so in one line, and the automatic choice fills the camera's frustum instead."""
+    import torch
+
+    from helpers import demo_photos_scene
+    from mcsplat.config import TrainConfig
+    from mcsplat.initialization import initial_model
+
+    monkeypatch.setenv("MCSPLAT_CACHE", str(tmp_path / "cache"))
+    root, _ = demo_photos_scene(tmp_path / "one", 1)
+    scene = load_scene(root, test_every=0)
+    assert len(scene.train) == 1 and scene.points is None and not scene.alpha
+    config = TrainConfig(data=root, out=tmp_path / "run", quiet=True)
+    config.model.init = "triangulate"
+    with pytest.raises(MCSplatError, match="at least 2 training views"):
+        initial_model(config, scene, torch.device("cpu"), torch.Generator().manual_seed(0))
+    config.model.init = "auto"
+    model, note = initial_model(config, scene, torch.device("cpu"), torch.Generator().manual_seed(0))
+    assert model.num_gaussians > 0 and "frustum" in note and "at least 2 training views" in note

@@ -170,3 +170,27 @@ def test_export_never_replaces_a_run_file_and_the_format_follows_the_name(tiny_r
     for name, format_name in (("y.spz", "spz"), ("y.compressed.ply", "compressed-ply"), ("y.splat", "splat")):
         assert main(["export", str(tiny_run), "--out", str(tmp_path / name)]) == 0
         assert read_gaussians(format_name, tmp_path / name)["means"].shape[0] > 0, name
+
+
+def test_no_command_writes_into_the_scene_the_run_trained_on(tiny_run, mini_demo, tmp_path, capsys):
+    import json
+    import shutil
+
+    scene = shutil.copytree(mini_demo, tmp_path / "scene")
+    run = shutil.copytree(tiny_run, tmp_path / "run")
+    config = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**config, "data": str(scene)}))
+    before = {p: p.read_bytes() for p in scene.rglob("*") if p.is_file()}
+    cases = [["export", str(run), "--format", "mesh", "--out", str(scene / "mesh.ply"), "--voxel-budget", "300000"],
+             ["export", str(run), "--out", str(scene / "train" / "r_0.ply")],
+             ["export", str(run), "--out", str(scene / "x.spz")],
+             ["render", str(run), "--out", str(scene / "renders")],
+             ["render", str(run), "--video", "--frames", "4", "--out", str(scene / "loop.mp4")],
+             ["report", str(run), "--out", str(scene)]]
+    for argv in cases:
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        error = capsys.readouterr().err
+        assert error.startswith("mcsplat: error:") and "inside the scene folder" in error, (argv, error)
+        assert error.count("\n") == 1, error
+    assert {p: p.read_bytes() for p in scene.rglob("*") if p.is_file()} == before, "nothing written into the scene"

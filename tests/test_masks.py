@@ -195,3 +195,23 @@ def test_a_block_painted_over_every_photo_is_not_learned_with_its_mask(shared_da
         assert ("masked_psnr" in metrics) == (masks == "auto")
     assert magenta["auto"] < 0.1, magenta  # the scene behind the block, seen from the other views
     assert magenta["none"] > 0.15, magenta  # the paint, learned as floaters in front of every camera
+
+
+def test_mask_options_that_name_no_masks_are_one_line_errors(mini_demo, tmp_path, capsys):
+    """--masks '' names no folder (not the current one); --invert-masks with no masks to invert is refused."""
+    from mcsplat.cli import main
+
+    cases = [(["info", str(mini_demo), "--masks", ""], "--masks ''"),
+             (["info", str(mini_demo), "--invert-masks"], "--invert-masks"),
+             (["info", str(mini_demo), "--masks", "none", "--invert-masks"], "--invert-masks"),
+             (["train", str(mini_demo), "--out", str(tmp_path / "run"), "--invert-masks", "--steps", "5", "--quiet"],
+              "--invert-masks"),
+             (["process", str(tmp_path / "photos"), "--out", str(tmp_path / "scene"), "--invert-masks"],
+              "--invert-masks")]
+    for argv, expected in cases:
+        capsys.readouterr()
+        assert main(argv) == 2, argv
+        error = capsys.readouterr().err
+        assert error.startswith("mcsplat: error:") and expected in error and error.count("\n") == 1, (argv, error)
+        assert "has no mask for" not in error, error
+    assert not (tmp_path / "run" / "checkpoint.pt").exists() and not (tmp_path / "scene").exists()

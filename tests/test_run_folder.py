@@ -253,3 +253,41 @@ def test_a_scene_folder_is_never_a_run_folder(tmp_path, mini_demo):
         with pytest.raises(MCSplatError, match=expected):
             train(mini_config(scene, out, steps=5))
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before, "nothing written into a scene"
+
+
+def _run_on(run: Path, scene: Path) -> Path:
+    """The run's config.json pointed at `scene` (a copy of the scene it trained on, cut down as a test needs)."""
+    config = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**config, "data": str(scene)}))
+    return run
+
+
+def test_a_video_through_a_single_camera_is_a_one_line_error(run_copy, mini_demo, tmp_path, capsys):
+    scene = Path(shutil.copytree(mini_demo, tmp_path / "scene"))
+    meta = json.loads((scene / "transforms_test.json").read_text())
+    (scene / "transforms_test.json").write_text(json.dumps({**meta, "frames": meta["frames"][:1]}))
+    run = _run_on(run_copy, scene)
+    assert main(["render", str(run), "--video", "--frames", "4"]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("mcsplat: error:") and "at least two cameras" in error and error.count("\n") == 1, error
+    assert not (run / "renders" / "test.mp4").exists()
+
+
+def test_a_run_without_test_views_finishes_without_test_scores(tmp_path, mini_demo, capsys):
+    """--test-every 0 on a scene without a test split: the run ends with its .ply, metrics.json and report, and
+    says that there are no test scores; periodic evaluations are left out, saying so once."""
+    scene = Path(shutil.copytree(mini_demo, tmp_path / "scene"))
+    (scene / "transforms_test.json").unlink()
+    run = tmp_path / "run"
+    assert main(["train", str(scene), "--out", str(run), "--test-every", "0", "--steps", "10", "--eval-every", "5",
+                 "--model.num-init-points", "500", "--lpips-net", "alex", "--no-save-renders"]) == 0
+    captured = capsys.readouterr()
+    assert "no test views" in captured.out and f"wrote {run / 'point_cloud.ply'}" in captured.out
+    warned = [line for line in captured.err.splitlines() if line.startswith("mcsplat: warning:")]
+    assert len(warned) == 1 and "--eval-every" in warned[0], captured.err
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["test_views"] == 0 and metrics["psnr"] is None and metrics["steps"] == 10
+    assert (run / "point_cloud.ply").is_file() and (run / "report.html").is_file()
+    assert main(["eval", str(run)]) == 2
+    error = capsys.readouterr().err
+    assert "no test views" in error and error.count("\n") == 1

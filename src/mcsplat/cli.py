@@ -48,11 +48,12 @@ class Info:
     def run_command(self) -> int:
         from mcsplat.data import load_scene
         from mcsplat.data.masks import MaskOptions
+        from mcsplat.initialization import start_without_points
 
         background = None if self.background.strip().lower() == "auto" else self.background
         scene = load_scene(self.data, downscale=self.downscale, background=background, test_every=self.test_every,
                            masks=MaskOptions(self.masks, self.invert_masks))
-        print(scene.summary())
+        print(scene.summary(start=start_without_points(scene)))
         return 0
 
 
@@ -132,9 +133,15 @@ class Render:
         if self.frames < 2 or self.fps < 1:
             raise MCSplatError("--frames must be at least 2 and --fps at least 1")
         run = run_dir.load(self.run, resolve_device(self.device))
+        if self.out is not None:
+            run_dir.refuse_writing_into_scene(self.out, run.config)
         views = run.scene.test if self.split == "test" else run.scene.train
         if not views:
             raise MCSplatError(f"the scene has no {self.split} views to render")
+        if self.video and len(views) < 2:
+            other = "train" if self.split == "test" else "test"
+            raise MCSplatError(f"--video: a camera path needs at least two cameras, and the {self.split} split has "
+                               f"one; render its image without --video, or the path through --split {other}")
         target = self.out or (run.folder.video_file if self.video else run.folder.renders_folder)(self.split)
         if self.video and target.suffix.lower() != ".mp4":
             raise MCSplatError(f"--out {target}: a video must be an .mp4 file")
@@ -292,11 +299,14 @@ class Export:
         return 0
 
     def _checked_out(self, folder) -> Path:
-        """--out, unless it is a folder or one of the run's own files."""
+        """--out, unless it is a folder, one of the run's own files or inside a scene folder."""
+        from mcsplat.run_dir import refuse_writing_into_scene
+
         if self.out.is_dir():
             raise MCSplatError(f"--out {self.out} is a folder; give the file to write")
         if folder.is_own_file(self.out):
             raise MCSplatError(f"--out {self.out} would replace the run's own {self.out.name}; choose another name")
+        refuse_writing_into_scene(self.out, folder.read_config())
         return self.out
 
     def _output(self, folder) -> tuple[Path, str]:
@@ -367,8 +377,12 @@ class Report:
 
         import contextlib
 
-        from mcsplat.run_dir import RunDir
+        from mcsplat.run_dir import RunDir, refuse_writing_into_scene
 
+        if self.out is not None:
+            for run in map(RunDir, self.runs):
+                if run.config_file.is_file():
+                    refuse_writing_into_scene(self.out, run.read_config())
         target = RunDir(self.out or self.runs[0])
         with target.lock("mcsplat report") if target.config_file.is_file() else contextlib.nullcontext():
             test_views, render_view = (), None
@@ -468,6 +482,9 @@ class Process:
 
         if self.num_frames is not None and self.num_frames < 3 or self.fps is not None and self.fps <= 0:
             raise MCSplatError("--num-frames must be at least 3 and --fps positive")
+        if self.invert_masks and self.masks is None:
+            raise MCSplatError("--invert-masks without --masks: there are no masks to invert; give the masks' folder "
+                               "with --masks, or leave --invert-masks out")
         summary = process(self.input, self.out, ProcessOptions(
             matcher=self.matcher, camera_model=self.camera_model, sfm_max_size=self.sfm_max_size,
             num_frames=self.num_frames, fps=self.fps, threads=self.threads, overwrite=self.overwrite,

@@ -115,7 +115,7 @@ class RunFinished:
     kind: ClassVar[str] = "run_finished"
     run: RunView
     metrics: dict[str, Any]  # what metrics.json holds
-    evaluation: Evaluation  # of the final model, per-view scores included
+    evaluation: Evaluation | None  # of the final model, per-view scores included; None: no test views
 
 
 Event = RunStarted | KernelsCompiling | RefineDone | EvalDone | StepDone | CheckpointWritten | RunFinished

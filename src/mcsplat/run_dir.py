@@ -299,6 +299,23 @@ def refuse_scene_folder(out: Path, data: Path) -> None:
                            f"folder")
 
 
+def refuse_writing_into_scene(path: Path, config: TrainConfig) -> None:
+    """An output of a command on a run (export, render, report) is never inside the scene the run trained on, nor
+    in another scene folder: mcsplat writes nothing there."""
+    target, data = path.resolve(), Path(config.data).resolve()
+    if target == data or target.is_relative_to(data):
+        raise MCSplatError(f"--out {path} is inside the scene folder {data} the run trained on, which mcsplat never "
+                           f"writes into; write it elsewhere (leave --out out to write into the run folder)")
+    for folder in (target, target.parent):
+        if folder.is_dir():
+            try:
+                kind = detect_kind(folder)
+            except DataError:
+                continue
+            raise MCSplatError(f"--out {path} is inside the scene folder {folder} (a {kind} scene), which mcsplat "
+                               f"never writes into; write it elsewhere")
+
+
 def check_resumable(config: TrainConfig, world_size: int) -> None:
     if config.world_size != world_size:
         raise MCSplatError(f"this run was trained with {config.world_size} process(es), its step schedules and "

@@ -206,6 +206,9 @@ class TrainingRun:
         self.scene: Scene = run_dir.scene_of(config)
         team.check_same_setup(_scene_summary(self.scene))
         self.background = run_dir.background_of(config, self.scene)
+        if not self.scene.test and config.eval_every and team.is_main:
+            warnings.warn(f"--eval-every {config.eval_every} is ignored: the scene has no test views to evaluate "
+                          f"(--test-every {config.test_every})", stacklevel=2)
         checkpoint = team.on_main(lambda: self.folder.read_checkpoint_of(config)) if config.resume else None
         self.state, self.init_note = start(config, self.scene, self.device, team, checkpoint,
                                            progress=not config.quiet and team.is_main)
@@ -365,7 +368,7 @@ class TrainingRun:
                 state.train_seconds += seconds
                 step = state.step
                 team.check_identical(state.model, step)
-                if config.eval_every and step % config.eval_every == 0 and step < config.steps:
+                if config.eval_every and self.scene.test and step % config.eval_every == 0 and step < config.steps:
                     result = self._evaluate(sh_degree_at(config, step - 1))
                     emit(EvalDone(step=step, psnr=result.psnr, ssim=result.ssim,
                                   num_gaussians=state.model.num_gaussians))
@@ -406,16 +409,19 @@ class TrainingRun:
             config.steps = state.step
         self.save_checkpoint()
         final_degree = final_sh_degree(config, state.step)
-        evaluation = self._evaluate(final_degree, lpips_net=config.lpips_net, save_renders=config.save_renders,
-                                    progress=not config.quiet)
+        evaluation = None  # a scene without test views (--test-every 0) ends without test scores
+        if self.scene.test:
+            evaluation = self._evaluate(final_degree, lpips_net=config.lpips_net, save_renders=config.save_renders,
+                                        progress=not config.quiet)
         seen = seen_in_views(state.model, self.scene.train, self.background, self.device, team)
         invisible = count_invisible(state.model, seen)
         exported = self.folder.export_splats(state.model) if team.is_main else int(run_dir.alive(state.model).sum())
         strategy = state.strategy
-        metrics = {"psnr": evaluation.psnr, "ssim": evaluation.ssim, "lpips": evaluation.lpips,
+        scores = _scores(evaluation)
+        metrics = {**{key: scores[key] for key in ("psnr", "ssim", "lpips")},
                    "lpips_net": config.lpips_net, "num_gaussians": state.model.num_gaussians,
                    "exported_gaussians": exported, "steps": state.step, "train_seconds": round(state.train_seconds, 2),
-                   "device": str(self.device), "strategy": config.strategy, "test_views": evaluation.views,
+                   "device": str(self.device), "strategy": config.strategy, "test_views": scores["test_views"],
                    "sh_degree": final_degree, "processes": team.world_size,
                    "wall_seconds": round(state.wall_seconds, 2),
                    **({"budget_seconds": self.planner.budget} if self.planner is not None else {}),
@@ -423,13 +429,23 @@ class TrainingRun:
                    # --cap-max auto: where growth stopped (None: the demand never fell, the ceiling decided)
                    **({"auto_cap": strategy.chosen_cap, "auto_cap_ceiling": strategy.ceiling}
                       if config.cap_max == "auto" else {}),
-                   **evaluation.masked(), **evaluation.compensated(),
+                   **scores["masked"], **scores["compensated"],
                    **({"pose_corrections": state.poses.summary()} if state.poses is not None else {}),
-                   "per_view_psnr": evaluation.per_view_psnr}
+                   "per_view_psnr": scores["per_view_psnr"]}
         if team.is_main:
             self.folder.write_metrics(metrics)
         emit(RunFinished(run=self, metrics=metrics, evaluation=evaluation))
         return metrics
+
+
+def _scores(evaluation: Evaluation | None) -> dict[str, Any]:
+    """What metrics.json records of the final evaluation: None scores and no views when there was none."""
+    if evaluation is None:
+        return {"psnr": None, "ssim": None, "lpips": None, "test_views": 0, "masked": {}, "compensated": {},
+                "per_view_psnr": {}}
+    return {"psnr": evaluation.psnr, "ssim": evaluation.ssim, "lpips": evaluation.lpips, "test_views": evaluation.views,
+            "masked": evaluation.masked(), "compensated": evaluation.compensated(),
+            "per_view_psnr": evaluation.per_view_psnr}
 
 
 def _resized(model: GaussianModel, count: int) -> GaussianModel:

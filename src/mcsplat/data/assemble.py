@@ -71,6 +71,10 @@ def assemble(frames: Sequence[Frame], *, kind: str, root: Path, background: Back
         train, test = split_every(views, test_every)
     else:
         train, test = views[:train_count], views[train_count:]
+    if not train:
+        what = "its 1 view is" if len(views) == 1 else f"each of its {len(views)} views is"
+        raise DataError(f"{root}: {what} a test view, which leaves none to train on; a scene needs at least 2 views "
+                        "(one to train on, one to test) and --test-every 0 or above 1 (0: train on every view)")
     notes += store_note(store) + mask_notes
     xyz, rgb = _finite(points) if points is not None else (None, None)
     return make_scene(train, test, xyz, rgb, background, kind, root, notes=notes, alpha=alpha)
@@ -97,6 +101,9 @@ def _masks(frames: Sequence[Frame], root: Path, options: MaskOptions, alpha: boo
     else:
         folder = options.folder(root)
         if folder is None:
+            if options.invert:
+                raise DataError(f"--invert-masks: {root} has no {masks.MASK_FOLDER}/ folder, so there are no masks to "
+                                "invert; give the masks' folder with --masks, or leave --invert-masks out")
             return None, []
         files = [masks.mask_file(folder, frame.name, frame.path) for frame in frames]
         missing = [frame.name for frame, file in zip(frames, files) if file is None]

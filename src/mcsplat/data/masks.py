@@ -38,6 +38,13 @@ class MaskOptions:
     source: str = "auto"
     invert: bool = False
 
+    def __post_init__(self) -> None:
+        if not self.source.strip():
+            raise DataError(f"--masks {self.source!r} names no folder: give 'auto', 'none', 'alpha' or the folder "
+                            "that holds one mask PNG per image")
+        if self.invert and self.source == "none":
+            raise DataError("--invert-masks with --masks none: there are no masks to invert; leave one of them out")
+
     def folder(self, root: Path) -> Path | None:
         """The mask folder to read, or None (no masks, or the alpha channel)."""
         if self.source in ("none", "alpha"):

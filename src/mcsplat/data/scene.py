@@ -106,8 +106,9 @@ class Scene:
         a random initialisation fills that box rather than a cube of scene radii)."""
         return self.kind == "idr" or (self.kind == "blender" and self.alpha)
 
-    def summary(self) -> str:
-        """A few human lines: kind, counts, image size, points, radius."""
+    def summary(self, start: str | None = None) -> str:
+        """A few human lines: kind, counts, image size, points, radius. `start` says what a scene without points
+        starts training from (the loader cannot know: initialization/ decides)."""
         views = self.train + self.test
         sizes = sorted({(v.camera.width, v.camera.height) for v in views})
         if len(sizes) == 1:
@@ -116,7 +117,7 @@ class Scene:
             size = f"{len(sizes)} sizes, from {sizes[0][0]}x{sizes[0][1]} to {sizes[-1][0]}x{sizes[-1][1]}"
         focal = [v.camera.fx for v in views]
         megabytes = sum(v.camera.width * v.camera.height * 3 for v in views) / 2**20
-        points = "none (random initialisation)" if self.points is None else f"{self.points.shape[0]:,}"
+        points = f"{self.points.shape[0]:,}" if self.points is not None else f"none; {start}" if start else "none"
         lines = [
             f"scene:      {self.root} ({self.kind})",
             f"views:      {len(self.train)} train, {len(self.test)} test",

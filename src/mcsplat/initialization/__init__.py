@@ -22,6 +22,8 @@ from ..errors import MCSplatError
 from ..gaussians import GaussianModel
 from .frustum import points_in_frustums
 
+MIN_TRIANGULATION_VIEWS = 2  # a point is seen from two cameras at least
+
 
 def initial_model(config: TrainConfig, scene: Scene, device: torch.device, generator: torch.Generator,
                   progress: bool = False) -> tuple[GaussianModel, str]:
@@ -61,7 +63,7 @@ def _initial_model(config: TrainConfig, scene: Scene, device: torch.device, gene
             f"the scene's SfM points ({scene.points.shape[0]:,})"
     if method == "triangulate":
         try:
-            found = triangulated_points(scene.train, threads=config.threads, progress=progress)
+            found = _triangulated(config, scene, progress)
         except MCSplatError as error:
             if m.init != "auto":
                 raise
@@ -81,6 +83,26 @@ def _initial_model(config: TrainConfig, scene: Scene, device: torch.device, gene
                                       sh_degree=m.sh_degree, generator=generator, device=device)
     why = ", a synthetic scene, as the official code" if m.init == "auto" else ""
     return model, f"random ({model.num_gaussians:,} points{why})"
+
+
+def _triangulated(config: TrainConfig, scene: Scene, progress: bool):
+    """The points triangulated from the training views' known poses; MCSplatError (one line) when they are too few
+    to triangulate from."""
+    if len(scene.train) < MIN_TRIANGULATION_VIEWS:
+        raise MCSplatError(f"points from known poses need at least {MIN_TRIANGULATION_VIEWS} training views, and "
+                           f"{scene.root} has {len(scene.train)} (--model.init frustum or random start without them)")
+    return triangulated_points(scene.train, threads=config.threads, progress=progress)
+
+
+def start_without_points(scene: Scene) -> str:
+    """What `mcsplat train` (--model.init auto) starts a scene without SfM points from, in words (for `info`)."""
+    if scene.alpha:
+        return "`mcsplat train` starts from random points in a cube (a synthetic scene, as the official code does)"
+    if len(scene.train) < MIN_TRIANGULATION_VIEWS:
+        return (f"`mcsplat train` fills the cameras' frustums with random points (triangulating needs at least "
+                f"{MIN_TRIANGULATION_VIEWS} training views)")
+    return ("`mcsplat train` triangulates them from the known poses of the training views (cached after the first "
+            "run), or fills the cameras' frustums with random points where that fails")
 
 
 def _from_points(config: TrainConfig, points: torch.Tensor, colors: torch.Tensor, device: torch.device

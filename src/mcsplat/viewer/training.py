@@ -58,7 +58,8 @@ class TrainingViewer(Subscriber):
         self.server.training = False
         self.server.pause_button.visible = self.server.resume_button.visible = False
         self.test_psnr = event.metrics["psnr"]
-        self.server.set_stats(f"**finished** at step {self.step:,}  \nfinal test PSNR {self.test_psnr:.2f} dB  \n"
+        test = f"{self.test_psnr:.2f} dB" if self.test_psnr is not None else "n/a (no test views)"
+        self.server.set_stats(f"**finished** at step {self.step:,}  \nfinal test PSNR {test}  \n"
                               f"{event.metrics['num_gaussians']:,} Gaussians")
 
     def _stats(self, event: StepDone) -> str:
