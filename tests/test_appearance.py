@@ -87,3 +87,23 @@ def test_a_resumed_run_with_appearance_takes_the_same_steps(shared_data, tmp_pat
         assert torch.equal(value, resumed["model"][key]), key
     for key, value in straight["appearance"]["transforms"].items():
         assert torch.equal(value, resumed["appearance"]["transforms"][key]), key
+
+
+def test_a_bilateral_grid_too_large_for_memory_is_one_line_before_anything_is_allocated(mini_demo, tmp_path,
+                                                                                       capsys):
+    """--appearance-grid-shape 100000 100000 100 asked torch for 48 TB (a RuntimeError): its size is checked against
+    the free memory first, in one line, as the mesh's volume is, before the initial points: nothing is written."""
+    from mcsplat.appearance import check_fits
+    from mcsplat.cli import main
+
+    run = tmp_path / "run"
+    status = main(["train", str(mini_demo), "--out", str(run), "--steps", "5", "--quiet", "--model.init", "random",
+                   "--appearance", "bilateral-grid", "--appearance-grid-shape", "100000", "100000", "100"])
+    error = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(error) == 1, error
+    assert error[0].startswith("mcsplat: error: --appearance-grid-shape 100000 100000 100: the grids of the 12 "
+                               "training images need"), error
+    assert "GiB free" in error[0] and "smaller --appearance-grid-shape" in error[0]
+    assert not run.exists() or not any(run.iterdir())
+    check_fits("bilateral-grid", 12, torch.device("cpu"), (16, 16, 8))  # the default takes a few MB
+    check_fits("affine", 10**9, torch.device("cpu"), (100000, 100000, 100))  # the shape is for grids only

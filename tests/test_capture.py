@@ -84,12 +84,11 @@ def test_bad_inputs_get_one_line_errors(tmp_path, cup_photos):
     cases = [(tmp_path / "missing", tmp_path / "a", "does not exist"),
              (empty, tmp_path / "b", "no images in"),
              (cup_photos, cup_photos / "scene", "inside the input folder")]
-    broken = tmp_path / "broken"
+    broken = tmp_path / "broken"  # a broken photo is left out (see below): here every one is
     broken.mkdir()
-    for name in ("1.jpg", "10.jpg", "11.jpg"):
-        (broken / name).write_bytes((cup_photos / name).read_bytes())
+    (broken / "1.jpg").write_bytes((cup_photos / "1.jpg").read_bytes()[:5000])
     (broken / "12.jpg").write_bytes(b"not a jpeg")
-    cases.append((broken, tmp_path / "c", "cannot read image"))
+    cases.append((broken, tmp_path / "c", r"none of the 2 images in .* can be read \(1.jpg: image file is truncated"))
     bad_video = tmp_path / "clip.mp4"
     bad_video.write_bytes(b"\x00" * 1000)
     cases.append((bad_video, tmp_path / "d", "cannot read video"))
@@ -290,3 +289,53 @@ def test_masks_keep_sift_off_what_they_leave_out_and_come_with_the_scene(cup_pho
     assert all(view.mask is not None and view.mask.shape == view.image.shape[:2] for view in scene.train)
     assert 0.3 < (scene.train[0].mask == 0).float().mean() < 0.5  # the left 40%, through the undistortion
     assert sorted(p.name for p in masks.iterdir()) == sorted(f"{p.stem}.png" for p in cup_photos.glob("*.jpg"))
+
+
+def test_a_photo_that_does_not_decode_whole_is_left_out_and_named(cup_photos, tmp_path):
+    """A truncated JPEG opens and its header reads (Pillow's verify() passes it), but two thirds of its rows are
+    flat grey: it is left out before SfM, with a warning that names it, and the scene has no copy of it."""
+    photos = copy_photos(cup_photos, tmp_path / "photos", 16)
+    broken = sorted(photos.iterdir())[5]
+    broken.write_bytes(broken.read_bytes()[: broken.stat().st_size // 3])
+    out = tmp_path / "scene"
+    with pytest.warns(UserWarning) as warned:
+        summary = process(photos, out, ProcessOptions(threads=2, progress=False))
+    left_out = [str(w.message) for w in warned if broken.name in str(w.message)]
+    assert left_out and "left out" in left_out[0] and "truncated" in left_out[0], [str(w.message) for w in warned]
+    assert summary.images == 15 and summary.left_out == [broken.name], summary
+    assert any(line.startswith("left out:") and broken.name in line for line in summary.lines())
+    assert broken.name not in {p.name for p in (out / "images").iterdir()}
+    assert broken.name not in json.loads((out / "process.json").read_text())["files"]
+
+
+def _full_masks(photos: Path, folder: Path) -> Path:
+    folder.mkdir()
+    for path in photos.glob("*.jpg"):
+        Image.new("L", SMALL, 255).save(folder / f"{path.stem}.png")
+    return folder
+
+
+def test_a_broken_or_missing_mask_is_one_line_that_names_it(cup_photos, tmp_path, capsys):
+    """A truncated PNG or a text file among the masks: one line naming the file (as `train` gives), no scene; a
+    missing mask: a hint that `process` takes (it has no `--masks none`: leave --masks out)."""
+    from mcsplat.cli import main
+
+    photos = copy_photos(cup_photos, tmp_path / "photos", 3)
+    masks = _full_masks(photos, tmp_path / "masks")
+    first, second, _ = sorted(masks.iterdir())
+    whole = first.read_bytes()
+    first.write_bytes(whole[: len(whole) // 2])
+    second.write_text("not a mask\n")
+    out = tmp_path / "scene"
+    for damaged in (first, second):
+        with pytest.warns(UserWarning), pytest.raises(MCSplatError, match=f"cannot decode mask {damaged}") as info:
+            process(photos, out, ProcessOptions(threads=1, progress=False, masks=str(masks)))
+        assert "\n" not in str(info.value) and "replace the file" in str(info.value)
+        assert not out.exists()
+        first.write_bytes(whole)
+    second.unlink()
+    status = main(["process", str(photos), "--out", str(out), "--masks", str(masks), "--threads", "1"])
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert status == 2 and error.startswith("mcsplat: error:") and f"({second.stem}.jpg)" in error, error
+    assert "--masks none" not in error and "leave --masks out" in error
+    assert not out.exists()

@@ -124,6 +124,35 @@ def test_missing_or_misshapen_masks_are_one_line_errors(shared_data, tmp_path):
         load_scene(root, downscale=4, masks=MaskOptions("alpha"))
 
 
+def test_masks_that_leave_nothing_to_train_on_are_refused(shared_data, tmp_path, capsys):
+    """An all-black mask leaves its view nothing to train on or score; all of them leave the run the regularisers
+    alone (it trained to a loss of 0.0008 and exited 0). Either is one line that names the masks."""
+    from mcsplat.cli import main
+
+    root = _cup_copy(shared_data, tmp_path / "cup")
+    _write_block_masks(root)
+    black = Image.new("L", CUP_SIZE, 0)
+    black.save(root / "masks" / "12.png")
+    with pytest.raises(DataError, match=r"mask .*12.png leaves out every pixel of 12\b") as info:
+        load_scene(root, downscale=4)
+    assert "\n" not in str(info.value)
+    for mask in (root / "masks").iterdir():
+        black.save(mask)
+    with pytest.raises(DataError, match=r"every one of the 77 masks .* leaves out every pixel.*--invert-masks"):
+        load_scene(root, downscale=4)
+    white = Image.new("L", CUP_SIZE, 255)  # white inverted: black again, and the hint is to drop --invert-masks
+    for mask in (root / "masks").iterdir():
+        white.save(mask)
+    with pytest.raises(DataError, match=r"\(inverted\).*without --invert-masks"):
+        load_scene(root, downscale=4, masks=MaskOptions(invert=True))
+    run = tmp_path / "run"
+    status = main(["train", str(root), "--out", str(run), "--downscale", "4", "--steps", "5", "--quiet",
+                   "--invert-masks"])
+    error = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and error[-1].startswith("mcsplat: error: every one of the 77 masks"), error
+    assert not (run / "checkpoint.pt").exists() and not (run / "metrics.json").exists()
+
+
 def test_a_mask_is_undistorted_with_its_image(shared_data, tmp_path, monkeypatch):
     """ngp_fruit's OPENCV camera: a mask made from the photo's own bright pixels still lies on them once both are
     undistorted."""

@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from .appearance import Compensation, make_appearance
+from .appearance import Compensation, check_fits, make_appearance
 from .config import TrainConfig, to_jsonable
 from .data import Scene
 from .distributed import Team
@@ -99,6 +99,7 @@ def start(config: TrainConfig, scene: Scene, device: torch.device, team: Team,
           checkpoint: dict[str, Any] | None = None, progress: bool = False) -> tuple[TrainingState, str]:
     """(the state of step 0, or the one `checkpoint` holds; a note on where it came from). Every process calls it;
     a fresh model is rank 0's on all of them."""
+    check_fits(config.appearance, len(scene.train), device, config.appearance_grid_shape)  # before any work
     torch.manual_seed(config.seed)
     generator = torch.Generator(device=device).manual_seed(config.seed)
     sampler = ViewSampler(len(scene.train), config.seed)

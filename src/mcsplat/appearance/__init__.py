@@ -17,15 +17,18 @@ import math
 
 import torch
 
+from ..compute.device import free_memory
+from ..errors import MCSplatError
 from .affine import AffineAppearance
-from .bilateral_grid import GRID_SHAPE, BilateralGridAppearance
+from .bilateral_grid import GRID_SHAPE, BilateralGridAppearance, grids_bytes
 from .heldout import apply_transform, fitted_transform, split_halves
 from .slicing import slicing_kernels
 
-__all__ = ["MODES", "AffineAppearance", "BilateralGridAppearance", "Compensation", "apply_transform",
+__all__ = ["MODES", "AffineAppearance", "BilateralGridAppearance", "Compensation", "apply_transform", "check_fits",
            "fitted_transform", "lr_at", "make_appearance", "split_halves", "training_kernels"]
 
 MODES = ("none", AffineAppearance.MODE, BilateralGridAppearance.MODE)
+MEMORY_SHARE = 0.5  # of the free memory the grids may take (the rest: the images, the model, the renders)
 Transforms = AffineAppearance | BilateralGridAppearance
 
 
@@ -36,6 +39,20 @@ def make_appearance(mode: str, count: int, device: torch.device, pull_weight: fl
     if mode == "bilateral-grid":
         return BilateralGridAppearance(count, device, pull_weight, tv_weight, grid_shape)
     return None
+
+
+def check_fits(mode: str, count: int, device: torch.device, grid_shape: tuple[int, int, int] = GRID_SHAPE) -> None:
+    """A one-line error, before anything is allocated, when the bilateral grids of `count` training images would not
+    fit in the memory free on `device` (a shape of 100000 100000 100 asked torch for 48 TB)."""
+    if mode != BilateralGridAppearance.MODE:
+        return
+    need, free = grids_bytes(count, grid_shape), free_memory(device)
+    if free is not None and need > MEMORY_SHARE * free:
+        shape = " ".join(str(cells) for cells in grid_shape)
+        raise MCSplatError(f"--appearance-grid-shape {shape}: the grids of the {count} training images need "
+                           f"{need / 2**30:,.1f} GiB, more than {MEMORY_SHARE:.0%} of the {free / 2**30:.1f} GiB free "
+                           f"on {device}; give a smaller --appearance-grid-shape (the default 16 16 8 takes "
+                           f"{grids_bytes(count, GRID_SHAPE) / 2**20:,.0f} MB here)")
 
 
 def training_kernels(mode: str, dtype: torch.dtype = torch.float32) -> list:

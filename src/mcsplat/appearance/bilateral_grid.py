@@ -18,6 +18,15 @@ from .slicing import slice_grid
 
 GRID_SHAPE = (16, 16, 8)  # columns, rows, brightness levels (gsplat's default)
 CENTRE_EVERY = 10  # steps between two centrings (the median over the images' grids takes tens of ms)
+# Per cell of one image's grid: 12 float32 numbers, held three times (the grid, RowAdam's first moment, and the
+# working copy the median of a centring takes).
+BYTES_PER_CELL = 12 * 4 * 3
+
+
+def grids_bytes(count: int, shape: tuple[int, int, int]) -> int:
+    """The memory the grids of `count` images of `shape` (columns, rows, levels) take while training."""
+    columns, rows, levels = shape
+    return count * columns * rows * levels * BYTES_PER_CELL
 
 
 def _identity(levels: int, rows: int, columns: int, device) -> torch.Tensor:

@@ -30,11 +30,11 @@ def prepare(mask_dir: Path, folder: Path, names: list[str], sizes: list[tuple[in
     files = [training_masks.mask_file(mask_dir, str(Path(name).with_suffix("")), folder / name) for name in names]
     missing = [name for name, file in zip(names, files) if file is None]
     if missing:
-        raise training_masks.missing_error(mask_dir, missing, len(names))
+        # process has no --masks none (the photos have no masks/ it would find by itself): leaving it out is the way
+        raise training_masks.missing_error(mask_dir, missing, len(names), without="leave --masks out")
     sift, as_photos = work / SIFT_MASKS, work / MASKS_AS_PHOTOS
     for name, file, size in zip(names, files, sizes):
-        with Image.open(file) as im:
-            keep = np.asarray(im.convert("L")) > 0
+        keep = training_masks.read_keep(file) > 0  # a file that does not decode whole: one line naming it
         if keep.shape[::-1] != tuple(size):
             raise MCSplatError(f"mask {file} is {keep.shape[1]}x{keep.shape[0]} but its photo {name} is "
                                f"{size[0]}x{size[1]}; a mask must have its photo's size")

@@ -62,6 +62,7 @@ class ProcessSummary:
     image_sizes: dict[str, int] = field(default_factory=dict)  # "WxH" -> how many input images have that size
     seconds: dict[str, float] = field(default_factory=dict)
     masks: int = 0  # masks written to the scene's masks/ (with --masks)
+    left_out: list[str] = field(default_factory=list)  # input photos that do not decode whole, not used
 
     def lines(self) -> list[str]:
         stages = ", ".join(f"{name} {value:.1f} s" for name, value in self.seconds.items())
@@ -70,6 +71,7 @@ class ProcessSummary:
                 f"{'s' if self.models != 1 else ''} found, the largest kept; {self.matcher} matching)",
                 *([f"sizes:      the images come in {len(self.image_sizes)} sizes ({sizes}): one camera per size"]
                   if len(self.image_sizes) > 1 else []),
+                *([f"left out:   {', '.join(self.left_out)} (cannot be decoded whole)"] if self.left_out else []),
                 f"points:     {self.points:,}, mean reprojection error {self.mean_reprojection_error:.2f} px",
                 f"camera:     {self.camera} -> {self.undistorted_camera}",
                 *([f"masks:      used by SIFT, and undistorted into masks/ ({self.masks}) for training"]
@@ -97,6 +99,8 @@ def process(source: str | os.PathLike, out: str | os.PathLike, options: ProcessO
         raise MCSplatError("--masks needs a folder of photos (the frames taken from a video have no masks named "
                            "after them); extract the frames first, or leave --masks out")
     photos = None if from_video else frames.list_photos(source)  # fail on a bad input before any work
+    if photos is not None and photos.left_out:
+        warnings.warn(_left_out_warning(photos.left_out), stacklevel=2)
     needed = _space_needed(source, photos, options)
     with writing_into(out.parent, needed):
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -113,6 +117,14 @@ def process(source: str | os.PathLike, out: str | os.PathLike, options: ProcessO
         finally:
             shutil.rmtree(work, ignore_errors=True)
             signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # a signal held back during the move arrives now
+
+
+def _left_out_warning(left_out: dict[str, str]) -> str:
+    shown = "; ".join(f"{name} ({reason})" for name, reason in list(left_out.items())[:3])
+    more = f" and {len(left_out) - 3} more" if len(left_out) > 3 else ""
+    return (f"left out {len(left_out)} image{'s' if len(left_out) > 1 else ''} that cannot be decoded whole: "
+            f"{shown}{more}; replace {'them' if len(left_out) > 1 else 'it'} and run again to use "
+            f"{'them' if len(left_out) > 1 else 'it'}")
 
 
 def _space_needed(source: Path, photos: frames.Photos | None, options: ProcessOptions) -> int:
@@ -193,7 +205,8 @@ def _process(source: Path, out: Path, work: Path, photos, from_video: bool, opti
         points=model.num_points3D(), mean_reprojection_error=float(model.compute_mean_reprojection_error()),
         matcher=result["matcher"], models=result["models"], camera=result["camera"],
         undistorted_camera=describe_cameras(model), image_sizes=_count_sizes(photos.sizes),
-        seconds={k: round(v, 2) for k, v in seconds.items()}, masks=result.get("masks", 0))
+        seconds={k: round(v, 2) for k, v in seconds.items()}, masks=result.get("masks", 0),
+        left_out=list(photos.left_out))
     # The summary, and the list of the files written: --overwrite replaces the scene only while that is all it holds.
     files = sorted(files_in(scene) + [MANIFEST])
     (scene / MANIFEST).write_text(json.dumps({**asdict(summary), "files": files}, indent=2) + "\n")

@@ -1,6 +1,8 @@
-"""Which torch device a command runs on: `--device auto|cpu|cuda`."""
+"""Which torch device a command runs on: `--device auto|cpu|cuda`, and how much memory it has free."""
 
 from __future__ import annotations
+
+import os
 
 import torch
 
@@ -14,3 +16,20 @@ def resolve_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise MCSplatError("--device cuda: no CUDA device is available here; use --device cpu (or auto)")
     return torch.device(name)
+
+
+def free_memory(device: torch.device) -> int | None:
+    """Bytes free on `device` (None where it cannot be told)."""
+    if device.type == "cuda":
+        return torch.cuda.mem_get_info(device)[0]
+    try:
+        with open("/proc/meminfo") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None

@@ -113,6 +113,7 @@ def _masks(frames: Sequence[Frame], root: Path, options: MaskOptions, alpha: boo
     jobs = [MaskJob(source, _file_size(frame), frame.undistort, frame.size, is_alpha)
             for frame, (source, is_alpha) in zip(frames, sources)]
     keep = masks.load_masks(jobs, options.invert)
+    masks.check_something_kept(keep, jobs, [frame.name for frame in frames], where, options.invert)
     return keep, [masks.describe(keep, where + (", inverted" if options.invert else ""))]
 
 

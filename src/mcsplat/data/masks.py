@@ -79,10 +79,12 @@ def mask_file(folder: Path, view_name: str, image: Path) -> Path | None:
     return next((path for path in candidates if path.is_file()), None)
 
 
-def missing_error(folder: Path, missing: Sequence[str], total: int) -> DataError:
+def missing_error(folder: Path, missing: Sequence[str], total: int, without: str = "give --masks none"
+                  ) -> DataError:
+    """The error for images without a mask; `without` says how the command goes on without masks."""
     shown = ", ".join(missing[:3]) + (f" and {len(missing) - 3} more" if len(missing) > 3 else "")
     return DataError(f"{folder} has no mask for {len(missing)} of the {total} images ({shown}); add "
-                     f"{folder.name}/<image name>.png for each (white: keep, black: leave out), or give --masks none")
+                     f"{folder.name}/<image name>.png for each (white: keep, black: leave out), or {without}")
 
 
 def load_masks(jobs: Sequence[MaskJob], invert: bool, workers: int | None = None) -> list[torch.Tensor]:
@@ -90,6 +92,27 @@ def load_masks(jobs: Sequence[MaskJob], invert: bool, workers: int | None = None
     workers = workers or min(8, os.cpu_count() or 1)
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mcsplat-masks") as pool:
         return list(pool.map(lambda job: _load_one(job, invert), jobs))
+
+
+def check_something_kept(keep: Sequence[torch.Tensor], jobs: Sequence[MaskJob], names: Sequence[str], where: str,
+                         invert: bool) -> None:
+    """Refuse masks that leave out every pixel of their image (as loaded): such a view has nothing to train on or
+    to score, and when every view is one, a run would train on its regularisers alone and end as if it had worked."""
+    empty = [i for i, mask in enumerate(keep) if not bool(mask.any())]
+    if not empty:
+        return
+    if len(empty) == len(keep):
+        fix = ("--invert-masks made them black: run without --invert-masks" if invert else
+               "if yours are black where the image is to be kept, add --invert-masks")
+        raise DataError(f"every one of the {len(keep)} masks from {where}{' (inverted)' if invert else ''} leaves out "
+                        f"every pixel of its image, so nothing is left to train on; a mask keeps its white pixels "
+                        f"and leaves out the black ones: {fix}")
+    first = jobs[empty[0]]
+    label = f"the alpha channel of {first.source}" if first.alpha else f"mask {first.source}"
+    more = f" (and {len(empty) - 1} more: {', '.join(names[i] for i in empty[1:4])}" \
+           f"{' ...' if len(empty) > 4 else ''})" if len(empty) > 1 else ""
+    raise DataError(f"{label} leaves out every pixel of {names[empty[0]]}{more}, so nothing of that view is left to "
+                    "train on or to score; give it a mask that keeps part of it (white: keep), or give --masks none")
 
 
 def _load_one(job: MaskJob, invert: bool) -> torch.Tensor:
@@ -110,17 +133,22 @@ def _load_one(job: MaskJob, invert: bool) -> torch.Tensor:
 
 def _read(job: MaskJob, invert: bool) -> np.ndarray:
     """The keep weights of the file at its own size: uint8, 255 kept."""
-    try:
-        with Image.open(job.source) as im:
-            if job.alpha:
-                keep = np.array(im.convert("RGBA"))[:, :, 3]
-            else:
-                keep = np.where(np.asarray(im.convert("L")) > 0, 255, 0).astype(np.uint8)
-    except FileNotFoundError:
-        raise DataError(f"mask file is missing: {job.source}") from None
-    except Exception as exc:
-        raise DataError(f"cannot decode mask {job.source}: {images._reason(exc)}; replace the file") from None
+    keep = read_keep(job.source, job.alpha)
     return 255 - keep if invert else keep
+
+
+def read_keep(source: Path, alpha: bool = False) -> np.ndarray:
+    """The keep weights [H, W] of a mask file (nonzero kept) or of an image's alpha channel: uint8, 255 kept; a
+    file that is missing or does not decode whole is a one-line DataError naming it."""
+    try:
+        with Image.open(source) as im:
+            if alpha:
+                return np.array(im.convert("RGBA"))[:, :, 3]
+            return np.where(np.asarray(im.convert("L")) > 0, 255, 0).astype(np.uint8)
+    except FileNotFoundError:
+        raise DataError(f"mask file is missing: {source}") from None
+    except Exception as exc:
+        raise DataError(f"cannot decode mask {source}: {images._reason(exc)}; replace the file") from None
 
 
 def _resized(keep: np.ndarray, size: images.Size) -> np.ndarray:

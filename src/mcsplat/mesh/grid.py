@@ -10,13 +10,13 @@ with the voxel budget. Grid point (i, j, k) sits at origin + (i, j, k) x size.
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 from typing import Sequence
 
 import torch
 
 from ..camera import Camera
+from ..compute.device import free_memory
 from ..errors import MCSplatError
 from ..render.constants import NEAR_PLANE
 
@@ -124,20 +124,3 @@ def check_memory(grid: VoxelGrid, device: torch.device) -> None:
         raise MCSplatError(f"the volume of {grid.describe()} needs {need / 2**30:.1f} GiB, more than "
                            f"{MEMORY_SHARE:.0%} of the {free / 2**30:.1f} GiB free on {device}; lower --voxel-budget "
                            f"(or raise --voxel-size)")
-
-
-def free_memory(device: torch.device) -> int | None:
-    """Bytes free on `device` (None where it cannot be told)."""
-    if device.type == "cuda":
-        return torch.cuda.mem_get_info(device)[0]
-    try:
-        with open("/proc/meminfo") as meminfo:
-            for line in meminfo:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
