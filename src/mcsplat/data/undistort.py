@@ -21,6 +21,7 @@ from PIL import Image
 
 from mcsplat.data import images
 from mcsplat.errors import DataError
+from mcsplat.io.hashed import content_hash, feed_file, hash_file, intact
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 # Models pycolmap undistorts to a pinhole camera (checked one by one; the last four are fisheye variants).
@@ -97,7 +98,7 @@ class Job:
                      self.pinhole.height, np.asarray(self.pinhole.params, dtype=np.float64).tobytes().hex(),
                      self.size, tuple(background)):
             digest.update(repr(part).encode())
-        _feed_file(digest, self.source)  # the bytes, not the date: a replaced file is always seen
+        feed_file(digest, self.source)  # the bytes, not the date: a replaced file is always seen
         return digest.hexdigest()
 
 
@@ -109,7 +110,7 @@ def undistort_to_cache(jobs: Sequence[Job], background: Sequence[float], workers
     folder = cache_root() / "undistorted"
     keys = [job.key(background) for job in jobs]
     paths = [folder / key[:2] / f"{key}.png" for key in keys]
-    todo = [(job, path) for job, path in zip(jobs, paths) if not _intact(path)]
+    todo = [(job, path) for job, path in zip(jobs, paths) if not intact(path)]
     if not todo:
         return paths
     try:
@@ -150,29 +151,6 @@ def _undistort_one(job: Job, target: Path, background: np.ndarray) -> None:
     target.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(target) as tmp:
         Image.fromarray(out, "RGB").save(tmp, format="PNG", compress_level=1)
-        content = _content_hash(tmp)
-    atomic_write_text(_hash_file(target), content)
+        content = content_hash(tmp)
+    atomic_write_text(hash_file(target), content)
 
-
-def _hash_file(entry: Path) -> Path:
-    return entry.with_suffix(".blake2b")
-
-
-def _feed_file(digest, path: Path) -> None:
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-
-
-def _content_hash(path: Path) -> str:
-    digest = hashlib.blake2b(digest_size=20)
-    _feed_file(digest, path)
-    return digest.hexdigest()
-
-
-def _intact(entry: Path) -> bool:
-    """Whether the cache entry is there with the bytes it was made with."""
-    try:
-        return _hash_file(entry).read_text() == _content_hash(entry)
-    except OSError:
-        return False
