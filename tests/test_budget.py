@@ -148,6 +148,17 @@ def test_budget_errors_are_one_line(tmp_path):
             TrainConfig(data=DEMO, budget=budget)
 
 
+def test_a_budget_with_steps_is_refused_before_anything_is_made(tmp_path, mini_demo, capsys):
+    """--budget plans the steps: a --steps beside it would be ignored, so the pair is refused."""
+    from mcsplat.cli import main
+
+    run = tmp_path / "runs" / "run"
+    assert main(["train", str(mini_demo), "--out", str(run), "--budget", "5s", "--steps", "60", "--quiet"]) == 2
+    assert capsys.readouterr().err == "mcsplat: error: --budget 5s plans the steps itself, so --steps 60 would be " \
+        "ignored; give one of them\n"
+    assert not (tmp_path / "runs").exists()
+
+
 # ------------------------------------------------------------------------------------------- initial points
 def test_background_follows_the_images_alpha(shared_data):
     assert load_scene(shared_data / "ngp_fruit").background == (0.0, 0.0, 0.0), "a real capture in transforms.json"

@@ -110,16 +110,21 @@ def test_the_previous_checkpoint_is_kept_and_a_damaged_one_is_refused(tmp_path, 
     assert main(["export", str(run), "--out", str(tmp_path / "x.ply")]) == 0
 
 
-def test_export_refuses_parameters_that_are_not_finite(run_copy, capsys):
+@pytest.mark.parametrize("options", [[], ["--out", "x.spz"], ["--format", "mesh"],
+                                     ["--format", "mesh", "--out", "x.glb"]])
+def test_export_refuses_parameters_that_are_not_finite_in_every_format(run_copy, tmp_path, options, capsys):
+    """One check for every format: a mesh of a diverged run is refused as its splats are."""
     state = load_checkpoint(run_copy / "checkpoint.pt")
     state["model"]["params.means"][7, 1] = float("inf")
     save_checkpoint(run_copy / "checkpoint.pt", {k: v for k, v in state.items() if k != "version"})
-    before = (run_copy / "point_cloud.ply").read_bytes()
+    before = sorted(p.name for p in run_copy.iterdir()), (run_copy / "point_cloud.ply").read_bytes()
+    options = [str(tmp_path / option) if option.startswith("x.") else option for option in options]
     capsys.readouterr()
-    assert main(["export", str(run_copy)]) == 2
+    assert main(["export", str(run_copy), *options]) == 2
     error = capsys.readouterr().err
     assert "NaN or infinite values in means" in error and error.count("\n") == 1, error
-    assert (run_copy / "point_cloud.ply").read_bytes() == before
+    assert (sorted(p.name for p in run_copy.iterdir()), (run_copy / "point_cloud.ply").read_bytes()) == before
+    assert not list(tmp_path.glob("x.*"))
 
 
 @pytest.fixture
@@ -291,3 +296,73 @@ def test_a_run_without_test_views_finishes_without_test_scores(tmp_path, mini_de
     assert main(["eval", str(run)]) == 2
     error = capsys.readouterr().err
     assert "no test views" in error and error.count("\n") == 1
+
+
+def test_resume_refuses_the_options_it_would_ignore(tmp_path, mini_demo, capsys):
+    """--resume continues a run with the options it was trained with: one that says otherwise is refused, naming
+    it, before anything changes; the run's own options repeated are fine."""
+    run = tmp_path / "run"
+    trained = ["train", str(mini_demo), "--out", str(run), "--steps", "10", "--pose-opt", "--antialiased", "--quiet",
+               "--model.num-init-points", "2000", "--lpips-net", "alex", "--no-save-renders"]
+    assert main(trained) == 0
+    files = {path.name: path.stat().st_mtime_ns for path in run.iterdir()}
+    resume = ["train", str(mini_demo), "--out", str(run), "--resume", "--quiet"]
+    cases = [(["--budget", "5s"], "--budget 5s (trained with --budget None)"),
+             (["--appearance", "affine"], "--appearance affine (trained with --appearance none)"),
+             (["--no-pose-opt"], "--no-pose-opt (trained with --pose-opt)"),
+             (["--no-antialiased", "--steps", "100"],
+              "--no-antialiased (trained with --antialiased), --steps 100 (trained with --steps 10)")]
+    for options, ignored in cases:
+        capsys.readouterr()
+        assert main(resume + options) == 2, options
+        assert capsys.readouterr().err == f"mcsplat: error: --resume continues the run with the options it was " \
+            f"trained with ({run / 'config.json'}), so these would be ignored: {ignored}; leave them out, or start a " \
+            f"new run with --overwrite or another --out\n"
+        assert {path.name: path.stat().st_mtime_ns for path in run.iterdir()} == files, options
+    assert main(trained + ["--resume"]) == 0, "the options it was trained with"
+    assert main(resume) == 0
+
+
+def test_sigterm_during_the_final_evaluation_says_how_to_finish(tmp_path, mini_demo, monkeypatch, capsys,
+                                                               sigterm_reaches_no_default):
+    """The steps are done and checkpointed: the run stops with one line and its lock released, and --resume makes
+    the scores, point_cloud.ply and the report."""
+    from mcsplat import trainer
+
+    evaluate = trainer.evaluate
+
+    def terminated(*args, **kwargs):
+        signal.raise_signal(signal.SIGTERM)
+        return evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(trainer, "evaluate", terminated)
+    run = tmp_path / "run"
+    command = ["train", str(mini_demo), "--out", str(run), "--steps", "10", "--quiet", "--model.num-init-points",
+               "2000", "--lpips-net", "alex"]
+    assert main(command) == 2
+    assert capsys.readouterr().err == f"mcsplat: error: stopped at step 10 while finishing the run (its final " \
+        f"evaluation, point_cloud.ply, metrics.json and report); the checkpoint is saved: finish it with `mcsplat " \
+        f"train {mini_demo} --out {run} --resume`\n"
+    assert sorted(path.name for path in run.iterdir()) == ["checkpoint.pt", "config.json", "log.jsonl"]
+    assert load_checkpoint(run / "checkpoint.pt")["step"] == 10
+    assert signal.getsignal(signal.SIGTERM).__name__ == "not_handled", "the run puts the handler back"
+    monkeypatch.setattr(trainer, "evaluate", evaluate)
+    assert main(command + ["--resume"]) == 0
+    assert {"point_cloud.ply", "metrics.json", "report.html"} <= {path.name for path in run.iterdir()}
+    assert json.loads((run / "metrics.json").read_text())["steps"] == 10
+
+
+def test_a_refused_run_leaves_no_folder_it_made(tmp_path, mini_demo):
+    """A run refused after its folder was made (here: its scene is gone) removes the folders it made, and only
+    those: a folder that was there stays, with what it held."""
+    gone = tmp_path / "gone"
+    with pytest.raises(MCSplatError, match="does not exist"):
+        train(mini_config(gone, tmp_path / "runs" / "a" / "run", steps=5))
+    assert not (tmp_path / "runs").exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    for out in (mine, mine / "run"):
+        with pytest.raises(MCSplatError, match="does not exist"):
+            train(mini_config(gone, out, steps=5))
+    assert [path.name for path in mine.iterdir()] == ["notes.txt"]

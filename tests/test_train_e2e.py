@@ -153,7 +153,8 @@ def test_cli_train_eval_render_export(tmp_path):
                                      "--model.num-init-points", "1000", "--lpips-net", "alex",
                                      "--no-save-renders"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    assert done.stdout == "" and done.stderr == "", "--quiet prints nothing"
+    assert done.stderr == "" and [line.split()[0] for line in done.stdout.splitlines()] == ["test", "wrote", "wrote"], \
+        "--quiet prints the result alone"
     done = subprocess.run(mcsplat + ["eval", str(run), "--lpips-net", "alex"], capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0 and "PSNR" in done.stdout, done.stderr
@@ -174,3 +175,19 @@ def test_cli_train_eval_render_export(tmp_path):
     assert done.returncode == 0 and json.loads(done.stdout) == [2] * len(cases), done.stderr
     errors = done.stderr.splitlines()
     assert len(errors) == len(cases) and all(line.startswith("mcsplat: error:") for line in errors), errors
+
+
+def test_quiet_still_prints_the_final_scores_and_the_files_written(tmp_path, mini_demo, capsys):
+    """--quiet is for scripts, which still want the result: the progress goes, the scores and files stay."""
+    from mcsplat.cli import main
+
+    run = tmp_path / "run"
+    assert main(["train", str(mini_demo), "--out", str(run), "--steps", "10", "--eval-every", "5", "--quiet",
+                 "--model.num-init-points", "2000", "--lpips-net", "alex"]) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    assert len(lines) == 3, lines
+    assert lines[0].startswith("test PSNR ") and " on 3 views; " in lines[0], lines
+    assert lines[1].startswith(f"wrote {run / 'point_cloud.ply'} (") and lines[1].endswith(f"{run / 'metrics.json'}")
+    assert lines[2] == f"wrote {run / 'report.html'}"
+    assert "step 5: test PSNR" not in captured.out + captured.err and "%|" not in captured.err, "no progress"

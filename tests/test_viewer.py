@@ -309,3 +309,61 @@ def test_a_ply_without_gaussians_is_one_line(tmp_path, capsys):
     error = capsys.readouterr().err
     assert error == f"mcsplat: error: {tmp_path / 'empty.ply'}: holds no Gaussians (0 vertices), so there is nothing " \
         "to show\n"
+
+
+@pytest.mark.filterwarnings("ignore:no training cameras shown")  # the scene is gone on purpose
+def test_nan_gaussians_are_left_out_and_the_first_camera_looks_at_the_others(tiny_run, tmp_path, capsys):
+    """A run whose scene is gone is looked at from around its Gaussians: the NaN or infinite ones are left out,
+    saying how many (they would put that camera nowhere); a run of nothing else, or such a .ply, is one line."""
+    pytest.importorskip("viser")
+    import shutil
+
+    from mcsplat.io.checkpoint import load_checkpoint, save_checkpoint
+    from mcsplat.io.ply import read_ply, write_ply
+    from mcsplat.viewer.saved import view_saved
+
+    run = Path(shutil.copytree(tiny_run, tmp_path / "run"))
+    config = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**config, "data": str(tmp_path / "gone")}))
+    state = load_checkpoint(run / "checkpoint.pt")
+    means = state["model"]["params.means"]
+    total = means.shape[0]
+    means[:5] = float("nan")
+    state["model"]["params.log_scales"][9, 2] = float("inf")
+    save_checkpoint(run / "checkpoint.pt", {k: v for k, v in state.items() if k != "version"})
+    stop = threading.Event()
+    stop.set()  # serve, then close at once
+    with pytest.warns(UserWarning, match=rf"run: 6 of {total:,} Gaussians have NaN or infinite values: left out"):
+        server = view_saved(run, "127.0.0.1", free_port(), torch.device("cpu"), stop, quiet=True)
+    assert server.model.num_gaussians == total - 6
+    wxyz, position, fov = server.initial_pose
+    assert np.isfinite(np.concatenate([np.ravel(wxyz), np.ravel(position), [fov]])).all(), server.initial_pose
+
+    means[:] = float("nan")
+    save_checkpoint(run / "checkpoint.pt", {k: v for k, v in state.items() if k != "version"})
+    params = read_ply(tiny_run / "point_cloud.ply")
+    params["means"][:5] = float("nan")
+    write_ply(tmp_path / "nan.ply", params)
+    for path, expected in ((run, f"every one of its {total:,} Gaussians has NaN or infinite values, so there is "
+                                 "nothing to show"), (tmp_path / "nan.ply", "NaN or infinite values in means")):
+        capsys.readouterr()
+        assert main(["view", str(path), "--port", str(free_port())]) == 2
+        assert capsys.readouterr().err == f"mcsplat: error: {path}: {expected}\n"
+
+
+def test_a_mesh_with_nan_vertices_is_shown_without_them(tmp_path):
+    pytest.importorskip("viser")
+    import trimesh
+
+    from mcsplat.mesh import write_mesh
+    from mcsplat.viewer.saved import serve_mesh
+
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    ball.vertices[:3] = np.nan
+    write_mesh(tmp_path / "ball.ply", ball)
+    with pytest.warns(UserWarning, match=rf"ball.ply: 3 of {len(ball.vertices):,} vertices have NaN or infinite "
+                                         "values: left out, with the faces they belong to"):
+        server, _ = serve_mesh(tmp_path / "ball.ply", "127.0.0.1", free_port(), quiet=True)
+    server.close()
+    wxyz, position, fov = server.initial_pose
+    assert np.isfinite(np.concatenate([np.ravel(wxyz), np.ravel(position), [fov]])).all(), server.initial_pose

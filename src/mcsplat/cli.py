@@ -226,17 +226,13 @@ class Export:
 
         folder = run_dir.RunDir(self.run)
         folder.read_config()  # a run folder, or the one-line error, before any work
-        if self.format == "mesh":
-            return self._export_mesh(folder)
-        path, format_name = self._output(folder)
+        path, format_name = self._mesh_output(folder) if self.format == "mesh" else self._output(folder)
         run = run_dir.load(self.run, resolve_device(self.device))
+        _refuse_non_finite(folder, run.model)  # one check for every format, the mesh's included
+        if format_name == "mesh":
+            return self._export_mesh(folder, path, run)
         model = run.model
         params = {k: v.detach().cpu().numpy() for k, v in model.params.items()}
-        broken = [k for k, v in params.items() if not np.isfinite(v).all()]
-        if broken:
-            raise MCSplatError(f"{folder.checkpoint_file}: NaN or infinite values in {', '.join(broken)}, so nothing "
-                               f"is exported; the run diverged: train it again, or go back to "
-                               f"{folder.previous_checkpoint_file.name}")
         limits = self.max_scale is not None or self.max_distance is not None
         extent = self._extent(run, required=limits)
         candidates = np.arange(model.num_gaussians)
@@ -270,19 +266,22 @@ class Export:
         print(f"wrote {path} ({chosen.size:,} of {model.num_gaussians:,} Gaussians, {path.stat().st_size:,} bytes)")
         return 0
 
-    def _export_mesh(self, folder) -> int:
+    def _mesh_output(self, folder) -> tuple[Path, str]:
+        """(the mesh file to write, "mesh"): --out, or RUN/mesh.ply."""
+        from mcsplat.mesh import check_mesh_path
+
+        path = folder.mesh_file if self.out is None else self._checked_out(folder)
+        check_mesh_path(path)
+        return path, "mesh"
+
+    def _export_mesh(self, folder, path: Path, run) -> int:
         import contextlib
         import time
 
-        from mcsplat import run_dir
-        from mcsplat.compute.device import resolve_device
-        from mcsplat.mesh import MeshOptions, check_mesh_path, extract, write_mesh
+        from mcsplat.mesh import MeshOptions, extract, write_mesh
 
         options = MeshOptions(voxel_size=self.voxel_size, voxel_budget=self.voxel_budget, alpha_min=self.alpha_min,
                               min_component=self.min_component)
-        path = folder.mesh_file if self.out is None else self._checked_out(folder)
-        check_mesh_path(path)
-        run = run_dir.load(self.run, resolve_device(self.device))
         started = time.perf_counter()
         mesh = extract(run.model, run.scene.train, options, sh_degree=run.sh_degree, progress=True)
         with folder.lock("mcsplat export") if folder.contains(path) else contextlib.nullcontext():
@@ -425,6 +424,17 @@ class ViewSaved:
         return 0
 
 
+def _refuse_non_finite(folder, model) -> None:
+    """A one-line error when the model holds NaN or infinite parameters (a diverged run): no format is written."""
+    import torch
+
+    broken = [name for name, value in model.params.items() if not torch.isfinite(value.detach()).all()]
+    if broken:
+        raise MCSplatError(f"{folder.checkpoint_file}: NaN or infinite values in {', '.join(broken)}, so nothing is "
+                           f"exported; the run diverged: train it again, or go back to "
+                           f"{folder.previous_checkpoint_file.name}")
+
+
 def _test_views_and_renderer(path: Path, device_name: str):
     """The run's test views and a function rendering one, for the report's grid (none when the scene is gone)."""
     import torch
@@ -497,10 +507,12 @@ COMMANDS: dict[str, type] = {"train": TrainConfig, "eval": Eval, "render": Rende
                              "info": Info, "report": Report, "view": ViewSaved, "process": Process}
 
 
-def _run(command) -> int:
+def _run(command, args: list[str]) -> int:
     if isinstance(command, TrainConfig):
+        from mcsplat.config import named_options
         from mcsplat.train import train  # the trainer pulls in Warp: only when training
 
+        command.named = named_options(args)  # what --resume and --budget check: the options given
         train(command)
         return 0
     return command.run_command()
@@ -515,9 +527,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous = warnings.showwarning
     warnings.showwarning = _show_warning
     try:
-        command = tyro.extras.subcommand_cli_from_dict(COMMANDS, prog="mcsplat", description=DESCRIPTION,
-                                                       args=list(sys.argv[1:] if argv is None else argv))
-        return _run(command)
+        args = list(sys.argv[1:] if argv is None else argv)
+        command = tyro.extras.subcommand_cli_from_dict(COMMANDS, prog="mcsplat", description=DESCRIPTION, args=args)
+        return _run(command, args)
     except MCSplatError as exc:
         print(f"mcsplat: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2

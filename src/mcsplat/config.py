@@ -6,7 +6,7 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal, Sequence
 
 import tyro
 
@@ -99,7 +99,7 @@ class TrainConfig:
     overwrite: bool = False
     """Allow writing into a run directory that already holds a run (files are replaced, never deleted)."""
     quiet: bool = False
-    """No progress bar (for scripts)."""
+    """No progress bar or messages (for scripts); the final scores and the files written are still printed."""
     sh_increase_every: int = 1000
     """The active SH degree grows by one every N steps up to the model's degree."""
     ssim_weight: float = 0.2
@@ -162,6 +162,8 @@ class TrainConfig:
     optim: OptimConfig = field(default_factory=OptimConfig)
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)
     adc: ADCConfig = field(default_factory=ADCConfig)
+    # The options the command line named, as config.json's keys (named_options; not an option itself, nor saved).
+    named: ClassVar[frozenset[str] | None] = None
 
     def __post_init__(self) -> None:
         # Each strategy starts from the initial Gaussians its own code uses (as in gsplat).
@@ -233,6 +235,49 @@ def budget_seconds(text: str) -> float:
         raise MCSplatError(f"--budget {text!r} is not a duration: give minutes ('10'), or a number with s, m or h "
                            "('90s', '10m', '1.5h')")
     return seconds
+
+
+SUPPRESSED = ("world_size", "schedule_fitted", "budget_plan")  # not options: what a started run records
+
+
+def flat_options(options: dict, prefix: str = "") -> dict[str, Any]:
+    """config.json's nesting as keys: {"mcmc": {"cap_max": 5}} -> {"mcmc.cap_max": 5}."""
+    flat = {}
+    for key, value in options.items():
+        if isinstance(value, dict):
+            flat.update(flat_options(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
+def named_options(args: Sequence[str]) -> frozenset[str]:
+    """The options the arguments of `mcsplat train` name, as config.json's keys: --steps 60 -> steps,
+    --no-pose-opt -> pose_opt, --mcmc.cap-max=5 -> mcmc.cap_max."""
+    known = flat_options(to_jsonable(TrainConfig(data=Path("."))))
+    named = set()
+    for arg in args:
+        if not arg.startswith("--"):
+            continue
+        key = arg[2:].split("=", 1)[0].replace("-", "_")
+        owner, dot, name = key.rpartition(".")
+        if key not in known and name.startswith("no_"):  # --no-pose-opt, --mcmc.no-auto-cap
+            key = owner + dot + name[3:]
+        named.add(key)
+    return frozenset(named)
+
+
+def options_given(config: TrainConfig) -> frozenset[str]:
+    """The options `config` was given: those its command line named (config.named), or from the Python API those
+    that differ from their defaults (the defaults that --strategy, --budget and --cap-max decide taken as decided)."""
+    if config.named is not None:
+        return config.named
+    chosen = ("strategy", "budget", "cap_max")
+    plain = flat_options(to_jsonable(TrainConfig(data=config.data)))
+    alike = flat_options(to_jsonable(TrainConfig(data=config.data, **{key: getattr(config, key) for key in chosen})))
+    given = flat_options(to_jsonable(config))
+    return frozenset(key for key, value in given.items() if key not in SUPPRESSED and
+                     (value != alike.get(key) or (key in chosen and value != plain.get(key))))
 
 
 def to_jsonable(config: Any) -> Any:

@@ -29,9 +29,11 @@ from typing import Any
 import torch
 
 from .budget import SCHEDULE_KEYS
-from .config import PROCESS_OPTIONS, TrainConfig, load_config, save_config, to_jsonable
+from .config import (PROCESS_OPTIONS, TrainConfig, flat_options, load_config, options_given, save_config,
+                     to_jsonable)
 from .data import Scene, detect_kind, load_scene
 from .data.masks import MaskOptions
+from .distributed import scaled_for_processes
 from .errors import DataError, MCSplatError
 from .gaussians import DEAD_OPACITY, GaussianModel
 from .io.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
@@ -39,7 +41,7 @@ from .io.checkpoint import DamagedCheckpoint, load_checkpoint, save_checkpoint
 from .io.disk import writing_into
 from .io.lock import FolderLock
 from .io.ply import write_ply
-from .schedule import final_sh_degree
+from .schedule import final_sh_degree, fitted_to_steps
 
 CONFIG = "config.json"
 CHECKPOINT = "checkpoint.pt"
@@ -136,7 +138,7 @@ class RunDir:
         """The checkpoint that `config` (config.json) resumes from; refused when config.json no longer says what the
         checkpoint was trained with (edited by hand: another strategy, another SH degree...)."""
         state = self.read_checkpoint()
-        trained, now = _flat(state.get("config") or {}), _flat(to_jsonable(config))
+        trained, now = flat_options(state.get("config") or {}), flat_options(to_jsonable(config))
         # --budget plans these as it goes and plans them again on resume: config.json may be a plan behind.
         planned = PLANNED if config.budget is not None else ()
         for key in sorted(trained.keys() & now.keys()):
@@ -204,17 +206,6 @@ class RunDir:
         return write_ply(self.splats_file, dict(model.params.items()), keep=alive(model))
 
 
-def _flat(options: dict, prefix: str = "") -> dict[str, Any]:
-    """{"mcmc": {"cap_max": 5}} -> {"mcmc.cap_max": 5}."""
-    flat = {}
-    for key, value in options.items():
-        if isinstance(value, dict):
-            flat.update(_flat(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
-    return flat
-
-
 def _logged_step(line: str) -> float:
     """The step of a log record; infinity for a line that is not one (so that cutting the log drops it)."""
     try:
@@ -258,6 +249,10 @@ def prepare(config: TrainConfig, lock: FolderLock) -> TrainConfig:
     `config` itself for a new run; on --resume the run's saved configuration with this command line's process
     options. A folder holding a run is refused without --resume or --overwrite."""
     run = RunDir(config.run_dir)
+    given = options_given(config)
+    if config.budget is not None and "steps" in given:
+        raise MCSplatError(f"--budget {config.budget} plans the steps itself, so --steps {config.steps} would be "
+                           f"ignored; give one of them")
     if run.path.exists() and not run.path.is_dir():
         raise MCSplatError(f"--out {run.path}: exists and is not a directory")
     if config.resume:
@@ -278,10 +273,69 @@ def prepare(config: TrainConfig, lock: FolderLock) -> TrainConfig:
     if not config.resume:
         return config
     saved = run.read_config()
+    refuse_options_resume_ignores(config, given, saved, run.config_file)
     for key in PROCESS_OPTIONS:
         setattr(saved, key, getattr(config, key))
     saved.out, saved.resume = run.path, True  # where the run is now (the folder may have been moved)
     return saved
+
+
+def refuse_options_resume_ignores(config: TrainConfig, given: frozenset[str], saved: TrainConfig,
+                                  saved_file: Path) -> None:
+    """--resume continues a run with the options it was trained with (`saved`): one that this command line
+    (`config`) was `given` with another value would be ignored, so it is refused. The values are compared as a new
+    run would have started with them (schedules fitted to the steps, scaled for the processes); --budget's plan,
+    and the growth rate a --cap-max plans, are left out."""
+    trained, typed = flat_options(to_jsonable(saved)), flat_options(to_jsonable(config))
+    started = config if config.budget is not None else fitted_to_steps(config)
+    if started.world_size != saved.world_size:
+        started = scaled_for_processes(started, saved.world_size)
+    now = flat_options(to_jsonable(started))
+    if saved.budget is not None:
+        planned = PLANNED - {"steps"}  # its --steps is said below
+    else:
+        planned = {"mcmc.grow_rate"} if saved.cap_max is not None else set()  # what --cap-max plans
+    ignored = []
+    for key in sorted(given & trained.keys()):
+        if key.split(".")[0] in RESUME_MAY_CHANGE or key in planned:
+            continue
+        if key == "steps" and saved.budget is not None:
+            ignored.append(f"{option_text(key, config.steps)} (its --budget {saved.budget} plans them)")
+        elif now[key] != trained[key]:
+            ignored.append(f"{option_text(key, typed[key])} (trained with {option_text(key, trained[key])})")
+    if ignored:
+        raise MCSplatError(f"--resume continues the run with the options it was trained with ({saved_file}), so "
+                           f"these would be ignored: {', '.join(ignored)}; leave them out, or start a new run with "
+                           f"--overwrite or another --out")
+
+
+def option_text(key: str, value: Any) -> str:
+    """An option as a command line gives it: ("steps", 60) -> --steps 60, ("pose_opt", False) -> --no-pose-opt."""
+    owner, dot, name = key.rpartition(".")
+    if isinstance(value, bool):
+        return f"--{owner}{dot}{'' if value else 'no-'}{name.replace('_', '-')}"
+    shown = " ".join(map(str, value)) if isinstance(value, (list, tuple)) else value
+    return f"--{owner}{dot}{name.replace('_', '-')} {shown}"
+
+
+def folders_to_make(path: Path) -> list[Path]:
+    """The folders `prepare` would make for a run folder at `path`: it and its missing parents, deepest first."""
+    path = Path(path).absolute()
+    missing = []
+    while not path.exists() and path != path.parent:
+        missing.append(path)
+        path = path.parent
+    return missing
+
+
+def remove_if_empty(folders: list[Path]) -> None:
+    """Remove the folders a run refused before it began made (`folders_to_make`, deepest first): only while empty,
+    so that nothing but what it made goes."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty (the run began, or someone wrote there), or gone already
+            return
 
 
 def refuse_scene_folder(out: Path, data: Path) -> None:

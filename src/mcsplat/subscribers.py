@@ -50,10 +50,12 @@ class ProgressBar(Subscriber):
 
 
 class ConsoleLog(Subscriber):
-    """One line when the run starts, after each periodic evaluation and at the end (nothing with --quiet)."""
+    """One line when the run starts, after each periodic evaluation and at the end. With --quiet only the final
+    scores and the files written: what a script running it still wants."""
 
     def __init__(self, quiet: bool):
         self.write: Callable[[str], None] = (lambda text: None) if quiet else tqdm.write
+        self.result: Callable[[str], None] = tqdm.write
 
     def on_run_started(self, event: RunStarted) -> None:
         run = event.run
@@ -79,30 +81,30 @@ class ConsoleLog(Subscriber):
     def on_run_finished(self, event: RunFinished) -> None:
         m, evaluation = event.metrics, event.evaluation
         if evaluation is None:
-            self.write(f"no test views (--test-every {event.run.config.test_every}), so no test scores; "
-                       f"{m['num_gaussians']:,} Gaussians, {m['train_seconds']:.0f} s of training")
+            self.result(f"no test views (--test-every {event.run.config.test_every}), so no test scores; "
+                        f"{m['num_gaussians']:,} Gaussians, {m['train_seconds']:.0f} s of training")
         else:
             lpips_text = f"{evaluation.lpips:.4f}" if evaluation.lpips is not None else "n/a"
-            self.write(f"test PSNR {evaluation.psnr:.2f} dB, SSIM {evaluation.ssim:.4f}, LPIPS-{m['lpips_net']} "
-                       f"{lpips_text} on {evaluation.views} views; {m['num_gaussians']:,} Gaussians, "
-                       f"{m['train_seconds']:.0f} s of training")
+            self.result(f"test PSNR {evaluation.psnr:.2f} dB, SSIM {evaluation.ssim:.4f}, LPIPS-{m['lpips_net']} "
+                        f"{lpips_text} on {evaluation.views} views; {m['num_gaussians']:,} Gaussians, "
+                        f"{m['train_seconds']:.0f} s of training")
         if m.get("compensated_psnr") is not None and event.run.config.appearance != "none":
-            self.write(f"compensated (each test view's colour transform fitted on its left half, the right half "
-                       f"scored): PSNR {m['compensated_psnr']:.2f} dB, SSIM {m['compensated_ssim']:.4f}")
+            self.result(f"compensated (each test view's colour transform fitted on its left half, the right half "
+                        f"scored): PSNR {m['compensated_psnr']:.2f} dB, SSIM {m['compensated_ssim']:.4f}")
         if "pose_corrections" in m:
             c = m["pose_corrections"]
             self.write(f"pose corrections learned: median {c['median_degrees']:.3f} deg and {c['median_radii']:.4f} "
                        f"scene radii, largest {c['max_degrees']:.3f} deg and {c['max_radii']:.4f} radii")
         if evaluation is not None and evaluation.masked_views:
-            self.write(f"over the pixels the masks keep: PSNR {evaluation.masked_psnr:.2f} dB, SSIM "
-                       f"{evaluation.masked_ssim:.4f} on {evaluation.masked_views} views")
+            self.result(f"over the pixels the masks keep: PSNR {evaluation.masked_psnr:.2f} dB, SSIM "
+                        f"{evaluation.masked_ssim:.4f} on {evaluation.masked_views} views")
         if "budget_seconds" in m:
             self.write(f"budget: {m['steps']:,} steps in {m['wall_seconds']:.0f} s of the {m['budget_seconds']:.0f} s "
                        "budget (set-up, the final evaluation and the export not counted)")
         if evaluation is not None and evaluation.lpips is None:
             self.write(f"hint: {LPIPS_HINT}")
         run_dir = RunDir(event.run.run_dir)
-        self.write(f"wrote {run_dir.splats_file} ({m['exported_gaussians']:,} Gaussians) and {run_dir.metrics_file}")
+        self.result(f"wrote {run_dir.splats_file} ({m['exported_gaussians']:,} Gaussians) and {run_dir.metrics_file}")
         if m["invisible_gaussians"]["never_composited"]:
             self.write(f"{describe(m['invisible_gaussians'])}: `mcsplat export {run_dir.path} --prune` leaves them "
                        "out")

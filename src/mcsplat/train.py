@@ -10,7 +10,7 @@ from .config import TrainConfig
 from .distributed import join
 from .errors import MCSplatError
 from .events import Control, Listener
-from .run_dir import RunDir, train_lock
+from .run_dir import RunDir, folders_to_make, remove_if_empty, train_lock
 from .subscribers import Checkpointer, ConsoleLog, LogWriter, ProgressBar
 from .trainer import TrainingRun
 
@@ -21,7 +21,7 @@ def standard_subscribers(config: TrainConfig, run_dir: Path) -> list[Listener]:
     from .report import ReportWriter  # matplotlib: loaded only when training
 
     subscribers = [ProgressBar(config.quiet), ConsoleLog(config.quiet), LogWriter(RunDir(run_dir).log_file),
-                   Checkpointer(config.save_every, config.save_every_minutes), ReportWriter(config.quiet)]
+                   Checkpointer(config.save_every, config.save_every_minutes), ReportWriter()]
     if config.viewer:
         from .viewer import TrainingViewer
 
@@ -41,6 +41,7 @@ def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Co
         check_listen_address(config.host, config.port)
     team = join(config.device, config.dist_timeout)
     lock = train_lock(config)
+    made = folders_to_make(config.run_dir) if team.is_main else []
     finished = False
     try:
         if config.viewer and team.world_size > 1:
@@ -55,4 +56,5 @@ def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Co
         return metrics
     finally:
         lock.release()  # when the run could not start (it releases the lock itself once started)
+        remove_if_empty(made)  # a run refused before it began leaves no folder behind
         team.close(finished)

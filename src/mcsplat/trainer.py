@@ -142,17 +142,25 @@ def step_kernels(device: torch.device, appearance: str = "none") -> list:
 
 class _CtrlC:
     """Ctrl-C, and SIGTERM (what `kill`, `timeout`, docker, SLURM and Kubernetes send), ask the run to stop at the
-    end of the current step, which saves a checkpoint (a second signal stops at once)."""
+    end of the current step, which saves a checkpoint (a second signal stops at once). Once the last step's
+    checkpoint is written (`stop_at_once`), a signal stops at once: --resume makes what the end of the run makes."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self, control: Control) -> None:
         self.control = control
+        self.at_once = False
         self._previous: dict = {}
+
+    def stop_at_once(self) -> None:
+        """From now on a signal raises KeyboardInterrupt where the run is; so does one that came before."""
+        self.at_once = True
+        if self.control.stop_requested:
+            raise KeyboardInterrupt
 
     def __enter__(self):
         def handler(signum, frame):
-            if self.control.stop_requested:
+            if self.at_once or self.control.stop_requested:
                 raise KeyboardInterrupt
             self.control.stop()
         try:
@@ -304,9 +312,9 @@ class TrainingRun:
             self.team.first_on_each_machine(lambda: self._compile_kernels(emit))
             if self.planner is not None:
                 self._start_budget()
-            with _CtrlC(self.control):
+            with _CtrlC(self.control) as signals:
                 self._steps(emit)
-            return self._finish(emit)
+                return self._finish(emit, signals)
         finally:
             self._emit = lambda event: None
             _close_all(subscribers)
@@ -403,11 +411,23 @@ class TrainingRun:
         return evaluate(self.state.model, self.scene.test, self.background, sh_degree, self.device, lpips_net,
                         render_file, progress, team=self.team)
 
-    def _finish(self, emit: Listener) -> dict[str, Any]:
-        config, state, team = self.config, self.state, self.team
+    def _finish(self, emit: Listener, signals: _CtrlC) -> dict[str, Any]:
+        """The last checkpoint, then the final evaluation, point_cloud.ply, metrics.json and RunFinished (the
+        report); a signal after that checkpoint stops the run with one line that says how to finish it."""
         if self.planner is not None:  # the run ends at the step it reached: what the last plan said, or fewer
-            config.steps = state.step
+            self.config.steps = self.state.step
         self.save_checkpoint()
+        try:
+            signals.stop_at_once()
+            return self._final_results(emit)
+        except KeyboardInterrupt:
+            raise MCSplatError(f"stopped at step {self.state.step:,} while finishing the run (its final evaluation, "
+                               f"{run_dir.SPLATS}, {run_dir.METRICS} and report); the checkpoint is saved: finish "
+                               f"it with `{command_for(self.team.world_size)} train {self.config.data} --out "
+                               f"{self.run_dir} --resume`") from None
+
+    def _final_results(self, emit: Listener) -> dict[str, Any]:
+        config, state, team = self.config, self.state, self.team
         final_degree = final_sh_degree(config, state.step)
         evaluation = None  # a scene without test views (--test-every 0) ends without test scores
         if self.scene.test:

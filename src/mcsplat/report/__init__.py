@@ -87,10 +87,7 @@ def make_report(run_dirs: Sequence[Path], out: Path | None = None, test_views: S
 
 
 class ReportWriter(Subscriber):
-    """Writes RUN/report.html when a training run finishes."""
-
-    def __init__(self, quiet: bool):
-        self.quiet = quiet
+    """Writes RUN/report.html when a training run finishes, and says so (with --quiet too: a file written)."""
 
     def on_run_finished(self, event: RunFinished) -> None:
         try:
@@ -99,8 +96,7 @@ class ReportWriter(Subscriber):
             warnings.warn(f"report.html not written ({error}); make it with `mcsplat report {event.run.run_dir}`",
                           RuntimeWarning, stacklevel=2)
             return
-        if not self.quiet:
-            tqdm.write(f"wrote {page}")
+        tqdm.write(f"wrote {page}")
 
     def _write(self, event: RunFinished) -> Path:
         import torch

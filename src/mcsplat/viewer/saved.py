@@ -23,18 +23,35 @@ def load_for_viewing(path: Path, device: torch.device):
     """(model, training cameras, background, scene radius) of a run directory or a .ply file."""
     if path.is_dir():
         run = run_dir.load(path, device)
+        model = finite_gaussians(run.model, path)
         try:
             scene = run.scene
         except MCSplatError as error:
             warnings.warn(f"no training cameras shown: the scene cannot be loaded ({error})")
-            return run.model, [], (0.0, 0.0, 0.0), _radius_of(run.model)
-        return run.model, [v.camera for v in scene.train], run.background, scene.radius
+            return model, [], (0.0, 0.0, 0.0), _radius_of(model)
+        return model, [v.camera for v in scene.train], run.background, scene.radius
     if path.suffix.lower() != ".ply":
         raise MCSplatError(f"{path}: give a run directory, a 3DGS .ply file or a mesh (.ply, .glb, .obj)")
     model = GaussianModel(**read_ply(path)).to(device)
     if model.num_gaussians == 0:
         raise MCSplatError(f"{path}: holds no Gaussians (0 vertices), so there is nothing to show")
-    return model, [], (0.0, 0.0, 0.0), _radius_of(model)
+    return model, [], (0.0, 0.0, 0.0), _radius_of(model)  # read_ply refuses NaN or infinite values
+
+
+def finite_gaussians(model: GaussianModel, source: Path) -> GaussianModel:
+    """`model` without the Gaussians that have a NaN or infinite parameter (saying how many), which would render
+    nothing useful and put the first camera nowhere; a one-line error when none is left."""
+    finite = torch.ones(model.num_gaussians, dtype=torch.bool, device=model.means.device)
+    for value in model.params.values():
+        finite &= torch.isfinite(value.detach()).reshape(model.num_gaussians, -1).all(dim=1)
+    dropped = model.num_gaussians - int(finite.sum())
+    if dropped == 0:
+        return model
+    if dropped == model.num_gaussians:
+        raise MCSplatError(f"{source}: every one of its {dropped:,} Gaussians has NaN or infinite values, so there is "
+                           f"nothing to show")
+    warnings.warn(f"{source}: {dropped:,} of {model.num_gaussians:,} Gaussians have NaN or infinite values: left out")
+    return model.subset(finite)
 
 
 def _radius_of(model) -> float:
@@ -97,7 +114,7 @@ def serve_mesh(path: Path, host: str, port: int, quiet: bool = False, origins: S
     rendered here, so the controls of the splats' renders are hidden."""
     import numpy as np
 
-    mesh = read_mesh(path)
+    mesh = finite_vertices(read_mesh(path), path)
     low, high = mesh.bounds
     radius = float(np.linalg.norm(high - low)) / 2 or 1.0
     server = ViewerServer(host, port, lock=threading.RLock(), scene_radius=radius, background=(1.0, 1.0, 1.0),
@@ -112,3 +129,23 @@ def serve_mesh(path: Path, host: str, port: int, quiet: bool = False, origins: S
         server.close()
         raise
     return server, handle
+
+
+def finite_vertices(mesh, source: Path):
+    """`mesh` without its NaN or infinite vertices and the faces they belong to (saying how many), which would put
+    the first camera nowhere; a one-line error when no face is left."""
+    import numpy as np
+
+    finite = np.isfinite(mesh.vertices).all(axis=1)
+    dropped = int((~finite).sum())
+    if dropped == 0:
+        return mesh
+    faces = finite[mesh.faces].all(axis=1)
+    if not faces.any():
+        raise MCSplatError(f"{source}: every face has a vertex with NaN or infinite values, so there is nothing to "
+                           f"show")
+    warnings.warn(f"{source}: {dropped:,} of {len(mesh.vertices):,} vertices have NaN or infinite values: left out, "
+                  f"with the faces they belong to")
+    kept = mesh.submesh([np.flatnonzero(faces)], append=True, repair=False)
+    kept.remove_unreferenced_vertices()
+    return kept
