@@ -37,9 +37,9 @@ def run(rank: int, world_size: int, init_file: str, results: str, configs: list[
     final = {}
     original_finish = trainer.TrainingRun._finish
 
-    def finish(self, emit):
+    def finish(self, *args):
         final["checksum"] = parameter_checksum(self.model)
-        return original_finish(self, emit)
+        return original_finish(self, *args)
 
     trainer.TrainingRun._finish = finish
     try:

@@ -237,9 +237,6 @@ def budget_seconds(text: str) -> float:
     return seconds
 
 
-SUPPRESSED = ("world_size", "schedule_fitted", "budget_plan")  # not options: what a started run records
-
-
 def flat_options(options: dict, prefix: str = "") -> dict[str, Any]:
     """config.json's nesting as keys: {"mcmc": {"cap_max": 5}} -> {"mcmc.cap_max": 5}."""
     flat = {}
@@ -268,16 +265,10 @@ def named_options(args: Sequence[str]) -> frozenset[str]:
 
 
 def options_given(config: TrainConfig) -> frozenset[str]:
-    """The options `config` was given: those its command line named (config.named), or from the Python API those
-    that differ from their defaults (the defaults that --strategy, --budget and --cap-max decide taken as decided)."""
-    if config.named is not None:
-        return config.named
-    chosen = ("strategy", "budget", "cap_max")
-    plain = flat_options(to_jsonable(TrainConfig(data=config.data)))
-    alike = flat_options(to_jsonable(TrainConfig(data=config.data, **{key: getattr(config, key) for key in chosen})))
-    given = flat_options(to_jsonable(config))
-    return frozenset(key for key, value in given.items() if key not in SUPPRESSED and
-                     (value != alike.get(key) or (key in chosen and value != plain.get(key))))
+    """The options the command line named (config.named), as config.json's keys. A configuration made in Python names
+    none: it holds every option, so nothing tells which were meant (a script resuming a run with the object it
+    started it with, its steps since scaled, means no change)."""
+    return config.named or frozenset()
 
 
 def to_jsonable(config: Any) -> Any:

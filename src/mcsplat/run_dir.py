@@ -244,10 +244,11 @@ def train_lock(config: TrainConfig) -> FolderLock:
     return FolderLock(RunDir(config.run_dir).lock_file, "mcsplat train")
 
 
-def prepare(config: TrainConfig, lock: FolderLock) -> TrainConfig:
+def prepare(config: TrainConfig, lock: FolderLock, world_size: int = 1) -> TrainConfig:
     """Make the run folder ready for `config`, take its `lock`, and return the configuration to train with:
     `config` itself for a new run; on --resume the run's saved configuration with this command line's process
-    options. A folder holding a run is refused without --resume or --overwrite."""
+    options. A folder holding a run is refused without --resume or --overwrite, and a run resumed by another number
+    of processes (`world_size`) than trained it."""
     run = RunDir(config.run_dir)
     given = options_given(config)
     if config.budget is not None and "steps" in given:
@@ -273,6 +274,7 @@ def prepare(config: TrainConfig, lock: FolderLock) -> TrainConfig:
     if not config.resume:
         return config
     saved = run.read_config()
+    check_resumable(saved, world_size)  # first: another number of processes is the reason to give
     refuse_options_resume_ignores(config, given, saved, run.config_file)
     for key in PROCESS_OPTIONS:
         setattr(saved, key, getattr(config, key))

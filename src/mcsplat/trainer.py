@@ -193,7 +193,7 @@ class TrainingRun:
         team.check_same_setup(_setup_of(config))
         local = config
         self.lock = lock or run_dir.train_lock(config)  # rank 0 takes it in prepare; run() releases it
-        config = team.on_main(lambda: run_dir.prepare(local, self.lock))
+        config = team.on_main(lambda: run_dir.prepare(local, self.lock, team.world_size))
         # This process's own options. The data path is its own too (it may differ between machines; the scenes are
         # compared below), except that a resumed run in one process trains on the data it started with.
         for key in PROCESS_OPTIONS + (() if config.resume and team.is_main else ("data",)):
