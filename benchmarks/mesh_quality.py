@@ -154,6 +154,7 @@ def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
 # ------------------------------------------------------------------------------------------------ measures
 def measure(run: Path, exported: dict) -> dict:
     from mcsplat import run_dir
+    from mcsplat.gaussians import DEAD_OPACITY
     from mcsplat.mesh import read_mesh
 
     trained = run_dir.load(run, torch.device("cpu"))
@@ -174,7 +175,7 @@ def measure(run: Path, exported: dict) -> dict:
                       mesh_to_points_median=float(np.median(to_points)),
                       mesh_to_points_p90=float(np.quantile(to_points, 0.9)))
     opacities = trained.model.opacities.detach().numpy()
-    alive = opacities > 0.005
+    alive = opacities > DEAD_OPACITY
     near = distance_to_mesh(trained.model.means.detach().double().numpy()[alive], vertices, faces) \
         <= NEAR_VOXELS * exported["voxel_size"]
     record.update(gaussians_on_surface=float(near.mean()),

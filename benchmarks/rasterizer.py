@@ -32,7 +32,7 @@ from mcsplat.render import Splats, render, set_cpu_threads
 from mcsplat.render.binning import bin_gaussians
 from mcsplat.render.launch import CompositeFunction, cuda_kernels, set_cpu_kernels, set_cuda_kernels
 from mcsplat.render.paths import TORCH_BASELINE_PATH, use_render_path
-from mcsplat.render.constants import BLOCK_SIZE, TILE_SIZE
+from mcsplat.render.constants import ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, TILE_SIZE, TRANSMITTANCE_MIN
 from mcsplat.render.project import project_gaussians, view_dependent_colors
 
 
@@ -173,11 +173,11 @@ def _per_pixel_counts(bins, inputs, size, samples: int = 400) -> tuple[float, fl
         d = means2d[k] - torch.tensor([px + 0.5, py + 0.5])
         q = conics[k]
         power = -0.5 * (q[:, 0] * d[:, 0] ** 2 + q[:, 2] * d[:, 1] ** 2) - q[:, 1] * d[:, 0] * d[:, 1]
-        alpha = torch.clamp(opacities[k] * torch.exp(power), max=0.99)
-        used = (power <= 0) & (alpha >= 1 / 255)
+        alpha = torch.clamp(opacities[k] * torch.exp(power), max=ALPHA_MAX)
+        used = (power <= 0) & (alpha >= ALPHA_MIN)
         t_after = torch.cumprod(torch.where(used, 1 - alpha, torch.ones_like(alpha)), 0)
-        included = used & (t_after >= 1e-4)
-        stop = torch.nonzero(used & (t_after < 1e-4))
+        included = used & (t_after >= TRANSMITTANCE_MIN)
+        stop = torch.nonzero(used & (t_after < TRANSMITTANCE_MIN))
         walked += int(stop[0]) + 1 if stop.numel() else k.numel()
         composited += int(included.sum())
     return walked / samples, composited / samples

@@ -1,26 +1,32 @@
 """The package's structure stays as docs/architecture.md draws it: every module sits in a layer, no import points to a
-higher layer, and the import graph has no circle. Imports inside functions count as much as those at the top."""
+higher layer nor, inside a layer, to a unit on its left, and the import graph has no circle. Imports inside functions
+count as much as those at the top."""
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parents[1] / "src" / "mcsplat"
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "src" / "mcsplat"
+ARCHITECTURE = ROOT / "docs" / "architecture.md"
 
-# Top to bottom, as in docs/architecture.md ("The layers"). A module may import from its own layer and the ones below.
-# Keys are the first component of a module's name inside the package ("" is the package's own __init__).
+# Top to bottom, as in docs/architecture.md ("The layers"). A module may import from the layers below its own and,
+# inside its own layer, from the units to the right of its unit (the order of the picture's row: io sits right of
+# data, so data may import io and io may not import data). A unit is the first component of a module's name inside the
+# package, a subpackage or a top-level module ("" is the package's own __init__); inside a unit imports are free.
 LAYERS = [
-    ("interface", {"cli", "__main__"}),
-    ("session", {"train"}),
-    ("consumers", {"viewer", "report"}),
-    ("loop", {"trainer", "subscribers"}),
-    ("run", {"run_dir", "state", "evaluation", "events"}),
-    ("set-up", {"distributed", "initialization", "schedule", "budget", "config", "config_types"}),
-    ("method", {"strategy", "visibility", "metrics", "optim", "mesh", "appearance", "pose_refinement"}),
-    ("building blocks", {"render", "data", "losses", "ssim_cpu", "ssim_warp", "io", "capture", "camera_path"}),
-    ("model", {"gaussians"}),
-    ("foundation", {"geometry", "compute", "camera", "errors", ""}),
+    ("interface", ("__main__", "cli")),
+    ("session", ("train",)),
+    ("consumers", ("viewer", "report")),
+    ("loop", ("trainer", "subscribers")),
+    ("run", ("state", "run_dir", "events", "evaluation")),
+    ("set-up", ("distributed", "initialization", "budget", "schedule", "config", "config_types")),
+    ("method", ("strategy", "mesh", "appearance", "pose_refinement", "visibility", "metrics", "optim")),
+    ("building blocks", ("render", "losses", "ssim_cpu", "ssim_warp", "capture", "data", "io", "camera_path")),
+    ("model", ("gaussians",)),
+    ("foundation", ("geometry", "compute", "camera", "errors", "")),
 ]
 
 
@@ -62,12 +68,20 @@ def import_graph() -> dict[str, set[str]]:
     return {name: imports_of(name, path, set(files)) for name, path in files.items()}
 
 
+def unit_of(module: str) -> str:
+    return module.split(".")[1] if "." in module else ""
+
+
 def layer_of(module: str) -> int:
-    inside = module.split(".")[1] if "." in module else ""
     for index, (_, members) in enumerate(LAYERS):
-        if inside in members:
+        if unit_of(module) in members:
             return index
     raise AssertionError(f"{module} is in no layer: add it to LAYERS here and to docs/architecture.md")
+
+
+def place_in_layer(module: str) -> int:
+    """How far right the module's unit stands on its layer's row (0: leftmost)."""
+    return LAYERS[layer_of(module)][1].index(unit_of(module))
 
 
 def upward_imports(graph: dict[str, set[str]]) -> list[str]:
@@ -78,6 +92,31 @@ def upward_imports(graph: dict[str, set[str]]) -> list[str]:
                 upward.append(f"{module} ({LAYERS[layer_of(module)][0]}) imports {target} "
                               f"({LAYERS[layer_of(target)][0]})")
     return sorted(upward)
+
+
+def leftward_imports(graph: dict[str, set[str]]) -> list[str]:
+    """Imports between two units of one layer that point to the left on its row (as upward as any, only finer)."""
+    leftward = []
+    for module, targets in graph.items():
+        for target in targets:
+            if (layer_of(target) == layer_of(module) and unit_of(target) != unit_of(module)
+                    and place_in_layer(target) < place_in_layer(module)):
+                leftward.append(f"{module} imports {target} ({unit_of(target)} stands left of {unit_of(module)} in "
+                                f"{LAYERS[layer_of(module)][0]})")
+    return sorted(leftward)
+
+
+def drawn_rows(text: str) -> list[tuple[str, ...]]:
+    """The units of each row of the picture under "## The layers" in docs/architecture.md, left to right."""
+    picture = text.split("## The layers", 1)[1].split("```", 2)[1]
+    rows = []
+    for line in picture.splitlines():
+        # A row is " <layer>  <units>  (a comment)"; the "|" lines and the second word of "building blocks" hold none.
+        if match := re.match(r" \S+\s+(.*)", line):
+            units = tuple(word.rstrip("/") for word in match.group(1).split("(")[0].split() if word != "|")
+            if units:
+                rows.append(units)
+    return rows
 
 
 def find_circle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -108,6 +147,17 @@ def test_every_module_has_a_layer_and_no_import_points_up():
     assert not upward, "imports that point to a higher layer:\n" + "\n".join(upward)
 
 
+def test_no_import_points_left_inside_a_layer():
+    leftward = leftward_imports(import_graph())
+    assert not leftward, ("imports that point to the left inside a layer (move the unit right of what it imports in "
+                          "LAYERS and in docs/architecture.md's picture, or the import out):\n" + "\n".join(leftward))
+
+
+def test_the_picture_has_the_layers_of_the_test():
+    """docs/architecture.md draws the layers and the order inside each that the checks here hold the package to."""
+    assert drawn_rows(ARCHITECTURE.read_text()) == [tuple(u for u in members if u) for _, members in LAYERS]
+
+
 def test_the_import_graph_has_no_circle():
     circle = find_circle(import_graph())
     assert circle is None, "import circle: " + " -> ".join(circle)
@@ -122,3 +172,17 @@ def test_the_checks_see_what_they_guard(tmp_path):
     assert planted["mcsplat.camera"] == {"mcsplat.trainer"}
     assert upward_imports(planted) == ["mcsplat.camera (foundation) imports mcsplat.trainer (loop)"]
     assert find_circle(planted) == ["mcsplat.camera", "mcsplat.trainer", "mcsplat.camera"]
+
+
+def test_the_check_inside_a_layer_sees_what_it_guards(tmp_path):
+    """An import between two packages of one layer is caught when it points left (io/transforms.py once imported
+    data/ for View) and passes when it points right (data/ writes through io/); inside a package imports are free."""
+    (tmp_path / "transforms.py").write_text("from ..data import View\n")
+    modules = {"mcsplat.io.transforms", "mcsplat.io.atomic", "mcsplat.data", "mcsplat.data.undistort"}
+    planted = {"mcsplat.io.transforms": imports_of("mcsplat.io.transforms", tmp_path / "transforms.py", modules),
+               "mcsplat.data.undistort": {"mcsplat.io.atomic", "mcsplat.data"},
+               "mcsplat.io.atomic": set(), "mcsplat.data": set()}
+    assert planted["mcsplat.io.transforms"] == {"mcsplat.data"}
+    assert upward_imports(planted) == []
+    assert leftward_imports(planted) == ["mcsplat.io.transforms imports mcsplat.data (data stands left of io in "
+                                         "building blocks)"]

@@ -22,6 +22,7 @@ import tyro
 
 from mcsplat.config import TrainConfig
 from mcsplat.errors import MCSplatError
+from mcsplat.gaussians import DEAD_OPACITY
 
 DESCRIPTION = ("mcsplat: 3D Gaussian Splatting trained with the MCMC method (Kheradmand et al., 2024), on CPU or "
                "NVIDIA GPU. Scene folders may be COLMAP, Blender/NeRF (transforms.json) or LLFF (poses_bounds.npy); "
@@ -165,6 +166,7 @@ class Render:
         from tqdm import tqdm
 
         from mcsplat.camera_path import loop_path
+        from mcsplat.data.images import uint8_pixels
         from mcsplat.io.atomic import atomic_path
 
         cameras = loop_path([v.camera for v in views], self.frames)
@@ -173,7 +175,7 @@ class Render:
                                     macro_block_size=1) as writer:
                 for camera in tqdm(cameras, desc="video", unit="frame"):
                     image = self._frame(run.model, camera.to(run.device), run.background, run.sh_degree)
-                    writer.append_data((image.clamp(0, 1) * 255 + 0.5).byte().cpu().numpy())
+                    writer.append_data(uint8_pixels(image))
         print(f"wrote {path} ({self.frames} frames at {self.fps} fps)")
 
 
@@ -190,7 +192,7 @@ class Export:
     out: Path | None = None
     """Output file, named .ply, .splat, .compressed.ply or .spz (default: RUN/point_cloud.<that ending>); with
     --format mesh, .ply, .glb or .obj (default: RUN/mesh.ply)."""
-    min_opacity: float = 0.005
+    min_opacity: float = DEAD_OPACITY
     """Leave out Gaussians of this opacity or less (0.005: the dead ones MCMC relocates)."""
     max_gaussians: int | None = None
     """Keep at most N: those that contribute most (opacity x largest cross-section)."""
@@ -441,7 +443,7 @@ def _test_views_and_renderer(path: Path, device_name: str):
 
     from mcsplat import run_dir
     from mcsplat.compute.device import resolve_device
-    from mcsplat.evaluation import png_pixels
+    from mcsplat.data.images import uint8_pixels
     from mcsplat.render import render
 
     run = run_dir.load(path, resolve_device(device_name))
@@ -453,7 +455,7 @@ def _test_views_and_renderer(path: Path, device_name: str):
 
     @torch.no_grad()
     def render_view(view):
-        return png_pixels(render(run.model, view.camera.to(run.device), background, run.sh_degree).rgb)
+        return uint8_pixels(render(run.model, view.camera.to(run.device), background, run.sh_degree).rgb)
 
     return scene.test, render_view
 

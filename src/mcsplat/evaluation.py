@@ -15,6 +15,7 @@ from tqdm import tqdm
 
 from .appearance import apply_transform, fitted_transform, split_halves
 from .data import View
+from .data.images import uint8_pixels
 from .distributed import SingleProcess, Team
 from .errors import MCSplatError
 from .gaussians import GaussianModel
@@ -131,7 +132,7 @@ def evaluate(model: GaussianModel, views: list[View], background, sh_degree: int
         if team.is_main:
             save_png(render_file(view.name), image)
         else:
-            sent.append((view.name, png_pixels(image)))
+            sent.append((view.name, uint8_pixels(image)))
 
     scores = score_views(model, [views[i] for i in mine], background, sh_degree, device, lpips_net,
                          keep if render_file is not None else None, progress and team.is_main)
@@ -153,13 +154,8 @@ def seen_in_views(model: GaussianModel, views: list[View], background, device: t
     return seen.bool()
 
 
-def png_pixels(image: torch.Tensor) -> np.ndarray:
-    """uint8 [H, W, 3] of a float image in [0, 1]."""
-    return (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
-
-
 def save_png(path: Path, image: torch.Tensor) -> None:
-    save_pixels(path, png_pixels(image))
+    save_pixels(path, uint8_pixels(image))
 
 
 def save_pixels(path: Path, pixels: np.ndarray) -> None:

@@ -17,8 +17,7 @@ from tqdm import tqdm
 from .data import View
 from .gaussians import GaussianModel
 from .render import render
-
-MIN_ALPHA = 1.0 / 255.0  # the rasterizer skips a Gaussian at a pixel where its alpha is below this
+from .render.constants import ALPHA_MIN
 
 
 @dataclass(frozen=True)
@@ -49,5 +48,6 @@ def seen_in(model: GaussianModel, views: Sequence[View], background, device: tor
 
 
 def count_invisible(model: GaussianModel, seen: torch.Tensor) -> Invisible:
-    faint = model.opacities.detach() < MIN_ALPHA
+    # alpha = opacity x a falloff of at most 1, so below ALPHA_MIN the rasterizer skips the Gaussian at every pixel
+    faint = model.opacities.detach() < ALPHA_MIN
     return Invisible(total=model.num_gaussians, faint=int(faint.sum()), unseen=int((~seen).sum()))

@@ -1,4 +1,5 @@
-"""Image files: which folder to read, sizes from the headers, and parallel decoding into uint8 RGB tensors."""
+"""Image files: which folder to read, sizes from the headers, and parallel decoding into uint8 RGB tensors; float
+images back to uint8 pixels for a file, a video or a page."""
 
 from __future__ import annotations
 
@@ -89,6 +90,14 @@ def has_alpha(path: Path) -> bool:
     """Whether the image file carries an alpha channel (from its header: the pixels are not decoded)."""
     with Image.open(path) as im:
         return im.mode in ALPHA_MODES or (im.mode == "P" and "transparency" in im.info)
+
+
+def uint8_pixels(image: torch.Tensor) -> np.ndarray:
+    """uint8 numpy pixels of a float image in [0, 1] (any shape, any device): clamped, times 255, rounded half up.
+
+    The one conversion of every picture mcsplat writes or shows (renders, video frames, the viewer's modes, the mesh's
+    pictures), so that they agree to the bit; View.image_float goes the other way."""
+    return (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
 
 
 def load_images(paths: Sequence[Path], sizes: Sequence[Size], background: Sequence[float],

@@ -8,17 +8,31 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Sequence
+from typing import Protocol, Sequence
 
 import numpy as np
 
-from ..data import View
+from ..camera import Camera
 from .atomic import atomic_write_text
 
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0])
 
 
-def write_transforms(views: Sequence[View], path: str | os.PathLike) -> None:
+class Frame(Protocol):
+    """What a frame is written from; a data.View has it. A protocol, so that io/ does not import data/, which writes
+    through io/ (docs/architecture.md, "The layers")."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def camera(self) -> Camera: ...
+
+    @property
+    def image_file(self) -> Path | None: ...
+
+
+def write_transforms(views: Sequence[Frame], path: str | os.PathLike) -> None:
     """Write `views` (their image files as they are, by absolute path) to the transforms.json at `path`."""
     frames = []
     for view in views:

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from ..camera import Camera
+from ..data.images import uint8_pixels
 from ..render.constants import NEAR_PLANE
 
 PAIRS_PER_CHUNK = 1 << 22
@@ -120,4 +121,4 @@ def picture(vertices: torch.Tensor, faces: torch.Tensor, camera: Camera, colors:
     shade = ambient + (1 - ambient) * slant
     image = torch.tensor(background, dtype=torch.float64, device=device).expand(camera.height, camera.width, 3).clone()
     image[hit] = albedo * shade[:, None]
-    return (image.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+    return uint8_pixels(image)

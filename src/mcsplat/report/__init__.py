@@ -101,14 +101,14 @@ class ReportWriter(Subscriber):
     def _write(self, event: RunFinished) -> Path:
         import torch
 
-        from ..evaluation import png_pixels
+        from ..data.images import uint8_pixels
         from ..render import render
 
         run = event.run
 
         @torch.no_grad()
         def render_view(view) -> np.ndarray:
-            return png_pixels(render(run.model, view.camera.to(run.device), run.background,
-                                     event.metrics["sh_degree"]).rgb)
+            return uint8_pixels(render(run.model, view.camera.to(run.device), run.background,
+                                       event.metrics["sh_degree"]).rgb)
 
         return make_report([run.run_dir], test_views=run.scene.test, render_view=render_view)

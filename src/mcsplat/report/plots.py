@@ -93,8 +93,8 @@ def refinement(runs: list[RunRecord]) -> bytes:
 
 
 def distributions(runs: list[RunRecord]) -> bytes:
-    """Opacity and largest-scale histograms of the final Gaussians; the share of dead ones (opacity <= 0.005) is
-    what a lower cap would save."""
+    """Opacity and largest-scale histograms of the final Gaussians; the share of dead ones (opacity <= DEAD_OPACITY)
+    is what a lower cap would save."""
     figure, (left, right) = _axes("Final Gaussians", "opacity", "Gaussians", panels=2)
     right.set_xlabel("largest scale (log10)")
     bins = np.linspace(0, 1, 51)

@@ -33,7 +33,7 @@ from typing import Any, Callable, ClassVar, Mapping
 
 import torch
 
-from ..gaussians import PARAM_KEYS, GaussianModel
+from ..gaussians import DEAD_OPACITY, PARAM_KEYS, GaussianModel
 from ..optim import append_rows, copy_rows, remove_rows, set_rows, zero_moments
 from .auto_cap import (DEFAULT_DEMAND_SHARE, DEFAULT_DEMAND_THRESHOLD, DEFAULT_GAUSSIANS_PER_PIXEL, growth_demand,
                        pixel_ceiling)
@@ -67,7 +67,7 @@ class MCMCConfig:
     refine_every: int = 100         # ... and step % refine_every == 0
     grow_rate: float = 1.05         # growth factor per refine step (at least: see growth_share)
     growth_share: float = 0.4       # the cap is reached by this share of the run at the latest (schedule.py)
-    min_opacity: float = 0.005      # dead: opacity <= min_opacity
+    min_opacity: float = DEAD_OPACITY  # dead: opacity <= min_opacity
     max_copies: int = DEFAULT_MAX_COPIES  # N clamp in Eq. 9
     auto_cap: bool = False          # grow only where the screen gradient asks for more (cap_max is then a ceiling)
     demand_threshold: float = DEFAULT_DEMAND_THRESHOLD  # the automatic cap's gradient threshold (3DGS's, NDC units)
@@ -138,7 +138,7 @@ def _no_alive_warning(min_opacity: float, what: str) -> None:
 
 @torch.no_grad()
 def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch.Generator, *,
-                  min_opacity: float = 0.005,
+                  min_opacity: float = DEAD_OPACITY,
                   max_copies: int = DEFAULT_MAX_COPIES, agree: Agree = _as_drawn) -> tuple[torch.Tensor, torch.Tensor]:
     """Move the dead Gaussians (opacity <= min_opacity) onto live ones (docs/method.md, "Relocation of dead Gaussians").
 
@@ -173,7 +173,7 @@ def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch
 
 @torch.no_grad()
 def grow(model: GaussianModel, optimizers: Optimizers, generator: torch.Generator, *, cap_max: int,
-         grow_rate: float = 1.05, min_opacity: float = 0.005, max_copies: int = DEFAULT_MAX_COPIES,
+         grow_rate: float = 1.05, min_opacity: float = DEAD_OPACITY, max_copies: int = DEFAULT_MAX_COPIES,
          agree: Agree = _as_drawn) -> torch.Tensor:
     """Append min(cap_max, int(grow_rate N)) - N copies of Gaussians drawn by opacity (docs/method.md, "Growth").
 

@@ -25,6 +25,8 @@ import math
 import numpy as np
 import torch
 
+from ..gaussians import DEAD_OPACITY
+
 __all__ = ["DEFAULT_MAX_COPIES", "MAX_OPACITY", "binomial_table", "relocation_coefficients", "relocation_params",
            "sample_by_weight"]
 
@@ -64,7 +66,7 @@ def _coefficient_tensor(n_max: int) -> torch.Tensor:
 
 def relocation_params(opacities: torch.Tensor, scales: torch.Tensor, counts: torch.Tensor, *,
                       n_max: int = DEFAULT_MAX_COPIES,
-                      min_opacity: float = 0.005) -> tuple[torch.Tensor, torch.Tensor]:
+                      min_opacity: float = DEAD_OPACITY) -> tuple[torch.Tensor, torch.Tensor]:
     """Eq. 9: opacity [M] and scales [M, 3] that each of `counts` [M] copies of a Gaussian gets.
 
     `counts` is the total number of Gaussians sharing the source after the move (the source plus its copies); it is

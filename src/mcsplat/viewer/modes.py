@@ -7,18 +7,15 @@ import numpy as np
 import torch
 
 from ..camera import Camera
+from ..data.images import uint8_pixels
 from ..render import Splats, render
 
 MODES = ("RGB", "depth", "alpha", "centres")
 CENTRE_SIZE = 0.002  # dot radius in units of the scene radius
 
 
-def _to_uint8(image: torch.Tensor) -> np.ndarray:
-    return (image.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
-
-
 def _gray(values: torch.Tensor) -> np.ndarray:
-    return _to_uint8(values[..., None].expand(*values.shape, 3))
+    return uint8_pixels(values[..., None].expand(*values.shape, 3))
 
 
 @torch.no_grad()
@@ -29,10 +26,10 @@ def render_mode(model, camera: Camera, mode: str, background, sh_degree: int, sc
         dots = Splats(means=model.means, quats=model.quats,
                       scales=model.means.new_full((n, 3), CENTRE_SIZE * scene_radius),
                       opacities=model.means.new_ones(n), sh=model.sh[:, :1])
-        return _to_uint8(render(dots, camera, background, 0).rgb)
+        return uint8_pixels(render(dots, camera, background, 0).rgb)
     result = render(model, camera, background, sh_degree)
     if mode == "RGB":
-        return _to_uint8(result.rgb)
+        return uint8_pixels(result.rgb)
     if mode == "alpha":
         return _gray(result.alpha)
     covered = result.alpha > 0.05
