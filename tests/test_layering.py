@@ -12,7 +12,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "src" / "mcsplat"
 # Keys are the first component of a module's name inside the package ("" is the package's own __init__).
 LAYERS = [
     ("interface", {"cli", "__main__"}),
-    ("session", {"train"}),
+    ("session", {"train", "export"}),
     ("consumers", {"viewer", "report"}),
     ("loop", {"trainer", "subscribers"}),
     ("run", {"run_dir", "state", "evaluation", "events"}),
