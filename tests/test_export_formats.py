@@ -194,3 +194,44 @@ def test_no_command_writes_into_the_scene_the_run_trained_on(tiny_run, mini_demo
         assert error.startswith("mcsplat: error:") and "inside the scene folder" in error, (argv, error)
         assert error.count("\n") == 1, error
     assert {p: p.read_bytes() for p in scene.rglob("*") if p.is_file()} == before, "nothing written into the scene"
+
+
+def test_one_table_holds_every_format_and_the_cli_takes_it_as_it_is(tmp_path):
+    """A format is its module and its entry in the table: --format's choices, its help and each default file follow
+    from the table (export/formats.py), the Gaussian formats from io/formats' own; the library's defaults are the
+    command's."""
+    import dataclasses
+    import typing
+
+    from mcsplat.cli import Export
+    from mcsplat.export import EXPORT_FORMATS, ExportOptions, format_help
+    from mcsplat.io.formats import FORMATS
+    from mcsplat.run_dir import RunDir
+
+    assert list(EXPORT_FORMATS) == ["ply", "splat", "compressed-ply", "spz", "mesh"]
+    assert [name for name, entry in EXPORT_FORMATS.items() if entry.ending is not None] == list(FORMATS)
+    annotation = typing.get_type_hints(Export, include_extras=True)["format"]
+    choices, _ = typing.get_args(typing.get_args(annotation)[0])  # Annotated[Literal[...] | None, help]
+    assert typing.get_args(choices) == tuple(EXPORT_FORMATS)
+    assert all(f"{name}: " in format_help() for name in EXPORT_FORMATS)
+    folder = RunDir(tmp_path)
+    assert {name: entry.default_file(folder).name for name, entry in EXPORT_FORMATS.items()} == {
+        "ply": "point_cloud.ply", "splat": "point_cloud.splat", "compressed-ply": "point_cloud.compressed.ply",
+        "spz": "point_cloud.spz", "mesh": "mesh.ply"}
+    command = {field.name: field.default for field in dataclasses.fields(Export) if field.name != "run"}
+    assert command == {field.name: field.default for field in dataclasses.fields(ExportOptions)}
+
+
+def test_the_plain_ply_through_the_table_is_the_ply_training_writes(tmp_path):
+    import torch
+
+    from mcsplat.io.ply import write_ply
+
+    g = random_gaussians(50)
+    keep = np.zeros(50, dtype=bool)
+    keep[::3] = True
+    write_ply(tmp_path / "direct.ply", {k: torch.from_numpy(v) for k, v in g.items()}, keep=torch.from_numpy(keep))
+    write_gaussians("ply", tmp_path / "table.ply", {k: v[keep] for k, v in g.items()})
+    assert (tmp_path / "table.ply").read_bytes() == (tmp_path / "direct.ply").read_bytes()
+    back = read_gaussians("ply", tmp_path / "table.ply")
+    assert all(np.array_equal(back[k], g[k][keep]) for k in g)

@@ -18,7 +18,7 @@ ARCHITECTURE = ROOT / "docs" / "architecture.md"
 # package, a subpackage or a top-level module ("" is the package's own __init__); inside a unit imports are free.
 LAYERS = [
     ("interface", ("__main__", "cli")),
-    ("session", ("train",)),
+    ("session", ("train", "export")),
     ("consumers", ("viewer", "report")),
     ("loop", ("trainer", "subscribers")),
     ("run", ("state", "run_dir", "events", "evaluation")),

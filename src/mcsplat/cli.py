@@ -23,6 +23,7 @@ import tyro
 from mcsplat.config import TrainConfig
 from mcsplat.errors import MCSplatError
 from mcsplat.gaussians import DEAD_OPACITY
+from mcsplat.export import FORMAT_NAMES, format_help
 
 DESCRIPTION = ("mcsplat: 3D Gaussian Splatting trained with the MCMC method (Kheradmand et al., 2024), on CPU or "
                "NVIDIA GPU. Scene folders may be COLMAP, Blender/NeRF (transforms.json) or LLFF (poses_bounds.npy); "
@@ -185,10 +186,8 @@ class Export:
     or Niantic .spz, leaving out near-transparent Gaussians; or its surface as a triangle mesh."""
 
     run: RunDir
-    format: Literal["ply", "splat", "compressed-ply", "spz", "mesh"] | None = None
-    """ply: every viewer, full SH. splat: 32 bytes each, no SH. compressed-ply: SuperSplat/PlayCanvas, ~4x smaller.
-    spz: Niantic's gzip format, ~10x smaller. Default: the one --out's name ends with, else ply. mesh: the surface the
-    training views see (median depth fused into a signed distance volume, marching cubes), with vertex colours."""
+    # Its choices and help come from the table of export formats (export/formats.py): a new format adds no line here.
+    format: Annotated[Literal[FORMAT_NAMES] | None, tyro.conf.arg(help=format_help())] = None
     out: Path | None = None
     """Output file, named .ply, .splat, .compressed.ply or .spz (default: RUN/point_cloud.<that ending>); with
     --format mesh, .ply, .glb or .obj (default: RUN/mesh.ply)."""
@@ -216,150 +215,13 @@ class Export:
     device: Device = "auto"
 
     def run_command(self) -> int:
-        import contextlib
+        from dataclasses import asdict
 
-        import numpy as np
-        import torch
+        from mcsplat.export import ExportOptions, export_run
 
-        from mcsplat import run_dir
-        from mcsplat.compute.device import resolve_device
-        from mcsplat.io.formats import outliers, select_gaussians, write_gaussians
-        from mcsplat.io.ply import write_ply
-
-        folder = run_dir.RunDir(self.run)
-        folder.read_config()  # a run folder, or the one-line error, before any work
-        path, format_name = self._mesh_output(folder) if self.format == "mesh" else self._output(folder)
-        run = run_dir.load(self.run, resolve_device(self.device))
-        _refuse_non_finite(folder, run.model)  # one check for every format, the mesh's included
-        if format_name == "mesh":
-            return self._export_mesh(folder, path, run)
-        model = run.model
-        params = {k: v.detach().cpu().numpy() for k, v in model.params.items()}
-        limits = self.max_scale is not None or self.max_distance is not None
-        extent = self._extent(run, required=limits)
-        candidates = np.arange(model.num_gaussians)
-        if self.prune:
-            candidates = np.flatnonzero(self._seen(run).cpu().numpy())
-        if limits:
-            inside = outliers.within(params, extent, self.max_scale, self.max_distance)[candidates]
-            print(f"{int((~inside).sum()):,} Gaussians beyond --max-scale / --max-distance: left out")
-            candidates = candidates[inside]
-        chosen = candidates[select_gaussians({k: v[candidates] for k, v in params.items()}, self.min_opacity,
-                                             self.max_gaussians)]
-        if chosen.size == 0:
-            raise MCSplatError(f"no Gaussian has opacity above --min-opacity {self.min_opacity}"
-                               f"{' and shows in a training view (--prune)' if self.prune else ''}"
-                               f"{' within --max-scale / --max-distance' if limits else ''}; lower it")
-        if extent is not None:
-            print(outliers.describe({k: v[chosen] for k, v in params.items()}, extent))
-        keep = torch.zeros(model.num_gaussians, dtype=torch.bool)
-        keep[torch.from_numpy(chosen)] = True
-        if self.prune or limits:
-            self._compare_on_test_views(run, keep.to(run.device))
-        with folder.lock("mcsplat export") if folder.contains(path) else contextlib.nullcontext():
-            if format_name == "ply":
-                write_ply(path, dict(model.params.items()), keep=keep)
-            else:
-                write_gaussians(format_name, path, {k: v[chosen] for k, v in params.items()},
-                                antialiased=model.antialiased)
-        if model.antialiased and format_name != "spz":
-            print(f"note: this run was trained with --antialiased, which {format_name} files cannot record: viewers "
-                  "draw it without the 2D filter (fine detail a little heavier); .spz records it")
-        print(f"wrote {path} ({chosen.size:,} of {model.num_gaussians:,} Gaussians, {path.stat().st_size:,} bytes)")
+        options = asdict(self)
+        export_run(options.pop("run"), ExportOptions(**options))
         return 0
-
-    def _mesh_output(self, folder) -> tuple[Path, str]:
-        """(the mesh file to write, "mesh"): --out, or RUN/mesh.ply."""
-        from mcsplat.mesh import check_mesh_path
-
-        path = folder.mesh_file if self.out is None else self._checked_out(folder)
-        check_mesh_path(path)
-        return path, "mesh"
-
-    def _export_mesh(self, folder, path: Path, run) -> int:
-        import contextlib
-        import time
-
-        from mcsplat.mesh import MeshOptions, extract, write_mesh
-
-        options = MeshOptions(voxel_size=self.voxel_size, voxel_budget=self.voxel_budget, alpha_min=self.alpha_min,
-                              min_component=self.min_component)
-        started = time.perf_counter()
-        mesh = extract(run.model, run.scene.train, options, sh_degree=run.sh_degree, progress=True)
-        with folder.lock("mcsplat export") if folder.contains(path) else contextlib.nullcontext():
-            write_mesh(path, mesh)
-        made = mesh.metadata["mcsplat"]
-        print(f"wrote {path} ({len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces; {made['views']} views fused "
-              f"in {made['grid'].describe()}, {time.perf_counter() - started:.0f} s)")
-        if path == folder.mesh_file and folder.report_file.is_file():
-            from mcsplat.report import make_report
-
-            test_views, render_view = _test_views_and_renderer(folder.path, self.device)
-            with folder.lock("mcsplat export"):
-                print(f"wrote {make_report([folder.path], test_views=test_views, render_view=render_view)}")
-        return 0
-
-    def _checked_out(self, folder) -> Path:
-        """--out, unless it is a folder, one of the run's own files or inside a scene folder."""
-        from mcsplat.run_dir import refuse_writing_into_scene
-
-        if self.out.is_dir():
-            raise MCSplatError(f"--out {self.out} is a folder; give the file to write")
-        if folder.is_own_file(self.out):
-            raise MCSplatError(f"--out {self.out} would replace the run's own {self.out.name}; choose another name")
-        refuse_writing_into_scene(self.out, folder.read_config())
-        return self.out
-
-    def _output(self, folder) -> tuple[Path, str]:
-        """(the file to write, its format): the format follows --out's name; a run's own files are refused."""
-        from mcsplat.io.formats import ENDINGS, format_named_by
-
-        endings = ", ".join(sorted(set(ENDINGS.values())))
-        if self.out is None:
-            name = self.format or "ply"
-            return folder.export_file(ENDINGS[name]), name
-        named = format_named_by(self._checked_out(folder))
-        if named is None:
-            hint = " (a mesh: --format mesh)" if self.out.suffix.lower() in (".glb", ".obj") else ""
-            raise MCSplatError(f"--out {self.out}: the name must end in {endings}, which says the format{hint}")
-        if self.format is not None and self.format != named:
-            raise MCSplatError(f"--out {self.out} names a {named} file but --format is {self.format}; name it "
-                               f"*{ENDINGS[self.format]} or leave --format out")
-        return self.out, named
-
-    @staticmethod
-    def _extent(run, required: bool):
-        """The training cameras' centre and radius, for the very large and very far Gaussians; None (said) when
-        the run's scene cannot be loaded and no limit needs it."""
-        from mcsplat.io.formats.outliers import Extent
-
-        try:
-            scene = run.scene
-        except MCSplatError as error:
-            if required:
-                raise MCSplatError(f"--max-scale / --max-distance need the run's scene: {error}") from None
-            print(f"not checked for very large or very far Gaussians: {error}")
-            return None
-        return Extent(centre=scene.centre.numpy(), radius=float(scene.radius))
-
-    @staticmethod
-    def _seen(run):
-        """Which Gaussians the run's training views show (printing how many show nowhere)."""
-        from mcsplat.visibility import count_invisible, describe, seen_in
-
-        seen = seen_in(run.model, run.scene.train, run.background, run.device, progress=True)
-        print(f"{describe(count_invisible(run.model, seen).as_dict())}: left out")
-        return seen
-
-    @staticmethod
-    def _compare_on_test_views(run, keep) -> None:
-        from mcsplat.evaluation import evaluate
-
-        test = run.scene.test
-        full = evaluate(run.model, test, run.background, run.sh_degree, run.device, progress=True).psnr
-        kept = evaluate(run.model.subset(keep), test, run.background, run.sh_degree, run.device, progress=True).psnr
-        print(f"test PSNR on {len(test)} views: {full:.3f} dB with every Gaussian, {kept:.3f} dB with the "
-              f"{int(keep.sum()):,} exported ({kept - full:+.3f} dB)")
 
 
 @dataclass
@@ -375,6 +237,7 @@ class Report:
 
     def run_command(self) -> int:
         from mcsplat.report import make_report
+        from mcsplat.report.views import saved_run_views
 
         import contextlib
 
@@ -388,7 +251,7 @@ class Report:
         with target.lock("mcsplat report") if target.config_file.is_file() else contextlib.nullcontext():
             test_views, render_view = (), None
             if len(self.runs) == 1:
-                test_views, render_view = _test_views_and_renderer(self.runs[0], self.device)
+                test_views, render_view = saved_run_views(self.runs[0], self.device)
             page = make_report(self.runs, out=self.out, test_views=test_views, render_view=render_view)
         print(f"wrote {page}")
         return 0
@@ -424,40 +287,6 @@ class ViewSaved:
         except KeyboardInterrupt:
             print("mcsplat: viewer stopped", file=sys.stderr)
         return 0
-
-
-def _refuse_non_finite(folder, model) -> None:
-    """A one-line error when the model holds NaN or infinite parameters (a diverged run): no format is written."""
-    import torch
-
-    broken = [name for name, value in model.params.items() if not torch.isfinite(value.detach()).all()]
-    if broken:
-        raise MCSplatError(f"{folder.checkpoint_file}: NaN or infinite values in {', '.join(broken)}, so nothing is "
-                           f"exported; the run diverged: train it again, or go back to "
-                           f"{folder.previous_checkpoint_file.name}")
-
-
-def _test_views_and_renderer(path: Path, device_name: str):
-    """The run's test views and a function rendering one, for the report's grid (none when the scene is gone)."""
-    import torch
-
-    from mcsplat import run_dir
-    from mcsplat.compute.device import resolve_device
-    from mcsplat.data.images import uint8_pixels
-    from mcsplat.render import render
-
-    run = run_dir.load(path, resolve_device(device_name))
-    try:
-        scene, background = run.scene, run.background
-    except MCSplatError as error:
-        warnings.warn(f"the report has no test-view grid: the scene cannot be loaded ({error})")
-        return (), None
-
-    @torch.no_grad()
-    def render_view(view):
-        return uint8_pixels(render(run.model, view.camera.to(run.device), background, run.sh_degree).rgb)
-
-    return scene.test, render_view
 
 
 @dataclass

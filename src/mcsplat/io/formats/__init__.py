@@ -1,51 +1,60 @@
-"""Gaussians in the file formats that web viewers read: `.splat`, PlayCanvas compressed `.ply`, Niantic `.spz`.
+"""Gaussians in the file formats that viewers read: the 3DGS `.ply`, `.splat`, PlayCanvas compressed `.ply`,
+Niantic `.spz`; one table of them (FORMATS), which `mcsplat export` offers as they are (export/formats.py).
 
 Every writer takes the model's raw parameters as numpy arrays (the keys of GaussianModel.params: means, log_scales,
 quats (w, x, y, z), opacity_logits, sh0 [N,1,3], shN [N,K-1,3]) and writes atomically; every reader returns the same
 keys, decoded (within the format's quantisation), so that tests and tools can read a file back. The byte layout of
-each format is in its module's docstring. The plain 3DGS .ply is io/ply.py.
+each format is in its module's docstring; the plain 3DGS .ply's in io/ply.py (plain_ply.py fits it to the table).
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from . import compressed_ply, splat, spz
+from . import compressed_ply, plain_ply, splat, spz
 from .prune import select_gaussians
 
-__all__ = ["FORMATS", "EXTENSIONS", "ENDINGS", "format_named_by", "select_gaussians", "write_gaussians",
-           "read_gaussians"]
+__all__ = ["GaussianFormat", "FORMATS", "EXTENSIONS", "select_gaussians", "write_gaussians", "read_gaussians"]
 
-# name -> (writer, reader, default file name ending)
-FORMATS: dict[str, tuple[Callable, Callable, str]] = {
-    "splat": (splat.write_splat, splat.read_splat, ".splat"),
-    "compressed-ply": (compressed_ply.write_compressed_ply, compressed_ply.read_compressed_ply, ".compressed.ply"),
-    "spz": (spz.write_spz, spz.read_spz, ".spz"),
-}
-EXTENSIONS = {name: ending for name, (_, _, ending) in FORMATS.items()}
-ENDINGS = {"ply": ".ply", **EXTENSIONS}  # every export format, the plain 3DGS .ply included
+Params = dict[str, np.ndarray]
 
 
-def format_named_by(path: str | os.PathLike) -> str | None:
-    """The export format a file name asks for by its ending (the longest that matches: x.compressed.ply is
-    compressed-ply, x.ply ply), or None."""
-    name = Path(path).name.lower()
-    matching = [(len(ending), fmt) for fmt, ending in ENDINGS.items() if name.endswith(ending)]
-    return max(matching)[1] if matching else None
+@dataclass(frozen=True)
+class GaussianFormat:
+    """One file format of Gaussians."""
+
+    name: str                      # what `mcsplat export --format` calls it
+    ending: str                    # what its files' names end with (the longest ending that matches decides)
+    summary: str                   # its sentence in --format's help: who reads it, how large it is
+    write: Callable[..., None]     # (path, params), and antialiased= when the format records it
+    read: Callable[[Path], Params]
+    records_antialiasing: bool = False  # the file can say that the scene is drawn with the 2D filter
 
 
-def write_gaussians(format_name: str, path: str | os.PathLike, params: dict[str, np.ndarray], *,
-                    antialiased: bool = False) -> None:
-    """`antialiased`: the scene was trained to be drawn with the 2D filter; only .spz has a flag that says so."""
-    if format_name == "spz":
-        spz.write_spz(Path(path), params, antialiased=antialiased)
+FORMATS: dict[str, GaussianFormat] = {entry.name: entry for entry in (
+    GaussianFormat("ply", ".ply", "every viewer, full SH.", plain_ply.write_plain_ply, plain_ply.read_plain_ply),
+    GaussianFormat("splat", ".splat", "32 bytes each, no SH.", splat.write_splat, splat.read_splat),
+    GaussianFormat("compressed-ply", ".compressed.ply", "SuperSplat/PlayCanvas, ~4x smaller.",
+                   compressed_ply.write_compressed_ply, compressed_ply.read_compressed_ply),
+    GaussianFormat("spz", ".spz", "Niantic's gzip format, ~10x smaller.", spz.write_spz, spz.read_spz,
+                   records_antialiasing=True),
+)}
+EXTENSIONS = {name: entry.ending for name, entry in FORMATS.items()}
+
+
+def write_gaussians(format_name: str, path: str | os.PathLike, params: Params, *, antialiased: bool = False) -> None:
+    """`antialiased`: the scene was trained to be drawn with the 2D filter; written where the format records it."""
+    entry = FORMATS[format_name]
+    if entry.records_antialiasing:
+        entry.write(Path(path), params, antialiased=antialiased)
     else:
-        FORMATS[format_name][0](Path(path), params)
+        entry.write(Path(path), params)
 
 
-def read_gaussians(format_name: str, path: str | os.PathLike) -> dict[str, np.ndarray]:
-    return FORMATS[format_name][1](Path(path))
+def read_gaussians(format_name: str, path: str | os.PathLike) -> Params:
+    return FORMATS[format_name].read(Path(path))

@@ -1,0 +1,28 @@
+"""What `mcsplat export` is asked: the options of cli.Export but the run folder, with the same defaults."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..gaussians import DEAD_OPACITY
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    """Checked where they are used (after the run is read), so that the errors come in the order they always did."""
+
+    format: str | None = None         # a name of formats.EXPORT_FORMATS; None: the one --out's name ends with, else ply
+    out: Path | None = None           # the file to write; None: the format's default file in the run folder
+    # Which Gaussians a Gaussian format holds (selection.py)
+    min_opacity: float = DEAD_OPACITY  # the dead ones MCMC relocates are left out
+    max_gaussians: int | None = None  # at most this many, those that contribute most
+    prune: bool = False               # leave out those no training view shows
+    max_scale: float | None = None    # scene radii
+    max_distance: float | None = None  # scene radii from the training cameras' centre
+    # The mesh (mesh.py; mesh/extract.py's MeshOptions)
+    voxel_size: float | None = None
+    voxel_budget: int = 1 << 24
+    alpha_min: float = 0.5
+    min_component: float = 0.02
+    device: str = "auto"              # "auto", "cpu" or "cuda"
