@@ -6,8 +6,8 @@ on every shared real capture at full resolution, compared model for model.
     .venv/bin/python benchmarks/defaults_before_after.py --before-tree ../before-cleanup     # 300 steps, cap 30k
     .venv/bin/python benchmarks/defaults_before_after.py --report        # the table only
 
-None of the options became a default (each costs some capture or lego PSNR where measured; the README's sections
-have the tables), so a run with the defaults should train the same model as before. This checks that it does, bit
+None of the options became a default (each costs some capture or lego PSNR where measured; docs/imperfect-captures.md
+has the tables), so a run with the defaults should train the same model as before. This checks that it does, bit
 for bit at equal steps (every parameter of the final model, compared with torch.equal), and times a step of each
 (from step 100 to the last, one run at a time). Equal models at equal steps leave the step time as the only thing a
 fixed time budget could see; a --budget table of both would instead measure the planner's run-to-run spread (its

@@ -179,7 +179,7 @@ def run_arm(arm_class, setup: Setup, timed: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", required=True, help="a Blender scene folder (lego 400 in the README's figures)")
+    parser.add_argument("--data", required=True, help="a Blender scene folder (lego 400 in the benchmarks' figures)")
     parser.add_argument("--cap", type=int, default=300_000)
     parser.add_argument("--init", type=int, default=None, help="random initial points (default: cap / 2)")
     parser.add_argument("--init-method", default="auto", choices=["auto", "random"],

@@ -3,7 +3,7 @@
 A Gaussian shows in a pixel only when its alpha (opacity x its 2D falloff) reaches 1/255 before the pixel's
 transmittance runs out (the rasterizer's rule), so one of opacity below 1/255 is never seen, and neither is one that
 lies outside every camera or behind opaque surfaces in all of them. `mcsplat train` counts them at the end of a run;
-`mcsplat export --prune` leaves them out (README, "Seeing a scene").
+`mcsplat export --prune` leaves them out (docs/outputs.md, "Gaussians that show nowhere").
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Meshes from trained Gaussians: `extract(model, views)` fuses the median depth of every view into a truncated
 signed distance volume and returns its zero level set as a coloured trimesh.Trimesh; `write_mesh` writes it as .ply,
-.glb or .obj. `mcsplat export RUN --format mesh` is the command (README, "A mesh of the scene").
+.glb or .obj. `mcsplat export RUN --format mesh` is the command (docs/outputs.md, "A mesh of the scene").
 
     grid.py     where the volume lies, its voxel size, whether it fits in memory
     fusion.py   the signed distance volume and the fusion of one view
