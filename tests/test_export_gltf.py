@@ -1,9 +1,10 @@
 """glTF export (KHR_gaussian_splatting, .glb and .gltf + .bin): the container's bytes, our reader's round trip, the
-Khronos glTF validator's report, and what three.js's own loader of the extension decodes from the files, against the
-model; `mcsplat export --format glb|gltf` of a trained run.
+Khronos glTF validator's report, what three.js's own loader of the extension decodes from the files against the model,
+three.js's picture of the .glb against mcsplat's render; `mcsplat export --format glb|gltf` of a trained run.
 
 The external readers are npm packages run with Node (tests/node/): they are looked for in NODE_PATH's folders and
-npm's global folder (.ci/run installs them there on CI); the tests that need them skip, with the reason, without."""
+npm's global folder (.ci/run installs them there on CI); the tests that need them (or headless Chromium) skip, with
+the reason, without."""
 
 from __future__ import annotations
 
@@ -25,7 +26,8 @@ from test_export_formats import random_gaussians, sigmoid
 
 C0 = 0.28209479177387814
 NODE_SCRIPTS = Path(__file__).parent / "node"
-THREE, VALIDATOR = "three", "gltf-validator"  # the versions .ci/run installs: three@0.187.0, 2.0.0-dev.3.10
+THREE, VALIDATOR = "three", "gltf-validator"
+PINNED = {THREE: "three@0.187.0", VALIDATOR: "gltf-validator@2.0.0-dev.3.10"}  # what .ci/run installs
 FLIP = np.diag([1.0, -1.0, -1.0])  # the 3DGS frame turned 180 degrees about x into glTF's +Y up
 SH_FLIP = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], dtype=np.float64)  # odd in y and z
 
@@ -44,7 +46,7 @@ def node_modules_with(package: str) -> Path | None:
 def run_node(package: str, script: str, file: Path) -> dict:
     modules = node_modules_with(package)
     if modules is None:
-        pytest.skip(f"no Node with the npm package {package}: npm install -g {package} or set NODE_PATH "
+        pytest.skip(f"no Node with the npm package {package}: npm install -g {PINNED[package]} or set NODE_PATH "
                     "(.ci/run installs it on CI)")
     done = subprocess.run(["node", str(NODE_SCRIPTS / script), str(modules), str(file)], capture_output=True,
                           text=True, timeout=120)
@@ -160,6 +162,73 @@ def test_three_js_loader_decodes_the_model(tmp_path, name):
         band = values(f"sphericalHarmonics{degree}").reshape(50, words * 4)[:, :count * 3].reshape(50, count, 3)
         assert np.abs(band - (rest[:, first:first + count] * 128 + 128)).max() <= 0.51, degree
         first += count
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    return float(10 * np.log10(1.0 / np.mean((a - b) ** 2)))
+
+
+def test_three_js_draws_the_glb_as_mcsplat_renders_it(tiny_run, tmp_path):
+    """three.js's WebGPURenderer (WebGL 2 backend, headless Chromium) draws the exported .glb from a test camera of
+    the run, turned into glTF's frame; mcsplat renders the model from the same camera. The pictures differ by what
+    the two rasterisers do differently (three.js keeps SH as bytes, its own kernel cut-off and sort), not by where
+    or what colour the Gaussians are: a mirrored picture is far further."""
+    import functools
+    import http.server
+    import threading
+
+    import torch
+    from PIL import Image
+
+    from mcsplat import run_dir
+    from mcsplat.render import render
+
+    pytest.importorskip("websockets", reason="the browser tests' websockets (a dependency of viser) is not installed")
+    from browser import Browser, find_browser
+
+    if find_browser() is None:
+        pytest.skip("no headless Chromium: apt-get install chromium-headless-shell (.ci/run does so on CI)")
+    modules = node_modules_with(THREE)
+    if modules is None:
+        pytest.skip(f"no Node with the npm package {THREE}: npm install -g {PINNED[THREE]} or set NODE_PATH "
+                    "(.ci/run installs it on CI)")
+    folder = tmp_path / "page"
+    folder.mkdir()
+    (folder / "three").symlink_to(modules / THREE)
+    shutil.copy(NODE_SCRIPTS / "three_splat_page.html", folder / "page.html")
+    assert main(["export", str(tiny_run), "--out", str(folder / "scene.glb")]) == 0
+
+    run = run_dir.load(tiny_run, torch.device("cpu"))
+    camera = run.scene.test[0].camera
+    width, height = camera.width, camera.height
+    assert camera.K[0, 2] == width / 2 and camera.K[1, 2] == height / 2, "the page's projection is centred"
+    with torch.no_grad():
+        ours = render(run.model, camera, background=[0.0, 0.0, 0.0]).rgb.clamp(0, 1).numpy().astype(np.float64)
+    # three.js's camera looks down -z with y up: OpenCV's camera axes with y and z turned, in glTF's world frame.
+    turn = np.diag([1.0, -1.0, -1.0, 1.0])
+    camera_to_world = turn @ np.linalg.inv(camera.world_to_camera.double().numpy()) @ turn
+    view = {"width": width, "height": height, "file": "scene.glb", "cameraToWorld": camera_to_world.T.ravel().tolist(),
+            "fovy": float(np.degrees(2 * np.arctan(height / (2 * float(camera.K[1, 1])))))}
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(folder)))
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    browser = Browser(width=width, height=height)
+    try:
+        browser.call("Page.navigate", url=f"http://127.0.0.1:{server.server_address[1]}/page.html")
+        browser.wait_for("window.ready === true")
+        assert browser.evaluate(f"window.draw({json.dumps(view)})", timeout=120) == "drawn"
+        browser.screenshot(tmp_path / "three.png")
+    finally:
+        browser.close()
+        server.shutdown()
+    theirs = np.asarray(Image.open(tmp_path / "three.png").convert("RGB"), dtype=np.float64) / 255.0
+    assert theirs.shape == ours.shape
+    same, mirrored = psnr(theirs, ours), psnr(theirs, ours[:, ::-1])
+    assert same > 26.0 and same > mirrored + 8.0, (same, mirrored)
 
 
 def test_cli_exports_glb_and_gltf_of_a_trained_run(tiny_run, tmp_path, capsys):
