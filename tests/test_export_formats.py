@@ -1,5 +1,5 @@
-"""Export formats (.splat, PlayCanvas compressed .ply, .spz): byte layout checked on hand-computed values, and every
-field read back within the format's quantisation; `mcsplat export --format` with pruning on a trained run."""
+"""Export formats (.splat, PlayCanvas compressed .ply, .spz; glTF's in test_export_gltf.py): byte layout checked on
+hand-computed values, and every field read back within the format's quantisation; `mcsplat export --format` with pruning on a trained run."""
 
 from __future__ import annotations
 
@@ -133,7 +133,7 @@ def test_pruning_keeps_the_most_contributing_gaussians():
 
 def test_cli_export_each_format_with_pruning(tiny_run, tmp_path, capsys):
     total = read_ply(tiny_run / "point_cloud.ply")["means"].shape[0]
-    for name in ("ply", "splat", "compressed-ply", "spz"):
+    for name in ("ply", "splat", "compressed-ply", "spz", "glb", "gltf"):
         out = tmp_path / f"x{EXTENSIONS.get(name, '.ply')}"
         assert main(["export", str(tiny_run), "--format", name, "--out", str(out), "--max-gaussians", "300"]) == 0
         back = read_ply(out) if name == "ply" else read_gaussians(name, out)
@@ -208,7 +208,7 @@ def test_one_table_holds_every_format_and_the_cli_takes_it_as_it_is(tmp_path):
     from mcsplat.io.formats import FORMATS
     from mcsplat.run_dir import RunDir
 
-    assert list(EXPORT_FORMATS) == ["ply", "splat", "compressed-ply", "spz", "mesh"]
+    assert list(EXPORT_FORMATS) == ["ply", "splat", "compressed-ply", "spz", "glb", "gltf", "mesh"]
     assert [name for name, entry in EXPORT_FORMATS.items() if entry.ending is not None] == list(FORMATS)
     annotation = typing.get_type_hints(Export, include_extras=True)["format"]
     choices, _ = typing.get_args(typing.get_args(annotation)[0])  # Annotated[Literal[...] | None, help]
@@ -217,7 +217,7 @@ def test_one_table_holds_every_format_and_the_cli_takes_it_as_it_is(tmp_path):
     folder = RunDir(tmp_path)
     assert {name: entry.default_file(folder).name for name, entry in EXPORT_FORMATS.items()} == {
         "ply": "point_cloud.ply", "splat": "point_cloud.splat", "compressed-ply": "point_cloud.compressed.ply",
-        "spz": "point_cloud.spz", "mesh": "mesh.ply"}
+        "spz": "point_cloud.spz", "glb": "point_cloud.glb", "gltf": "point_cloud.gltf", "mesh": "mesh.ply"}
     command = {field.name: field.default for field in dataclasses.fields(Export) if field.name != "run"}
     assert command == {field.name: field.default for field in dataclasses.fields(ExportOptions)}
 

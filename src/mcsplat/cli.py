@@ -259,12 +259,13 @@ class Report:
 
 @dataclass
 class ViewSaved:
-    """Look at a trained run (or any 3DGS .ply) in the browser: our rasterizer renders what you point the camera at.
+    """Look at a trained run (or any 3DGS .ply, or an exported .glb / .gltf of Gaussians) in the browser: our
+    rasterizer renders what you point the camera at.
     A mesh (`mcsplat export --format mesh`'s .ply, .glb or .obj) the browser draws itself. Needs
     `pip install mcsplat[viewer]`. Stop with Ctrl-C."""
 
     path: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN|PLY|MESH")]
-    """Run directory written by `mcsplat train`, a 3DGS .ply file, or a mesh file."""
+    """Run directory written by `mcsplat train`, a 3DGS .ply file, a .glb / .gltf of Gaussians, or a mesh file."""
     port: int = 8080
     host: str = "127.0.0.1"
     """Address to listen on; 0.0.0.0 exposes the viewer to the network."""

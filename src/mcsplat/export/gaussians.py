@@ -17,4 +17,7 @@ def export_gaussians(codec: GaussianFormat, job: ExportJob) -> None:
     if model.antialiased and not codec.records_antialiasing:
         print(f"note: this run was trained with --antialiased, which {codec.name} files cannot record: viewers "
               "draw it without the 2D filter (fine detail a little heavier); .spz records it")
-    print(f"wrote {path} ({chosen.size:,} of {model.num_gaussians:,} Gaussians, {path.stat().st_size:,} bytes)")
+    files = (path, *codec.companions(path))
+    size = sum(file.stat().st_size for file in files)
+    print(f"wrote {' and '.join(map(str, files))} ({chosen.size:,} of {model.num_gaussians:,} Gaussians, "
+          f"{size:,} bytes)")

@@ -9,6 +9,7 @@ import trimesh
 
 from ..errors import MCSplatError
 from ..io.atomic import atomic_path
+from ..io.formats.gltf import holds_gaussians
 
 MESH_ENDINGS = (".ply", ".glb", ".obj")
 
@@ -40,10 +41,11 @@ def read_mesh(path: Path) -> trimesh.Trimesh:
 
 
 def holds_mesh(path: Path) -> bool:
-    """A .glb or .obj, or a .ply whose header declares faces (3DGS's .ply has vertices only)."""
+    """A .glb (unless it holds Gaussians: KHR_gaussian_splatting) or .obj, or a .ply whose header declares faces
+    (3DGS's .ply has vertices only)."""
     ending = Path(path).suffix.lower()
     if ending in (".glb", ".obj"):
-        return True
+        return ending == ".obj" or not holds_gaussians(Path(path))
     if ending != ".ply":
         return False
     with open(path, "rb") as file:

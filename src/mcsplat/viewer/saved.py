@@ -1,5 +1,5 @@
-"""`mcsplat view`: the viewer on a finished (or stopped) run, on any 3DGS .ply, or on a mesh (.ply with faces, .glb,
-.obj), which the browser draws itself (viser's mesh)."""
+"""`mcsplat view`: the viewer on a finished (or stopped) run, on any 3DGS .ply or glTF of Gaussians
+(KHR_gaussian_splatting), or on a mesh (.ply with faces, .glb, .obj), which the browser draws itself (viser's mesh)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,8 @@ import torch
 from .. import run_dir
 from ..errors import MCSplatError
 from ..gaussians import GaussianModel
+from ..io.formats import read_gaussians
+from ..io.formats.gltf import holds_gaussians
 from ..io.ply import read_ply
 from ..mesh import holds_mesh, read_mesh
 from .access import check_listen_address
@@ -20,7 +22,7 @@ from .server import ViewerServer
 
 
 def load_for_viewing(path: Path, device: torch.device):
-    """(model, training cameras, background, scene radius) of a run directory or a .ply file."""
+    """(model, training cameras, background, scene radius) of a run directory, a .ply, .glb or .gltf file."""
     if path.is_dir():
         run = run_dir.load(path, device)
         model = finite_gaussians(run.model, path)
@@ -30,8 +32,13 @@ def load_for_viewing(path: Path, device: torch.device):
             warnings.warn(f"no training cameras shown: the scene cannot be loaded ({error})")
             return model, [], (0.0, 0.0, 0.0), _radius_of(model)
         return model, [v.camera for v in scene.train], run.background, scene.radius
+    if path.suffix.lower() in (".glb", ".gltf") and holds_gaussians(path):  # `mcsplat export --format glb|gltf`'s
+        params = read_gaussians(path.suffix.lower()[1:], path)
+        model = finite_gaussians(GaussianModel(**{k: torch.from_numpy(v) for k, v in params.items()}), path)
+        return model.to(device), [], (0.0, 0.0, 0.0), _radius_of(model)
     if path.suffix.lower() != ".ply":
-        raise MCSplatError(f"{path}: give a run directory, a 3DGS .ply file or a mesh (.ply, .glb, .obj)")
+        raise MCSplatError(f"{path}: give a run directory, a 3DGS .ply file, a .glb or .gltf of Gaussians or a mesh "
+                           "(.ply, .glb, .obj)")
     model = GaussianModel(**read_ply(path)).to(device)
     if model.num_gaussians == 0:
         raise MCSplatError(f"{path}: holds no Gaussians (0 vertices), so there is nothing to show")

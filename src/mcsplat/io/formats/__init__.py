@@ -1,5 +1,6 @@
 """Gaussians in the file formats that viewers read: the 3DGS `.ply`, `.splat`, PlayCanvas compressed `.ply`,
-Niantic `.spz`; one table of them (FORMATS), which `mcsplat export` offers as they are (export/formats.py).
+Niantic `.spz`, glTF's KHR_gaussian_splatting (`.glb`, `.gltf`); one table of them (FORMATS), which `mcsplat export`
+offers as they are (export/formats.py).
 
 Every writer takes the model's raw parameters as numpy arrays (the keys of GaussianModel.params: means, log_scales,
 quats (w, x, y, z), opacity_logits, sh0 [N,1,3], shN [N,K-1,3]) and writes atomically; every reader returns the same
@@ -16,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-from . import compressed_ply, plain_ply, splat, spz
+from . import compressed_ply, gltf, plain_ply, splat, spz
 from .prune import select_gaussians
 
 __all__ = ["GaussianFormat", "FORMATS", "EXTENSIONS", "select_gaussians", "write_gaussians", "read_gaussians"]
@@ -34,6 +35,7 @@ class GaussianFormat:
     write: Callable[..., None]     # (path, params), and antialiased= when the format records it
     read: Callable[[Path], Params]
     records_antialiasing: bool = False  # the file can say that the scene is drawn with the 2D filter
+    companions: Callable[[Path], tuple[Path, ...]] = lambda path: ()  # the other files written beside it (a .bin)
 
 
 FORMATS: dict[str, GaussianFormat] = {entry.name: entry for entry in (
@@ -43,6 +45,10 @@ FORMATS: dict[str, GaussianFormat] = {entry.name: entry for entry in (
                    compressed_ply.write_compressed_ply, compressed_ply.read_compressed_ply),
     GaussianFormat("spz", ".spz", "Niantic's gzip format, ~10x smaller.", spz.write_spz, spz.read_spz,
                    records_antialiasing=True),
+    GaussianFormat("glb", ".glb", "glTF binary, Khronos KHR_gaussian_splatting (three.js, Babylon.js, PlayCanvas), "
+                   "full SH, float32.", gltf.write_glb, gltf.read_glb),
+    GaussianFormat("gltf", ".gltf", "the same as glTF JSON with its buffer in a .bin beside it.",
+                   gltf.write_gltf, gltf.read_gltf, companions=lambda path: (gltf.bin_file_of(path),)),
 )}
 EXTENSIONS = {name: entry.ending for name, entry in FORMATS.items()}
 

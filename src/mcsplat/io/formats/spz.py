@@ -27,7 +27,8 @@ import numpy as np
 
 from ...errors import MCSplatError
 from ..atomic import atomic_write_bytes
-from .common import bases_of, check_params, logit, normalized_quats, read_bytes, sh_degree_of, sigmoid
+from .common import (AXES_FLIP, SH_FLIP, bases_of, check_params, logit, normalized_quats,
+                     read_bytes, sh_degree_of, sigmoid)
 
 MAGIC = 0x5053474E
 VERSION = 3
@@ -35,9 +36,6 @@ FRACTIONAL_BITS = 12
 COLOUR_SCALE = 0.15
 _HEADER = struct.Struct("<IIIBBBB")
 FLAG_ANTIALIASED = 1  # the scene was trained with Mip-Splatting's 2D filter: viewers should draw it with the filter
-# Sign change of each SH rest coefficient (3DGS order) under y -> -y, z -> -z: odd total power of y and z.
-_SH_FLIP = np.array([-1, -1, 1,  -1, 1, 1, -1, 1,  -1, 1, -1, -1, 1, -1, 1], dtype=np.float64)
-_AXES_FLIP = np.array([1.0, -1.0, -1.0])
 
 
 def _u8(values: np.ndarray) -> np.ndarray:
@@ -82,14 +80,14 @@ def _unpack_rotations(packed: np.ndarray) -> np.ndarray:
 def write_spz(path: Path, params: dict[str, np.ndarray], antialiased: bool = False) -> None:
     n = check_params(params)
     degree = sh_degree_of(params["shN"])
-    means = params["means"].astype(np.float64) * _AXES_FLIP
+    means = params["means"].astype(np.float64) * AXES_FLIP
     fixed = np.round(means * (1 << FRACTIONAL_BITS)).astype(np.int64)
     if np.abs(fixed).max() >= 1 << 23:
         raise MCSplatError("a position is beyond +-2048 units, which .spz's 24-bit positions cannot hold; "
                            "export as ply or splat instead")
     positions = (fixed & 0xFFFFFF).astype("<u4").view(np.uint8).reshape(n, 3, 4)[:, :, :3]
     quats = params["quats"].astype(np.float64) * np.array([1.0, 1.0, -1.0, -1.0])
-    rest = params["shN"].astype(np.float64) * _SH_FLIP[:bases_of(degree), None]
+    rest = params["shN"].astype(np.float64) * SH_FLIP[:bases_of(degree), None]
     parts = [
         _HEADER.pack(MAGIC, VERSION, n, degree, FRACTIONAL_BITS, FLAG_ANTIALIASED if antialiased else 0, 0),
         positions.tobytes(),
@@ -128,9 +126,9 @@ def read_spz(path: Path) -> dict[str, np.ndarray]:
     raw[:, :3] = positions.reshape(n * 3, 3)
     fixed = raw.view("<u4")[:, 0].astype(np.int64)
     fixed = np.where(fixed >= 1 << 23, fixed - (1 << 24), fixed)
-    means = fixed.reshape(n, 3) / float(1 << fractional) * _AXES_FLIP
+    means = fixed.reshape(n, 3) / float(1 << fractional) * AXES_FLIP
     quats = _unpack_rotations(rotations.view("<u4")) * np.array([1.0, 1.0, -1.0, -1.0])
-    rest = (sh.reshape(n, k, 3).astype(np.float64) - 128.0) / 128.0 * _SH_FLIP[:k, None]
+    rest = (sh.reshape(n, k, 3).astype(np.float64) - 128.0) / 128.0 * SH_FLIP[:k, None]
     return {
         "means": means.astype(np.float32),
         "log_scales": (scales.reshape(n, 3) / 16.0 - 10.0).astype(np.float32),
