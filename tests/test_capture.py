@@ -339,3 +339,123 @@ def test_a_broken_or_missing_mask_is_one_line_that_names_it(cup_photos, tmp_path
     assert status == 2 and error.startswith("mcsplat: error:") and f"({second.stem}.jpg)" in error, error
     assert "--masks none" not in error and "leave --masks out" in error
     assert not out.exists()
+
+
+@pytest.fixture(scope="module")
+def mixed_photos(cup_photos, shared_data, tmp_path_factory) -> Path:
+    """20 cup photos, and mixed in: 2 blurred copies of others, 2 noise images, 1 nearly black copy and 12 photos
+    of something else (the bird capture, resized to the cup's size: one camera, so only the content differs)."""
+    folder = tmp_path_factory.mktemp("mixed")
+    cup = sorted(cup_photos.glob("*.jpg"))
+    for path in cup[:20]:
+        (folder / path.name).write_bytes(path.read_bytes())
+    for path in cup[20:22]:
+        Image.open(path).filter(ImageFilter.GaussianBlur(6)).save(folder / f"blurred_{path.name}", quality=95)
+    noise = np.random.default_rng(0).integers(0, 256, (2, SMALL[1], SMALL[0], 3), dtype=np.uint8)
+    for i, pixels in enumerate(noise):
+        Image.fromarray(pixels).save(folder / f"noise_{i}.png")
+    dark = (np.asarray(Image.open(cup[22])).astype(np.float32) * 0.06).astype(np.uint8)
+    Image.fromarray(dark).save(folder / f"dark_{cup[22].name}", quality=95)
+    for path in sorted((shared_data / "colmap_bird" / "images").glob("*.jpg"))[:12]:
+        Image.open(path).resize(SMALL, Image.Resampling.BOX).save(folder / f"bird_{path.name}", quality=95)
+    return folder
+
+
+def test_photos_that_do_not_register_are_named_with_their_reasons(mixed_photos, tmp_path):
+    """Each mixed-in photo is named with its likeliest reason, in the summary, its lines and process.json; the
+    bird photos' own model is reported with its size; the suggestion is the one for the commonest reason."""
+    out = tmp_path / "scene"
+    with pytest.warns(UserWarning):
+        summary = process(mixed_photos, out, ProcessOptions(threads=2, progress=False))
+    assert summary.images == 37 and summary.registered >= 15, summary
+    reasons = {photo["name"]: photo for photo in summary.not_registered}
+    print({name: photo["detail"] for name, photo in reasons.items()})
+    assert summary.registered + len(reasons) == summary.images
+    registered = {p.name for p in (out / "images").iterdir()}
+    assert not registered & set(reasons), "a photo both registered and reported left out"
+    expected = {"blurred_": "blur", "noise_": "overlap", "dark_": "exposure", "bird_": "separate model"}
+    for prefix, reason in expected.items():
+        mixed_in = [p.name for p in mixed_photos.iterdir() if p.name.startswith(prefix)]
+        assert mixed_in and all(reasons[name]["reason"] == reason for name in mixed_in), (prefix, reasons)
+    assert "too dark" in reasons[next(n for n in reasons if n.startswith("dark_"))]["detail"]
+    blurred = reasons[next(n for n in reasons if n.startswith("blurred_"))]
+    assert blurred["figures"]["sharpness"] < 0.05 * summary.capture_medians["sharpness"]
+    assert all(reasons[name]["figures"]["best_matches_any"] < 15 for name in reasons if name.startswith("noise_"))
+    assert summary.other_models == [12], summary  # the bird photos registered among themselves, in a model not kept
+    # The cup photos left out are real ones (the first 20 by name do not all overlap): each has a reason too.
+    assert all(photo["detail"] for photo in summary.not_registered)
+    assert summary.suggestion.startswith("take more photos between the parts")  # 12 of them: the commonest
+    lines = summary.lines()
+    line = next(line for line in lines if line.startswith("not registered:"))
+    assert "12 in a separate model (bird_" in line and "2 blurred (blurred_" in line and "badly exposed (dark_" in line
+    assert "other models: 1 (12 photos), not kept" in lines and f"suggestion: {summary.suggestion}" in lines
+    written = json.loads((out / "process.json").read_text())
+    assert written["not_registered"] == summary.not_registered and written["other_models"] == [12]
+
+
+def test_min_registered_stops_with_one_line_and_no_scene(mixed_photos, tmp_path, capsys):
+    from mcsplat.cli import main
+
+    out = tmp_path / "scene"
+    status = main(["process", str(mixed_photos), "--out", str(out), "--threads", "2", "--min-registered", "0.8"])
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert status == 2 and error.startswith("mcsplat: error: only ") and "of 37 photos registered" in error, error
+    assert "under --min-registered 0.8" in error and "12 in a separate model" in error and "no scene" in error
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+    for share in ("0", "1.5"):
+        with pytest.raises(MCSplatError, match=f"--min-registered {share}: give the share"):
+            process(mixed_photos, out, ProcessOptions(min_registered=float(share), progress=False))
+
+
+def test_each_cause_is_judged_against_the_registered_photos():
+    """The causes SfM's run above does not produce: another camera, a photo that matched but found no pose, one that
+    matches only left-out photos; and the figures are held against the registered photos, not the whole capture."""
+    from mcsplat.capture.registration import PhotoFigures, by_reason, diagnose, suggestion
+
+    def photo(name, **figures):
+        values = dict(features=300, best_matches=80, best_matches_any=80, sharpness=200.0, brightness=120.0,
+                      camera="Apple iPhone 15 4032x3024")
+        return PhotoFigures(name, **{**values, **figures})
+
+    photos = [photo(f"{i}.jpg") for i in range(6)] + [
+        photo("zoomed.jpg", camera="Apple iPhone 15 1920x1080", best_matches=5),
+        photo("stuck.jpg", best_matches=40),
+        photo("elsewhere.jpg", best_matches=3, best_matches_any=60),
+        *[photo(f"soft{i}.jpg", sharpness=40.0, best_matches=0) for i in range(2)]]
+    registered = {f"{i}.jpg" for i in range(6)}
+    left_out, medians = diagnose(photos, registered)
+    reasons = {p.name: p for p in left_out}
+    assert medians["sharpness"] == 200.0  # the two soft photos do not pull the median down
+    assert reasons["zoomed.jpg"].reason == "camera" and reasons["zoomed.jpg"].other_causes == ["overlap"]
+    assert "1920x1080, most photos Apple iPhone 15 4032x3024" in reasons["zoomed.jpg"].detail
+    assert reasons["stuck.jpg"].reason == "pose" and "40 verified matches" in reasons["stuck.jpg"].detail
+    assert reasons["elsewhere.jpg"].reason == "overlap" and "something else" in reasons["elsewhere.jpg"].detail
+    assert [reasons[f"soft{i}.jpg"].reason for i in range(2)] == ["blur", "blur"]
+    assert suggestion(left_out).startswith("hold the camera still")  # blur: 2 of the 5
+    assert by_reason(left_out, shown=1) == ("2 blurred (soft0.jpg and 1 more); 1 from another camera (zoomed.jpg); "
+                                            "1 with no pose (stuck.jpg); 1 with no overlap (elsewhere.jpg)")
+    assert suggestion([]) == "" and diagnose(photos, set(p.name for p in photos))[0] == []
+
+
+def test_a_model_is_counted_once_with_the_images_no_larger_model_holds():
+    from mcsplat.capture.sfm import distinct_models
+
+    models = [{"a", "b", "c", "d"}, {"x", "y", "z"}, {"a", "b"}, {"c", "w"}]
+    assert distinct_models(models) == [{"a", "b", "c", "d"}, {"x", "y", "z"}, {"w"}]
+    assert distinct_models([]) == []
+
+
+def test_too_few_registered_names_the_photos_and_their_reasons(cup_photos, tmp_path):
+    """Noise images and two blurred cup photos: no model (or one under 3 images); the one-line error says why."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i, pixels in enumerate(np.random.default_rng(1).integers(0, 256, (3, SMALL[1], SMALL[0], 3), dtype=np.uint8)):
+        Image.fromarray(pixels).save(photos / f"noise_{i}.png")
+    for path in sorted(cup_photos.glob("*.jpg"))[:2]:
+        Image.open(path).filter(ImageFilter.GaussianBlur(6)).save(photos / f"blurred_{path.name}", quality=95)
+    with pytest.warns(UserWarning), pytest.raises(MCSplatError, match="registered only 0 of 5 images") as info:
+        process(photos, tmp_path / "scene", ProcessOptions(threads=2, progress=False))
+    message = str(info.value)
+    assert "\n" not in message and "left out 3 with no overlap (noise_0.png, noise_1.png and 1 more)" in message
+    assert "2 blurred (blurred_1.jpg, blurred_10.jpg)" in message, message
+    assert not (tmp_path / "scene").exists()

@@ -318,6 +318,9 @@ class Process:
     features where they leave out (people, sky, the operator), and the scene gets them, undistorted, as masks/."""
     invert_masks: bool = False
     """The masks are white where the photo is to be left out."""
+    min_registered: float | None = None
+    """Stop, writing no scene, when fewer than this share of the photos register (0.8: four in five); which photos
+    were left out and why is printed (and written to process.json) either way."""
 
     def run_command(self) -> int:
         from mcsplat.capture import ProcessOptions, process
@@ -330,7 +333,8 @@ class Process:
         summary = process(self.input, self.out, ProcessOptions(
             matcher=self.matcher, camera_model=self.camera_model, sfm_max_size=self.sfm_max_size,
             num_frames=self.num_frames, fps=self.fps, threads=self.threads, overwrite=self.overwrite,
-            masks=None if self.masks is None else str(self.masks), invert_masks=self.invert_masks))
+            masks=None if self.masks is None else str(self.masks), invert_masks=self.invert_masks,
+            min_registered=self.min_registered))
         print("\n".join(summary.lines()))
         return 0
 

@@ -2,7 +2,8 @@
 
 frames.py gathers the input (a folder of photos, or the sharpest frames of a video), sfm.py runs feature extraction,
 matching and incremental mapping in worker.py's child process (child.py starts, watches and stops it), process.py
-orchestrates them, undistorts the best model and moves the finished scene into place in one rename.
+orchestrates them, undistorts the best model and moves the finished scene into place in one rename. registration.py
+says which photos SfM left out and why (in the worker, from the features' database and the models).
 """
 
 from mcsplat.capture.process import ProcessOptions, ProcessSummary, process

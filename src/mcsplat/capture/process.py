@@ -20,6 +20,7 @@ from pathlib import Path
 from mcsplat.capture import frames
 from mcsplat.capture import masks as capture_masks
 from mcsplat.capture.child import run_worker, terminate_as_interrupt
+from mcsplat.capture.registration import LeftOut, by_reason
 from mcsplat.capture.sfm import Matcher, describe_cameras
 from mcsplat.errors import MCSplatError
 from mcsplat.io.disk import writing_into
@@ -45,6 +46,7 @@ class ProcessOptions:
     progress: bool = True
     masks: str | None = None  # a folder of masks (capture/masks.py): SIFT skips what they leave out
     invert_masks: bool = False
+    min_registered: float | None = None  # stop, writing no scene, when a smaller share of the photos registers
 
 
 @dataclass
@@ -63,6 +65,12 @@ class ProcessSummary:
     seconds: dict[str, float] = field(default_factory=dict)
     masks: int = 0  # masks written to the scene's masks/ (with --masks)
     left_out: list[str] = field(default_factory=list)  # input photos that do not decode whole, not used
+    # The photos SfM did not register, each with its likeliest reason and figures (registration.LeftOut), the
+    # sizes of the models not kept, the capture's median figures, and one suggestion for the commonest reason.
+    not_registered: list[dict] = field(default_factory=list)
+    other_models: list[int] = field(default_factory=list)
+    capture_medians: dict[str, float] = field(default_factory=dict)
+    suggestion: str = ""
 
     def lines(self) -> list[str]:
         stages = ", ".join(f"{name} {value:.1f} s" for name, value in self.seconds.items())
@@ -72,12 +80,23 @@ class ProcessSummary:
                 *([f"sizes:      the images come in {len(self.image_sizes)} sizes ({sizes}): one camera per size"]
                   if len(self.image_sizes) > 1 else []),
                 *([f"left out:   {', '.join(self.left_out)} (cannot be decoded whole)"] if self.left_out else []),
+                *self._not_registered_lines(),
                 f"points:     {self.points:,}, mean reprojection error {self.mean_reprojection_error:.2f} px",
                 f"camera:     {self.camera} -> {self.undistorted_camera}",
                 *([f"masks:      used by SIFT, and undistorted into masks/ ({self.masks}) for training"]
                   if self.masks else []),
                 f"time:       {stages} (total {sum(self.seconds.values()):.1f} s)",
                 f"wrote:      {self.scene} (images/ + sparse/0/); next: mcsplat train {self.scene}"]
+
+    def _not_registered_lines(self) -> list[str]:
+        if not self.not_registered:
+            return []
+        left_out = [LeftOut(**photo) for photo in self.not_registered]
+        models = ", ".join(str(size) for size in self.other_models)
+        return [f"not registered: {by_reason(left_out)} (each photo's reason and figures in {MANIFEST})",
+                *([f"other models: {len(self.other_models)} ({models} photos), not kept"] if self.other_models
+                  else []),
+                f"suggestion: {self.suggestion}"]
 
 
 def process(source: str | os.PathLike, out: str | os.PathLike, options: ProcessOptions | None = None
@@ -94,6 +113,9 @@ def process(source: str | os.PathLike, out: str | os.PathLike, options: ProcessO
         raise MCSplatError(f"--out {out} is inside the input folder {source}; write the scene somewhere else")
     if source.is_relative_to(out):  # --overwrite would replace the folder that holds the input
         raise MCSplatError(f"the input {source} is inside --out {out}; write the scene to another folder")
+    if options.min_registered is not None and not 0 < options.min_registered <= 1:
+        raise MCSplatError(f"--min-registered {options.min_registered:g}: give the share of the photos that must "
+                           "register, above 0 and at most 1 (0.8: four in five)")
     _check_output(out, options.overwrite)
     if from_video and options.masks is not None:
         raise MCSplatError("--masks needs a folder of photos (the frames taken from a video have no masks named "
@@ -206,7 +228,9 @@ def _process(source: Path, out: Path, work: Path, photos, from_video: bool, opti
         matcher=result["matcher"], models=result["models"], camera=result["camera"],
         undistorted_camera=describe_cameras(model), image_sizes=_count_sizes(photos.sizes),
         seconds={k: round(v, 2) for k, v in seconds.items()}, masks=result.get("masks", 0),
-        left_out=list(photos.left_out))
+        left_out=list(photos.left_out), not_registered=result["not_registered"],
+        other_models=result["other_models"], capture_medians=result["capture_medians"],
+        suggestion=result["suggestion"])
     # The summary, and the list of the files written: --overwrite replaces the scene only while that is all it holds.
     files = sorted(files_in(scene) + [MANIFEST])
     (scene / MANIFEST).write_text(json.dumps({**asdict(summary), "files": files}, indent=2) + "\n")

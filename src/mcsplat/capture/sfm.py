@@ -11,6 +11,7 @@ from typing import Literal
 from mcsplat.errors import MCSplatError
 
 Matcher = Literal["auto", "exhaustive", "sequential"]
+MIN_REGISTERED = 3  # images a model needs to be a scene
 EXTRACT_CHUNK = 16  # images per extract_features call: the progress bar moves between calls
 
 
@@ -27,10 +28,11 @@ class SfmOptions:
 
 @dataclass
 class SfmResult:
-    reconstruction: object  # pycolmap.Reconstruction: the model with the most registered images
+    reconstruction: object  # pycolmap.Reconstruction: the model with the most registered images (None: no model)
     models: int
     matcher: str
     seconds: dict[str, float] = field(default_factory=dict)
+    model_images: list[set[str]] = field(default_factory=list)  # the names registered in each model, the kept first
 
 
 def choose_matcher(matcher: Matcher, from_video: bool, count: int) -> str:
@@ -143,12 +145,34 @@ def run_sfm(image_dir: Path, names: list[str], sizes: list[tuple[int, int]], wor
         models = pycolmap.incremental_mapping(database, image_dir, sparse, options=mapping,
                                               next_image_callback=lambda: bar.update(1))
     seconds["mapping"] = time.perf_counter() - start
-    if not models:
-        raise MCSplatError(_too_few(0, len(names), matcher))
-    best = max(models.values(), key=lambda r: r.num_reg_images())
-    if best.num_reg_images() < 3:
-        raise MCSplatError(_too_few(best.num_reg_images(), len(names), matcher))
-    return SfmResult(best, len(models), matcher, seconds)
+    # Too few registered is the worker's error to raise: it first finds out which photos were left out and why.
+    ranked = sorted(models.values(), key=lambda r: -r.num_reg_images())
+    distinct = distinct_models([registered_names(model) for model in ranked])
+    return SfmResult(ranked[0] if ranked else None, len(distinct), matcher, seconds, distinct or [set()])
+
+
+def distinct_models(model_images: list[set[str]]) -> list[set[str]]:
+    """Each model's images less those a larger one holds (mapping now and then ends with a small model of images
+    already registered: 2 of the kept model's, in 2 runs of 10 on the same photos), without the models that leaves
+    empty; largest first."""
+    distinct: list[set[str]] = []
+    for names in model_images:
+        names = names.difference(*distinct)
+        if names:
+            distinct.append(names)
+    return sorted(distinct, key=len, reverse=True)
+
+
+def too_few(result: SfmResult, total: int) -> str | None:
+    """The one-line error when the kept model has fewer than MIN_REGISTERED images; None when it has enough."""
+    registered = len(result.model_images[0])
+    return _too_few(registered, total, result.matcher) if registered < MIN_REGISTERED else None
+
+
+def registered_names(reconstruction) -> set[str]:
+    """The names of the images a pycolmap.Reconstruction registered."""
+    return {reconstruction.images[image_id].name for image_id in reconstruction.reg_image_ids()}
+
 
 def _camera_of(database: Path, image_name: str) -> int:
     import pycolmap
@@ -162,8 +186,8 @@ def _camera_of(database: Path, image_name: str) -> int:
 
 def _too_few(registered: int, total: int, matcher: str) -> str:
     other = "exhaustive" if matcher == "sequential" else "sequential (if the images are in capture order)"
-    return (f"structure from motion registered only {registered} of {total} images (at least 3 are needed); try "
-            f"--matcher {other}, photos with more overlap and texture, or a larger --sfm-max-size")
+    return (f"structure from motion registered only {registered} of {total} images (at least {MIN_REGISTERED} are "
+            f"needed); try --matcher {other}, photos with more overlap and texture, or a larger --sfm-max-size")
 
 
 def describe_camera(camera) -> str:

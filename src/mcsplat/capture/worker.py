@@ -13,10 +13,12 @@ import os
 import signal
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 
+from mcsplat.capture import registration
 from mcsplat.capture.masks import write_scene_masks
-from mcsplat.capture.sfm import SfmOptions, describe_cameras, run_sfm
+from mcsplat.capture.sfm import SfmOptions, describe_cameras, run_sfm, too_few
 from mcsplat.errors import MCSplatError
 
 
@@ -29,6 +31,10 @@ def reconstruct(work: Path, folder: Path, names: list[str], sizes: list[tuple[in
                              max_size=options["sfm_max_size"], overlap=options["overlap"], threads=options["threads"],
                              mask_path=sift_masks),
                   from_video, options["progress"])
+    start = time.perf_counter()
+    report = left_out_report(work, folder, names, sizes, sfm.model_images, options.get("min_registered"),
+                             too_few(sfm, len(names)))
+    sfm.seconds["report"] = time.perf_counter() - start
     start = time.perf_counter()
     model_dir = work / "model"
     model_dir.mkdir()
@@ -47,7 +53,27 @@ def reconstruct(work: Path, folder: Path, names: list[str], sizes: list[tuple[in
         masks = write_scene_masks(work / "undistorted_masks" / "images", scene / "masks")
     seconds = dict(sfm.seconds, undistortion=time.perf_counter() - start)
     return {"matcher": sfm.matcher, "models": sfm.models, "seconds": seconds,
-            "camera": describe_cameras(sfm.reconstruction), "masks": masks}
+            "camera": describe_cameras(sfm.reconstruction), "masks": masks, **report}
+
+
+def left_out_report(work: Path, folder: Path, names: list[str], sizes: list[tuple[int, int]],
+                    model_images: list[set[str]], min_registered: float | None, too_few_error: str | None) -> dict:
+    """The photos SfM left out with their reasons, the other models' sizes and one suggestion (registration.py);
+    one line instead when too few registered for a scene (`too_few_error`) or for `min_registered` (before the
+    undistortion's work)."""
+    photos = registration.figures_from_database(work / "database.db", folder, names, sizes, model_images)
+    left_out, medians = registration.diagnose(photos, model_images[0])
+    advice = registration.suggestion(left_out)
+    registered = len(model_images[0])
+    if too_few_error is not None:
+        raise MCSplatError(f"{too_few_error}; left out {registration.by_reason(left_out, shown=2)}")
+    if min_registered is not None and registered < min_registered * len(names):
+        raise MCSplatError(f"only {registered} of {len(names)} photos registered ({registered / len(names):.0%}, "
+                           f"under --min-registered {min_registered:g}): left out "
+                           f"{registration.by_reason(left_out, shown=2)}; suggestion: {advice}; no scene was written")
+    return {"not_registered": [asdict(photo) for photo in left_out],
+            "other_models": [len(model) for model in model_images[1:]], "capture_medians": medians,
+            "suggestion": advice}
 
 
 def end_with_parent(parent: int) -> None:
