@@ -112,6 +112,33 @@ def test_read_back_is_the_model(tmp_path, name, degree):
     assert np.allclose(rotation_matrices(back["quats"]), rotation_matrices(g["quats"]), atol=1e-6)
 
 
+def test_a_damaged_gltf_is_one_line_naming_it(tmp_path, capsys):
+    """`view` reads any .glb / .gltf a user hands it: cut short, an accessor past its buffer, a missing attribute or
+    attributes of different counts are one line naming the file, never a traceback."""
+    from mcsplat.errors import MCSplatError
+
+    write_gaussians("glb", tmp_path / "good.glb", random_gaussians(64, degree=1, seed=4))
+    whole = (tmp_path / "good.glb").read_bytes()
+    (tmp_path / "cut.glb").write_bytes(whole[:len(whole) // 2])
+    write_gaussians("gltf", tmp_path / "x.gltf", random_gaussians(64, degree=1, seed=4))
+    document = json.loads((tmp_path / "x.gltf").read_text())
+    damaged = {}
+    for name, change in (("past_the_end", lambda d: d["accessors"][0].update(count=10**6)),
+                         ("no_scale", lambda d: d["meshes"][0]["primitives"][0]["attributes"].pop(
+                             "KHR_gaussian_splatting:SCALE")),
+                         ("counts_differ", lambda d: d["accessors"][0].update(count=32))):
+        edited = json.loads(json.dumps(document))
+        change(edited)
+        (tmp_path / f"{name}.gltf").write_text(json.dumps(edited))
+        damaged[name] = tmp_path / f"{name}.gltf"
+    for path in (tmp_path / "cut.glb", *damaged.values()):
+        with pytest.raises(MCSplatError, match=f"^{path}: ") as error:
+            read_gaussians(path.suffix[1:], path)
+        assert "\n" not in str(error.value)
+    assert main(["view", str(damaged["past_the_end"])]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
 @pytest.mark.parametrize("name", ["glb", "gltf"])
 def test_khronos_validator_finds_nothing_but_the_extension_it_predates(tmp_path, name):
     """gltf-validator 2.0.0-dev.3.10 (the newest on npm) predates KHR_gaussian_splatting: it reports the extension

@@ -25,6 +25,7 @@ The extension is in `extensionsUsed` but not `extensionsRequired`: a reader with
 
 from __future__ import annotations
 
+import contextlib
 import json
 import struct
 from pathlib import Path
@@ -176,13 +177,35 @@ def holds_gaussians(path: Path) -> bool:
 
 
 def read_glb(path: Path) -> dict[str, np.ndarray]:
-    document, binary = _split_glb(path)
-    return _gaussians(path, document, binary)
+    with _malformed_as_one_line(path):
+        document, binary = _split_glb(path)
+        return _checked(path, _gaussians(path, document, binary))
 
 
 def read_gltf(path: Path) -> dict[str, np.ndarray]:
-    document = json.loads(read_bytes(path))
-    uri = document["buffers"][0].get("uri", "")
-    if uri.startswith("data:") or "/" in uri or "\\" in uri:
-        raise MCSplatError(f"{path}: only a buffer in a .bin beside the .gltf is read here, not {uri[:40]!r}")
-    return _gaussians(path, document, read_bytes(path.parent / uri))
+    with _malformed_as_one_line(path):
+        document = json.loads(read_bytes(path))
+        uri = document["buffers"][0].get("uri", "")
+        if uri.startswith("data:") or "/" in uri or "\\" in uri:
+            raise MCSplatError(f"{path}: only a buffer in a .bin beside the .gltf is read here, not {uri[:40]!r}")
+        return _checked(path, _gaussians(path, document, read_bytes(path.parent / uri)))
+
+
+@contextlib.contextmanager
+def _malformed_as_one_line(path: Path):
+    """A file handed to `view` may be anything: a missing key, an accessor past the end of its buffer or a bad JSON
+    is one line naming the file, not a traceback (np.frombuffer only views the bytes read: nothing is allocated
+    from a count the file claims)."""
+    try:
+        yield
+    except (KeyError, IndexError, TypeError, ValueError, struct.error) as error:
+        reason = " ".join(str(error).split())[:120] or type(error).__name__
+        raise MCSplatError(f"{path}: not a readable {EXTENSION} glTF ({type(error).__name__}: {reason})") from None
+
+
+def _checked(path: Path, params: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Every attribute has one row per Gaussian."""
+    counts = {len(values) for values in params.values()}
+    if len(counts) != 1:
+        raise MCSplatError(f"{path}: its {EXTENSION} attributes disagree on the number of Gaussians ({sorted(counts)})")
+    return params
