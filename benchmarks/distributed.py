@@ -45,9 +45,10 @@ WARMUP = 3
 
 def worker(rank: int, world_size: int, store: str, size: int, steps: int, out: str) -> None:
     from mcsplat.config import TrainConfig
-    from mcsplat.distributed import join, scaled_for_processes
+    from mcsplat.distributed import join
     from mcsplat.gaussians import PARAM_KEYS
     from mcsplat.optim import make_optimizers
+    from mcsplat.planning import Plan, for_processes
     from mcsplat.compute.compile import compile_kernels
     from mcsplat.render import set_cpu_threads
     from mcsplat.run_dir import background_of
@@ -65,10 +66,11 @@ def worker(rank: int, world_size: int, store: str, size: int, steps: int, out: s
     device = torch.device("cpu")
     compile_kernels(step_kernels(device), device)
     scene = C.load(C.scene_path("lego"))
-    config = scaled_for_processes(TrainConfig(data=scene.root, steps=30_000), world_size)
+    config = TrainConfig(data=scene.root, steps=30_000)
+    plan = for_processes(Plan.literal(config), world_size)
     model = realistic_model(size)
     team.share_parameters(model)
-    optimizers = make_optimizers(model, config.optim, scene.radius)
+    optimizers = make_optimizers(model, plan.optim, scene.radius)
     strategy = MCMCStrategy(MCMCConfig(cap_max=size, refine_start=10**9), scene.radius,
                             torch.Generator().manual_seed(0))
     strategy.collective = team.collective
@@ -87,7 +89,7 @@ def worker(rank: int, world_size: int, store: str, size: int, steps: int, out: s
     for i in range(WARMUP + steps):
         view = scene.train[team.pick(sampler.take(world_size))]
         tick = time.perf_counter()
-        train_step(first + i, model, optimizers, strategy, view, config=config, scene_radius=scene.radius,
+        train_step(first + i, model, optimizers, strategy, view, config=config, plan=plan, scene_radius=scene.radius,
                    background=background, device=device, reduce=timed_reduce)
         step_seconds.append(time.perf_counter() - tick)
     numel = sum(model.params[key].numel() for key in PARAM_KEYS) + 2

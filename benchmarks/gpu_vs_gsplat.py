@@ -35,8 +35,8 @@ from mcsplat.optim import make_optimizers, means_lr_at, set_means_lr
 from mcsplat.render import render
 from mcsplat.initialization import initial_model
 from mcsplat.run_dir import background_of
-from mcsplat.schedule import sh_degree_at
-from mcsplat.state import ViewSampler, make_strategy
+from mcsplat.planning import Plan, make_strategy
+from mcsplat.state import ViewSampler
 from mcsplat.trainer import train_step
 
 
@@ -47,6 +47,7 @@ class Setup:
         self.config = TrainConfig(data=Path(args.data), steps=args.steps, cap_max=args.cap, device=args.device,
                                   seed=args.seed, model=ModelConfig(num_init_points=args.init,
                                                                     init=args.init_method))
+        self.plan = Plan.literal(self.config)  # the paper's schedules, taken as they are
         self.device = torch.device(args.device)
         self.scene = load_scene(self.config.data)
         self.background = background_of(self.config, self.scene)
@@ -71,12 +72,12 @@ class McsplatArm:
         self.setup = setup
         self.model, generator = setup.fresh()
         self.optimizers = make_optimizers(self.model, setup.config.optim, setup.radius)
-        self.strategy = make_strategy(setup.config, setup.radius, generator)
+        self.strategy = make_strategy(setup.config, setup.plan, setup.radius, generator)
 
     def step(self, step: int, view) -> None:
         s = self.setup
-        train_step(step, self.model, self.optimizers, self.strategy, view, config=s.config, scene_radius=s.radius,
-                   background=s.background, device=s.device)
+        train_step(step, self.model, self.optimizers, self.strategy, view, config=s.config, plan=s.plan,
+                   scene_radius=s.radius, background=s.background, device=s.device)
 
     def count(self) -> int:
         return self.model.num_gaussians
@@ -125,7 +126,7 @@ class GsplatArm:
         s, config = self.setup, self.setup.config
         set_means_lr(self.optimizers, means_lr_at(step, config.steps, config.optim, s.radius))
         camera = view.camera.to(s.device)
-        image, info = self._rasterize(camera, sh_degree_at(config, step))
+        image, info = self._rasterize(camera, s.plan.sh_degree_at(step))
         mc = config.mcmc
         loss = (photometric_loss(image, view.image_float(s.device), config.ssim_weight)
                 + mc.opacity_reg * torch.sigmoid(self.params["opacities"]).mean()
@@ -164,7 +165,7 @@ def run_arm(arm_class, setup: Setup, timed: int) -> dict:
                   f"{1000 * C.median(seconds[-200:]):.2f} ms/step lately", flush=True)
     total = time.perf_counter() - started
     peak = torch.cuda.max_memory_allocated() / 2**20 if cuda else C.peak_rss_mb()
-    degree = sh_degree_at(setup.config, setup.config.steps - 1)
+    degree = setup.plan.sh_degree_at(setup.config.steps - 1)
     scores = []
     for view in setup.scene.test:
         image = arm.render(view, degree).clamp(0, 1)

@@ -57,6 +57,7 @@ from mcsplat.render.launch import CompositeFunction
 from mcsplat.render.paths import TORCH_BASELINE_PATH, RenderPath, current_render_path, use_render_path
 from mcsplat.strategy.adc import ADCConfig, ADCStrategy
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
+from mcsplat.planning import Plan
 from mcsplat.trainer import train_step
 
 PHASES = ("projection", "binning", "composite_forward", "loss", "backward_loss", "backward_composite",
@@ -261,7 +262,8 @@ def bench_step(b: Bench, step: int, i: int, marks: StepMarks | None = None) -> i
     if isinstance(marks, PhaseClock):
         marks.start()
     train_step(step, b.model, b.optimizers, b.strategy, b.views[i % len(b.views)], config=b.config,
-               scene_radius=b.radius, background=b.background, device=b.device, phases=marks)
+               plan=Plan.literal(b.config), scene_radius=b.radius, background=b.background, device=b.device,
+               phases=marks)
     return marks.pairs
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from types import SimpleNamespace
 
@@ -83,7 +84,7 @@ def test_growth_is_the_demand_capped_at_five_percent_then_the_cap_stays_where_de
 
 def test_the_ceiling_still_holds():
     model, optimizers, strategy = make_auto(400)
-    strategy.config.cap_max = 405
+    strategy.follow(dataclasses.replace(strategy.schedule, cap_max=405))  # a plan with a lower cap
     info = refine(strategy, model, optimizers, 10, torch.full((400,), 1e-3))
     assert info.added == 5 and model.num_gaussians == 405
 

@@ -13,7 +13,6 @@ import pytest
 import torch
 from scipy.spatial import cKDTree
 
-from mcsplat.budget import END_SLACK, BudgetPlanner, StepCost
 from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.data import load_scene
 from mcsplat.data.undistort import CACHE_ENV
@@ -21,7 +20,9 @@ from mcsplat.errors import MCSplatError
 from mcsplat.initialization import initial_model
 from mcsplat.initialization.frustum import points_in_frustums
 from mcsplat.io.transforms import write_transforms
-from mcsplat.schedule import fitted_to_steps, planned_growth_rate, refine_steps_between, resolution_at
+from mcsplat.planning import Plan, initial_plan
+from mcsplat.planning.budget import END_SLACK, BudgetPlanner, StepCost
+from mcsplat.planning.schedule import planned_growth_rate, refine_steps_between
 from mcsplat.train import train
 
 DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
@@ -31,38 +32,39 @@ DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
 def test_the_step_schedules_follow_the_steps():
     """--steps 3000 gets the paper's schedule at a tenth: refinement 50..2,500 every 10, SH every 100, ADC's
     densification 50..1,500 every 10 and resets every 300; --no-scale-schedule keeps the options as they are."""
-    fitted = fitted_to_steps(TrainConfig(data=DEMO, steps=3000))
+    fitted = initial_plan(TrainConfig(data=DEMO, steps=3000))
     m, a = fitted.mcmc, fitted.adc
     assert (m.refine_start, m.refine_stop, m.refine_every, fitted.sh_increase_every) == (50, 2500, 10, 100)
     assert (a.densify_start, a.densify_stop, a.densify_every, a.reset_every) == (50, 1500, 10, 300)
-    assert fitted.schedule_fitted and fitted_to_steps(fitted) is fitted, "a resumed run is not fitted twice"
-    paper = fitted_to_steps(TrainConfig(data=DEMO))
+    assert Plan.literal(TrainConfig(data=DEMO, steps=3000)).mcmc.refine_start == 500, \
+        "a resumed run is not fitted twice (its saved values are the plan's, taken as they are)"
+    paper = initial_plan(TrainConfig(data=DEMO))
     assert (paper.mcmc.refine_start, paper.mcmc.refine_stop, paper.mcmc.refine_every) == (500, 25_000, 100)
-    literal = fitted_to_steps(TrainConfig(data=DEMO, steps=3000, scale_schedule=False))
+    literal = initial_plan(TrainConfig(data=DEMO, steps=3000, scale_schedule=False))
     assert (literal.mcmc.refine_start, literal.mcmc.refine_every, literal.sh_increase_every) == (500, 100, 1000)
 
 
 def test_the_resolution_rises_from_the_start_size_to_full_size():
-    config = TrainConfig(data=DEMO, steps=1000, resolution_start=0.25, resolution_full_at=0.4)
-    scales = [resolution_at(config, step) for step in range(1000)]
+    plan = initial_plan(TrainConfig(data=DEMO, steps=1000, resolution_start=0.25, resolution_full_at=0.4))
+    scales = [plan.resolution_at(step) for step in range(1000)]
     assert scales[0] == pytest.approx(0.25) and scales[200] == pytest.approx(0.5)
     assert all(b >= a for a, b in zip(scales, scales[1:])) and scales[400:] == [1.0] * 600
-    assert {resolution_at(TrainConfig(data=DEMO, steps=1000), step) for step in range(1000)} == {1.0}
+    assert {initial_plan(TrainConfig(data=DEMO, steps=1000)).resolution_at(step) for step in range(1000)} == {1.0}
     assert TrainConfig(data=DEMO, budget="2m").resolution_start == 0.25, "--budget trains coarse to fine"
 
 
 def test_growth_is_planned_to_reach_the_cap_in_time():
     """From 100 to 50,000 Gaussians is 128 refine steps at the paper's 5%: more than a 3,000-step run has before
     40% of it (114); the planned rate gets there, and the paper's 5% stays where it is fast enough."""
-    config = fitted_to_steps(TrainConfig(data=DEMO, steps=3000))
-    rate = planned_growth_rate(config, 100, 50_000)
-    refines = refine_steps_between(config.mcmc.refine_start, round(0.4 * 3000), config.mcmc.refine_every)
+    plan = initial_plan(TrainConfig(data=DEMO, steps=3000))
+    rate = planned_growth_rate(plan, 0.4, 100, 50_000)
+    refines = refine_steps_between(plan.mcmc.refine_start, round(0.4 * 3000), plan.mcmc.refine_every)
     assert refines == 114 and rate > 1.05
     count = 100
     for _ in range(refines):
         count = min(50_000, int(rate * count))  # as MCMC grows: int(rate N), at most the cap
     assert count == 50_000
-    assert planned_growth_rate(fitted_to_steps(TrainConfig(data=DEMO)), 100_000, 1_000_000) == 1.05
+    assert planned_growth_rate(initial_plan(TrainConfig(data=DEMO)), 0.4, 100_000, 1_000_000) == 1.05
 
 
 def test_a_short_run_grows_to_its_cap(tmp_path, mini_demo):
@@ -86,15 +88,17 @@ def test_the_budget_planner_fills_the_time_with_the_balanced_cap():
     for n, s in ((1000, 1.0), (1000, 0.25), (300_000, 1.0), (300_000, 0.25), (50_000, 0.5)):
         planner.calibrate(0.010 + 0.040 * s * s + 0.2e-6 * n, n, s)
     planner.start(0, 0.0, 1000)
-    assert config.mcmc.cap_max == pytest.approx(500_000 * math.sqrt(0.2), rel=0.01)
-    ks = np.arange(config.steps)
-    scales = np.array([resolution_at(config, int(k)) for k in ks])
+    plan = planner.plan
+    assert plan.mcmc.cap_max == pytest.approx(500_000 * math.sqrt(0.2), rel=0.01)
+    ks = np.arange(plan.steps)
+    scales = np.array([plan.resolution_at(int(k)) for k in ks])
     assert scales[0] == pytest.approx(0.25) and scales[-1] == 1.0
-    upper = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * config.mcmc.cap_max)  # every step at the cap
-    lower = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * 1000)                   # every step at the start count
-    assert lower < 120.0 < upper and 1000 < config.steps
-    assert config.mcmc.refine_every == max(1, round(100 * config.steps / 30_000))
-    assert config.budget_plan["history"][0]["steps"] == config.steps
+    upper = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * plan.mcmc.cap_max)  # every step at the cap
+    lower = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * 1000)                 # every step at the start count
+    assert lower < 120.0 < upper and 1000 < plan.steps
+    assert plan.mcmc.refine_every == max(1, round(100 * plan.steps / 30_000))
+    assert plan.budget["history"][0]["steps"] == plan.steps
+    assert config.steps == 30_000 and config.mcmc.cap_max == 1_000_000, "the plan is its own: the options stay"
 
 
 def test_a_run_ahead_of_its_plan_plans_again_to_end_on_time():
@@ -106,12 +110,12 @@ def test_a_run_ahead_of_its_plan_plans_again_to_end_on_time():
         planner.calibrate(0.010 + 0.040 * s * s + 0.2e-6 * n, n, s)
     planner.start(0, 0.0, 1000)
     planner.replan(100, 10.0, 1000)
-    reached = config.steps
+    reached = planner.plan.steps
     assert not planner.due(reached - 1, 10.5), "planned half a second ago: not due yet"
     assert planner.due(reached, 10.5) and planner.finished(reached, 10.5), "at the planned step, 90% of the time left"
-    planner.replan(reached, 10.5, config.mcmc.cap_max)
-    assert config.steps > reached and not planner.finished(reached, 10.5)
-    assert not planner.due(config.steps, (1 - END_SLACK / 2) * 120.0), "the time is nearly up: the run ends"
+    planner.replan(reached, 10.5, planner.plan.mcmc.cap_max)
+    assert planner.plan.steps > reached and not planner.finished(reached, 10.5)
+    assert not planner.due(planner.plan.steps, (1 - END_SLACK / 2) * 120.0), "the time is nearly up: the run ends"
 
 
 def test_the_step_cost_model_recovers_known_costs():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -370,9 +371,9 @@ def test_points_from_the_poses_of_one_training_view_say_two_are_needed(tmp_path:
     scene = load_scene(root, test_every=0)
     assert len(scene.train) == 1 and scene.points is None and not scene.alpha
     config = TrainConfig(data=root, out=tmp_path / "run", quiet=True)
-    config.model.init = "triangulate"
+    config = dataclasses.replace(config, model=dataclasses.replace(config.model, init="triangulate"))
     with pytest.raises(MCSplatError, match="at least 2 training views"):
         initial_model(config, scene, torch.device("cpu"), torch.Generator().manual_seed(0))
-    config.model.init = "auto"
+    config = dataclasses.replace(config, model=dataclasses.replace(config.model, init="auto"))
     model, note = initial_model(config, scene, torch.device("cpu"), torch.Generator().manual_seed(0))
     assert model.num_gaussians > 0 and "frustum" in note and "at least 2 training views" in note

@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 import torch, pycolmap, PIL.Image
-from mcsplat.config import TrainConfig
+from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.gaussians import GaussianModel
 from mcsplat.train import train
 from mcsplat.data import load_scene
@@ -57,10 +57,9 @@ scene = load_scene(sys.argv[1], test_every=100)
 for view in scene.train + scene.test:  # every image decoded once: the cache must evict
     view.image
 loaded = status("VmHWM")
+# The photos are repeats: points from their poses would mean nothing here.
 config = TrainConfig(data=Path(sys.argv[1]), out=Path(sys.argv[2]), steps=10, test_every=100, quiet=True,
-                     save_every=0, lpips_net="alex")
-config.model.num_init_points = 2000
-config.model.init = "random"  # the photos are repeats: points from their poses would mean nothing here
+                     save_every=0, lpips_net="alex", model=ModelConfig(num_init_points=2000, init="random"))
 train(config)
 print(json.dumps({"before": before, "loaded": loaded, "peak": status("VmHWM"),
                   "views": len(scene.train) + len(scene.test), "notes": scene.notes}))

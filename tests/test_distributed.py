@@ -13,7 +13,7 @@ import pytest
 from distributed_worker import reduce_once
 from distributed_worker import run as worker
 from mcsplat.config import ModelConfig, TrainConfig
-from mcsplat.distributed import scaled_for_processes
+from mcsplat.planning import Plan, for_processes
 from mcsplat.errors import MCSplatError
 from mcsplat.io.checkpoint import load_checkpoint
 from mcsplat.strategy.adc import ADCConfig
@@ -187,7 +187,8 @@ def test_the_readme_says_how_to_keep_the_rendezvous_off_the_network():
 
 def test_the_schedule_rule_for_n_processes():
     config = demo_config(Path("x"), steps=30_000, mcmc=MCMCConfig())
-    scaled = scaled_for_processes(config, 4)
+    plan = Plan.literal(config)
+    scaled = for_processes(plan, 4)
     assert (scaled.steps, scaled.sh_increase_every, scaled.world_size) == (7500, 250, 4)
     assert (scaled.mcmc.refine_start, scaled.mcmc.refine_stop, scaled.mcmc.refine_every) == (125, 6250, 25)
     assert (scaled.adc.densify_every, scaled.adc.reset_every) == (25, 750)
@@ -195,5 +196,5 @@ def test_the_schedule_rule_for_n_processes():
     assert scaled.optim.opacity_lr == pytest.approx(2 * config.optim.opacity_lr)
     assert scaled.optim.eps == pytest.approx(config.optim.eps / 2)
     assert scaled.optim.betas == pytest.approx((0.6, 0.996))
-    assert config.steps == 30_000 and config.world_size == 1, "the user's config is left as it was"
-    assert scaled_for_processes(config, 1) is config
+    assert plan.steps == 30_000 and plan.world_size == 1, "the plan it started from is left as it was"
+    assert for_processes(plan, 1) is plan

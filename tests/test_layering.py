@@ -20,9 +20,9 @@ LAYERS = [
     ("interface", ("__main__", "cli")),
     ("session", ("train", "export")),
     ("consumers", ("viewer", "report")),
-    ("loop", ("trainer", "subscribers")),
-    ("run", ("state", "run_dir", "events", "evaluation")),
-    ("set-up", ("distributed", "initialization", "budget", "schedule", "config", "config_types")),
+    ("loop", ("trainer", "stopping", "subscribers")),
+    ("run", ("run_setup", "state", "run_dir", "events", "run_metrics", "evaluation")),
+    ("set-up", ("distributed", "initialization", "planning", "config", "config_types")),
     ("method", ("strategy", "mesh", "appearance", "pose_refinement", "visibility", "metrics", "optim")),
     ("building blocks", ("render", "losses", "ssim_cpu", "ssim_warp", "capture", "data", "io", "camera_path")),
     ("model", ("gaussians",)),
@@ -186,3 +186,10 @@ def test_the_check_inside_a_layer_sees_what_it_guards(tmp_path):
     assert upward_imports(planted) == []
     assert leftward_imports(planted) == ["mcsplat.io.transforms imports mcsplat.data (data stands left of io in "
                                          "building blocks)"]
+
+
+def test_the_trainer_holds_the_step_and_the_loop_only():
+    """trainer.py is the step and the loop; setting a run up (run_setup.py), planning it (planning/), stopping it
+    (stopping.py) and metrics.json's layout (run_metrics.py) live in modules of their own, and keep it short."""
+    lines = (PACKAGE / "trainer.py").read_text().splitlines()
+    assert len(lines) <= 300, f"trainer.py has {len(lines)} lines: move what is not the step or the loop out"

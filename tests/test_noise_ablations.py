@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from mcsplat.cli import main
-from mcsplat.config import TrainConfig, load_config
+from mcsplat.config import TrainConfig
 from mcsplat.gaussians import PARAM_KEYS
 from mcsplat.optim import OptimConfig, means_lr_at
-from mcsplat.schedule import fitted_to_steps
+from mcsplat.planning import initial_plan, load_run_config
 from mcsplat.strategy import MCMCConfig, MCMCStrategy
 from mcsplat.strategy.adc import ADCConfig, ADCStrategy
 from mcsplat.strategy.noise import inject_parameter_noise, inject_position_noise, noise_gate, noise_lr_at
@@ -106,8 +106,8 @@ def test_noise_schedules_start_together_and_end_where_they_say():
 
 
 def test_the_parameter_noise_decay_is_fitted_to_the_run_length(tmp_path):
-    config = fitted_to_steps(TrainConfig(data=tmp_path, steps=3000))
-    assert config.mcmc.param_noise_decay ** 3000 == pytest.approx(0.9995 ** 30_000, rel=1e-9)
+    plan = initial_plan(TrainConfig(data=tmp_path, steps=3000))
+    assert plan.mcmc.param_noise_decay ** 3000 == pytest.approx(0.9995 ** 30_000, rel=1e-9)
     with pytest.raises(ValueError, match="param_noise_decay"):
         MCMCConfig(param_noise_decay=0.0)
     with pytest.raises(ValueError, match="noise_schedule"):
@@ -139,10 +139,12 @@ def test_the_trainer_hands_the_chosen_schedule_to_the_strategy(tmp_path, mini_de
     assert main(["train", str(mini_demo), "--out", str(out), "--steps", "20", "--quiet", "--downscale", "4",
                  "--no-save-renders", "--mcmc.noise-schedule", "linear", "--mcmc.noise-all-params",
                  "--mcmc.no-noise-gated", "--mcmc.noise-lr", "5", "--model.num-init-points", "300"]) == 0
-    saved = load_config(out / "config.json").mcmc  # what --resume and eval read back
+    config, plan = load_run_config(out / "config.json")  # what --resume and eval read back
+    saved = config.mcmc
     assert (saved.noise_schedule, saved.noise_all_params, saved.noise_gated, saved.noise_lr) == ("linear", True,
                                                                                                   False, 5.0)
     assert saved.param_noise_decay == pytest.approx(0.9995 ** (30_000 / 20))
+    assert plan.mcmc.param_noise_decay == saved.param_noise_decay, "the plan's value, in config.json"
     assert len(seen) == 20
     rates = [rate for _, rate in seen]
     steps_differences = [b - a for a, b in zip(rates, rates[1:])]

@@ -79,6 +79,7 @@ class Eval:
         from mcsplat import run_dir
         from mcsplat.compute.device import resolve_device
         from mcsplat.evaluation import evaluate
+        from mcsplat.run_metrics import metrics
 
         with run_dir.RunDir(self.run).lock("mcsplat eval"):
             run = run_dir.load(self.run, resolve_device(self.device))
@@ -86,9 +87,7 @@ class Eval:
             render_file = (lambda name: run.folder.render_file("test", name)) if self.save_renders else None
             result = evaluate(run.model, run.scene.test, run.background, run.sh_degree, run.device, lpips_net=net,
                               render_file=render_file, progress=True)
-            run.folder.update_metrics(psnr=result.psnr, ssim=result.ssim, lpips=result.lpips, lpips_net=net,
-                                      steps=run.step, num_gaussians=run.model.num_gaussians, test_views=result.views,
-                                      **result.masked(), **result.compensated())
+            run.folder.update_metrics(**metrics(result, net, run.step, run.model.num_gaussians))
         lpips = "n/a (weights not installed)" if result.lpips is None else f"{result.lpips:.4f}"
         print(f"PSNR {result.psnr:.3f} dB  SSIM {result.ssim:.4f}  LPIPS-{net} {lpips}  "
               f"({result.views} test views, {run.model.num_gaussians:,} Gaussians, step {run.step:,})")
@@ -345,11 +344,12 @@ COMMANDS: dict[str, type] = {"train": TrainConfig, "eval": Eval, "render": Rende
 
 def _run(command, args: list[str]) -> int:
     if isinstance(command, TrainConfig):
+        from dataclasses import replace
+
         from mcsplat.config import named_options
         from mcsplat.train import train  # the trainer pulls in Warp: only when training
 
-        command.named = named_options(args)  # what --resume and --budget check: the options given
-        train(command)
+        train(replace(command, named=named_options(args)))  # what --resume and --budget check: the options given
         return 0
     return command.run_command()
 

@@ -1,4 +1,9 @@
-"""The configuration of a training run: dataclasses that tyro turns into the `mcsplat train` options."""
+"""What the user asked of a training run: frozen dataclasses that tyro turns into the `mcsplat train` options.
+
+The configuration is one value that nothing changes once it is made (`dataclasses.replace` derives another). What a
+run decides as it goes (its steps, the schedules fitted to them, the cap and growth rate, the number of processes) is
+its plan (mcsplat.planning), made from this and handed to the step and the strategy beside it.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +11,7 @@ import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Literal, Sequence
+from typing import Annotated, Any, Literal, Sequence
 
 import tyro
 
@@ -22,7 +27,7 @@ PROCESS_OPTIONS = ("eval_every", "save_every", "save_every_minutes", "quiet", "t
                    "host", "viewer_origin", "dist_timeout")
 
 
-@dataclass
+@dataclass(frozen=True)
 class ModelConfig:
     """Initial Gaussians."""
 
@@ -42,7 +47,7 @@ class ModelConfig:
     sh_degree: int = 3
 
 
-@dataclass
+@dataclass(frozen=True)
 class TrainConfig:
     """Train a 3D Gaussian Splatting scene with the MCMC method (or the 3DGS ADC baseline)."""
 
@@ -151,25 +156,19 @@ class TrainConfig:
     dist_timeout: float = 600.0
     """Under torchrun: seconds a process waits for the others before it stops with an error (a process died or
     hangs)."""
-    world_size: Annotated[int, tyro.conf.Suppress] = 1
-    """Processes the run trains with (set under torchrun: the schedules and learning rates are already scaled)."""
-    schedule_fitted: Annotated[bool, tyro.conf.Suppress] = False
-    """Whether the step schedules are already fitted to --steps (a started run's saved configuration)."""
-    budget_plan: Annotated[dict | None, tyro.conf.Suppress] = None
-    """--budget: the plan as it stands (steps, cap, resolution, measured step times), for config.json and the
-    report."""
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)
     adc: ADCConfig = field(default_factory=ADCConfig)
-    # The options the command line named, as config.json's keys (named_options; not an option itself, nor saved).
-    named: ClassVar[frozenset[str] | None] = None
+    named: Annotated[frozenset[str] | None, tyro.conf.Suppress] = field(
+        default=None, compare=False, repr=False, metadata={"saved": False})
+    """The options the command line named, as config.json's keys (named_options; not an option itself, nor saved)."""
 
     def __post_init__(self) -> None:
         # Each strategy starts from the initial Gaussians its own code uses (as in gsplat).
         scale, opacity = INITIAL_GAUSSIANS.get(self.strategy, INITIAL_GAUSSIANS["mcmc"])
-        self.model.init_scale = scale if self.model.init_scale is None else self.model.init_scale
-        self.model.init_opacity = opacity if self.model.init_opacity is None else self.model.init_opacity
+        self._derive(model=dataclasses.replace(self.model, init_scale=_default(self.model.init_scale, scale),
+                                               init_opacity=_default(self.model.init_opacity, opacity)))
         checks = [(self.steps >= 1, "--steps must be at least 1"),
                   (self.downscale >= 1, "--downscale must be at least 1"),
                   (self.eval_every >= 0, "--eval-every must be 0 (off) or positive"),
@@ -203,17 +202,33 @@ class TrainConfig:
                 raise MCSplatError(message)
         if self.budget is not None:
             budget_seconds(self.budget)  # a one-line error for a budget it cannot read
-        if self.resolution_start is None:
-            self.resolution_start = BUDGET_RESOLUTION_START if self.budget is not None else 1.0
+        # Coarse to fine under --budget; --cap-max goes to the strategy that takes it.
+        mcmc, adc = self.mcmc, self.adc
         if self.cap_max == "auto":
-            self.mcmc.auto_cap = True
+            mcmc = dataclasses.replace(mcmc, auto_cap=True)
         elif self.cap_max is not None:
-            self.mcmc.cap_max = self.cap_max
-            self.adc.cap_max = self.cap_max
+            mcmc, adc = dataclasses.replace(mcmc, cap_max=self.cap_max), dataclasses.replace(adc, cap_max=self.cap_max)
+        resolution = _default(self.resolution_start, BUDGET_RESOLUTION_START if self.budget is not None else 1.0)
+        self._derive(resolution_start=resolution, mcmc=mcmc, adc=adc)
+
+    def _derive(self, **values: Any) -> None:
+        """Set the values that follow from other options, only while the configuration is being made (__post_init__):
+        it is frozen from then on."""
+        for name, value in values.items():
+            object.__setattr__(self, name, value)
 
     @property
     def run_dir(self) -> Path:
         return self.out if self.out is not None else Path("runs") / Path(self.data).resolve().name
+
+
+def _default(value: Any, default: Any) -> Any:
+    return default if value is None else value
+
+
+def process_options(config: TrainConfig) -> dict[str, Any]:
+    """This process's own options (PROCESS_OPTIONS), as keyword arguments of `dataclasses.replace`."""
+    return {name: getattr(config, name) for name in PROCESS_OPTIONS}
 
 
 # (init scale, init opacity) per strategy: the MCMC paper's code, and 3DGS's for its ADC.
@@ -273,7 +288,8 @@ def options_given(config: TrainConfig) -> frozenset[str]:
 
 def to_jsonable(config: Any) -> Any:
     if dataclasses.is_dataclass(config):
-        return {f.name: to_jsonable(getattr(config, f.name)) for f in dataclasses.fields(config)}
+        return {f.name: to_jsonable(getattr(config, f.name)) for f in dataclasses.fields(config)
+                if f.metadata.get("saved", True)}
     if isinstance(config, Path):
         return str(config)
     if isinstance(config, (list, tuple)):
@@ -290,7 +306,7 @@ def from_jsonable(data: dict) -> TrainConfig:
         if not isinstance(values, dict):
             raise MCSplatError(f"config.json: {prefix.rstrip('.') or 'the file'} must be an object {{...}}")
         for key, value in values.items():
-            if key not in hints:
+            if key not in hints or key == "named":
                 raise MCSplatError(f"config.json: unknown option {key!r} (written by another mcsplat version?)")
             nested = {"model": ModelConfig, "optim": OptimConfig, "mcmc": MCMCConfig, "adc": ADCConfig}
             if cls is TrainConfig and key in nested:
@@ -308,17 +324,3 @@ def from_jsonable(data: dict) -> TrainConfig:
         except (ValueError, TypeError) as error:  # MCSplatError (TrainConfig's own checks) passes through
             raise MCSplatError(f"config.json: {prefix}{error}; put back the value mcsplat wrote there") from None
     return build(TrainConfig, data)
-
-
-def save_config(config: TrainConfig, path: Path) -> None:
-    from .io.atomic import atomic_write_text
-    atomic_write_text(path, json.dumps(to_jsonable(config), indent=2) + "\n")
-
-
-def load_config(path: Path) -> TrainConfig:
-    """The configuration saved in a JSON file by save_config."""
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise MCSplatError(f"{path}: not valid JSON ({error})") from None
-    return from_jsonable(data)

@@ -14,16 +14,17 @@ The run (trainer.TrainingRun) emits, in this order:
 Consumers (the progress bar, the log.jsonl writer, the checkpointer, the report, the viewer) are Subscribers: any
 callable taking an event. A Subscriber subclass gets `on_<kind>(event)` called for the kinds it defines. They run in
 the training thread, between steps; anything slow (the viewer's rendering) belongs in its own thread. What they may
-see of the run itself is RunView: the model, the scene and the configuration, and the two ways to act on it (its
-Control, and writing a checkpoint now).
+see of the run itself is RunView: the model, the scene, the configuration and the plan, and the two ways to act on it
+(its Control, and writing a checkpoint now).
 """
 
 from __future__ import annotations
 
 import threading
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Protocol
+from typing import Any, Callable, ClassVar, Protocol, Sequence
 
 import torch
 
@@ -31,6 +32,7 @@ from .config import TrainConfig
 from .data import Scene
 from .evaluation import Evaluation
 from .gaussians import GaussianModel
+from .planning import Plan
 from .strategy.base import RefineReport
 
 
@@ -47,6 +49,11 @@ class RunView(Protocol):
     @property
     def model(self) -> GaussianModel:
         """The model as it is now (read it between steps, or under control.lock from another thread)."""
+        ...
+
+    @property
+    def plan(self) -> Plan:
+        """The run's plan as it stands (its steps, schedules and cap; --budget plans again as it goes)."""
         ...
 
     @property
@@ -132,6 +139,19 @@ class Subscriber:
 
     def close(self) -> None:
         """Called once when the run ends, normally or not (release threads, files, servers)."""
+
+
+def close_all(listeners: Sequence[Listener]) -> None:
+    """Close every listener that can be, even when one of them fails to (a viewer left open keeps its port and
+    threads)."""
+    for listener in listeners:
+        close = getattr(listener, "close", None)
+        if close is None:
+            continue
+        try:
+            close()
+        except Exception as error:
+            warnings.warn(f"{type(listener).__name__} did not close cleanly: {error}", RuntimeWarning, stacklevel=2)
 
 
 @dataclass

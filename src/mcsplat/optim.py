@@ -35,7 +35,7 @@ __all__ = ["OptimConfig", "make_optimizers", "means_lr_at", "set_means_lr", "app
 Optimizers = Mapping[str, torch.optim.Optimizer]
 
 
-@dataclass
+@dataclass(frozen=True)
 class OptimConfig:
     """Learning rates of 3DGS (docs/method.md, "Optimizer and schedules"); the two position rates are multiplied by
     the scene radius."""
@@ -60,7 +60,7 @@ class OptimConfig:
             raise ValueError(f"means_lr_final must be > 0 for the log-linear decay, got {self.means_lr_final}")
         if not (self.eps >= 0 and math.isfinite(self.eps)):
             raise ValueError(f"eps must be a finite number >= 0, got {self.eps}")
-        self.betas = tuple(float(b) for b in self.betas)
+        object.__setattr__(self, "betas", tuple(float(b) for b in self.betas))  # frozen: normalised while made
         if len(self.betas) != 2 or not all(0.0 <= b < 1.0 for b in self.betas):
             raise ValueError(f"betas must be two numbers in [0, 1), got {self.betas}")
 

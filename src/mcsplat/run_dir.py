@@ -17,6 +17,7 @@ Only this module spells out these names; everything else asks a RunDir for them.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -28,12 +29,9 @@ from typing import Any
 
 import torch
 
-from .budget import SCHEDULE_KEYS
-from .config import (PROCESS_OPTIONS, TrainConfig, flat_options, load_config, options_given, save_config,
-                     to_jsonable)
+from .config import PROCESS_OPTIONS, TrainConfig, flat_options, options_given, process_options, to_jsonable
 from .data import Scene, detect_kind, load_scene
 from .data.masks import MaskOptions
-from .distributed import scaled_for_processes
 from .errors import DataError, MCSplatError
 from .gaussians import DEAD_OPACITY, GaussianModel
 from .io.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
@@ -41,7 +39,7 @@ from .io.checkpoint import DamagedCheckpoint, load_checkpoint, save_checkpoint
 from .io.disk import writing_into
 from .io.lock import FolderLock
 from .io.ply import write_ply
-from .schedule import final_sh_degree, fitted_to_steps
+from .planning import REPLANNED_KEYS, Plan, initial_plan, load_run_config, run_record, save_run_config
 
 CONFIG = "config.json"
 CHECKPOINT = "checkpoint.pt"
@@ -57,7 +55,6 @@ LOCK = ".lock"
 MARKERS = (CONFIG, CHECKPOINT, METRICS, SPLATS)  # any of them: the folder holds a run
 # What --resume may change: the process options, and where the scene and the run folder now are.
 RESUME_MAY_CHANGE = frozenset(PROCESS_OPTIONS) | {"data", "out", "resume", "overwrite"}
-PLANNED = frozenset(("steps", "mcmc.cap_max", "adc.cap_max") + SCHEDULE_KEYS)  # --budget's (budget.py)
 
 Background = tuple[float, float, float]
 
@@ -119,9 +116,13 @@ class RunDir:
 
     # --------------------------------------------------------------------------------------------- reading
     def read_config(self) -> TrainConfig:
+        return self.read_plan()[0]
+
+    def read_plan(self) -> tuple[TrainConfig, Plan]:
+        """The configuration the run trains with, and its plan (config.json)."""
         if not self.config_file.is_file():
             raise MCSplatError(f"{self.path}: not a run directory (no {CONFIG}); train one with `mcsplat train DATA`")
-        return load_config(self.config_file)
+        return load_run_config(self.config_file)
 
     def read_checkpoint(self) -> dict[str, Any]:
         try:
@@ -134,13 +135,13 @@ class RunDir:
                 advice = "there is no older checkpoint to go back to; start again with --overwrite"
             raise MCSplatError(f"{error}; {advice}") from None
 
-    def read_checkpoint_of(self, config: TrainConfig) -> dict[str, Any]:
-        """The checkpoint that `config` (config.json) resumes from; refused when config.json no longer says what the
-        checkpoint was trained with (edited by hand: another strategy, another SH degree...)."""
+    def read_checkpoint_of(self, config: TrainConfig, plan: Plan) -> dict[str, Any]:
+        """The checkpoint that `config` and `plan` (config.json) resume from; refused when config.json no longer says
+        what the checkpoint was trained with (edited by hand: another strategy, another SH degree...)."""
         state = self.read_checkpoint()
-        trained, now = flat_options(state.get("config") or {}), flat_options(to_jsonable(config))
+        trained, now = flat_options(state.get("config") or {}), flat_options(run_record(config, plan))
         # --budget plans these as it goes and plans them again on resume: config.json may be a plan behind.
-        planned = PLANNED if config.budget is not None else ()
+        planned = REPLANNED_KEYS if config.budget is not None else ()
         for key in sorted(trained.keys() & now.keys()):
             if key.split(".")[0] in RESUME_MAY_CHANGE or key in planned or key.startswith("budget_plan."):
                 continue
@@ -161,10 +162,10 @@ class RunDir:
                                f"{self.path}` to write it again") from None
 
     # --------------------------------------------------------------------------------------------- writing
-    def write_config(self, config: TrainConfig) -> None:
-        save_config(config, self.config_file)
+    def write_config(self, config: TrainConfig, plan: Plan) -> None:
+        save_run_config(self.config_file, config, plan)
 
-    def begin(self, config: TrainConfig, step: int) -> None:
+    def begin(self, config: TrainConfig, plan: Plan, step: int) -> None:
         """The run's files as training starts at `step`, once its set-up has succeeded. A new run writes its
         configuration and empties the log; with --overwrite it also removes the old run's checkpoints, which a
         --resume of the new configuration must not continue from. A resumed run cuts the log back to its
@@ -172,7 +173,7 @@ class RunDir:
         if config.resume:
             self.cut_log(step)
             return
-        self.write_config(config)
+        self.write_config(config, plan)
         self.cut_log(0)
         for old in (self.checkpoint_file, self.previous_checkpoint_file):
             old.unlink(missing_ok=True)
@@ -244,11 +245,11 @@ def train_lock(config: TrainConfig) -> FolderLock:
     return FolderLock(RunDir(config.run_dir).lock_file, "mcsplat train")
 
 
-def prepare(config: TrainConfig, lock: FolderLock, world_size: int = 1) -> TrainConfig:
-    """Make the run folder ready for `config`, take its `lock`, and return the configuration to train with:
-    `config` itself for a new run; on --resume the run's saved configuration with this command line's process
-    options. A folder holding a run is refused without --resume or --overwrite, and a run resumed by another number
-    of processes (`world_size`) than trained it."""
+def prepare(config: TrainConfig, lock: FolderLock, world_size: int = 1) -> tuple[TrainConfig, Plan | None]:
+    """Make the run folder ready for `config`, take its `lock`, and return the configuration to train with and the
+    plan to continue: `config` itself and no plan for a new run; on --resume the run's saved configuration with this
+    command line's process options, and its plan. A folder holding a run is refused without --resume or
+    --overwrite, and a run resumed by another number of processes (`world_size`) than trained it."""
     run = RunDir(config.run_dir)
     given = options_given(config)
     if config.budget is not None and "steps" in given:
@@ -272,29 +273,24 @@ def prepare(config: TrainConfig, lock: FolderLock, world_size: int = 1) -> Train
         remove_stale_temporaries(run.checkpoint_file)
         remove_stale_temporaries(run.previous_checkpoint_file)
     if not config.resume:
-        return config
-    saved = run.read_config()
-    check_resumable(saved, world_size)  # first: another number of processes is the reason to give
-    refuse_options_resume_ignores(config, given, saved, run.config_file)
-    for key in PROCESS_OPTIONS:
-        setattr(saved, key, getattr(config, key))
-    saved.out, saved.resume = run.path, True  # where the run is now (the folder may have been moved)
-    return saved
+        return config, None
+    saved, plan = run.read_plan()
+    check_resumable(plan, world_size)  # first: another number of processes is the reason to give
+    refuse_options_resume_ignores(config, given, saved, plan, run.config_file)
+    # This command line's process options; where the run is now (the folder may have been moved).
+    return dataclasses.replace(saved, **process_options(config), out=run.path, resume=True), plan
 
 
-def refuse_options_resume_ignores(config: TrainConfig, given: frozenset[str], saved: TrainConfig,
+def refuse_options_resume_ignores(config: TrainConfig, given: frozenset[str], saved: TrainConfig, plan: Plan,
                                   saved_file: Path) -> None:
-    """--resume continues a run with the options it was trained with (`saved`): one that this command line
-    (`config`) was `given` with another value would be ignored, so it is refused. The values are compared as a new
-    run would have started with them (schedules fitted to the steps, scaled for the processes); --budget's plan,
-    and the growth rate a --cap-max plans, are left out."""
-    trained, typed = flat_options(to_jsonable(saved)), flat_options(to_jsonable(config))
-    started = config if config.budget is not None else fitted_to_steps(config)
-    if started.world_size != saved.world_size:
-        started = scaled_for_processes(started, saved.world_size)
-    now = flat_options(to_jsonable(started))
+    """--resume continues a run with the options it was trained with (`saved`, with its `plan`): one that this
+    command line (`config`) was `given` with another value would be ignored, so it is refused. The values are
+    compared as a new run would have started with them (schedules fitted to the steps, scaled for the processes);
+    --budget's plan, and the growth rate a --cap-max plans, are left out."""
+    trained, typed = flat_options(run_record(saved, plan)), flat_options(to_jsonable(config))
+    now = flat_options(run_record(config, initial_plan(config, plan.world_size)))
     if saved.budget is not None:
-        planned = PLANNED - {"steps"}  # its --steps is said below
+        planned = REPLANNED_KEYS - {"steps"}  # its --steps is said below
     else:
         planned = {"mcmc.grow_rate"} if saved.cap_max is not None else set()  # what --cap-max plans
     ignored = []
@@ -372,10 +368,10 @@ def refuse_writing_into_scene(path: Path, config: TrainConfig) -> None:
                                f"never writes into; write it elsewhere")
 
 
-def check_resumable(config: TrainConfig, world_size: int) -> None:
-    if config.world_size != world_size:
-        raise MCSplatError(f"this run was trained with {config.world_size} process(es), its step schedules and "
-                           f"learning rates scaled for {config.world_size} views per step; resume it with the same "
+def check_resumable(plan: Plan, world_size: int) -> None:
+    if plan.world_size != world_size:
+        raise MCSplatError(f"this run was trained with {plan.world_size} process(es), its step schedules and "
+                           f"learning rates scaled for {plan.world_size} views per step; resume it with the same "
                            f"number of processes (torchrun --nproc-per-node ... x --nnodes ...)")
 
 
@@ -400,6 +396,7 @@ class TrainedRun:
 
     folder: RunDir
     config: TrainConfig
+    plan: Plan
     model: GaussianModel
     step: int  # steps done
     device: torch.device
@@ -407,7 +404,7 @@ class TrainedRun:
     @property
     def sh_degree(self) -> int:
         """The SH degree the model was last trained with."""
-        return final_sh_degree(self.config, self.step)
+        return self.plan.final_sh_degree(self.step)
 
     @functools.cached_property
     def scene(self) -> Scene:
@@ -422,8 +419,8 @@ class TrainedRun:
 def load(path: str | Path, device: torch.device) -> TrainedRun:
     """The run in `path`: its configuration and the model of its checkpoint, on `device`."""
     folder = RunDir(path)
-    config = folder.read_config()
+    config, plan = folder.read_plan()
     state = folder.read_checkpoint()
     model = GaussianModel.from_state_dict(state["model"]).to(device)
     model.antialiased = config.antialiased
-    return TrainedRun(folder=folder, config=config, model=model, step=int(state["step"]), device=device)
+    return TrainedRun(folder=folder, config=config, plan=plan, model=model, step=int(state["step"]), device=device)

@@ -14,16 +14,17 @@ from typing import Any
 import torch
 
 from .appearance import Compensation, check_fits, make_appearance
-from .config import TrainConfig, to_jsonable
+from .config import TrainConfig
 from .data import Scene
 from .distributed import Team
 from .errors import MCSplatError
 from .gaussians import GaussianModel
 from .initialization import initial_model
 from .optim import make_optimizers
+from .planning import Plan, make_strategy
 from .pose_refinement import PoseRefinement
 from .run_dir import background_of
-from .strategy import ADCStrategy, MCMCStrategy, Strategy
+from .strategy import Strategy
 
 
 class ViewSampler:
@@ -55,21 +56,6 @@ class ViewSampler:
         self.order = list(state["order"])
 
 
-def make_strategy(config: TrainConfig, scene_radius: float, generator: torch.Generator,
-                  image_pixels: int | None = None, white_background: bool = False) -> Strategy:
-    """image_pixels (a training image's, the median over them): the ceiling of MCMC's automatic cap;
-    white_background: ADC's reset at its first densification step (3DGS's rule)."""
-    if config.strategy == "mcmc":
-        return MCMCStrategy(config.mcmc, scene_radius, generator, image_pixels)
-    return ADCStrategy(config.adc, scene_radius, generator, white_background)
-
-
-def training_image_pixels(scene: Scene) -> int:
-    """The median pixel count of the scene's training images."""
-    pixels = sorted(v.camera.width * v.camera.height for v in scene.train)
-    return pixels[len(pixels) // 2] if pixels else 0
-
-
 @dataclass
 class TrainingState:
     model: GaussianModel
@@ -83,8 +69,9 @@ class TrainingState:
     compensation: Compensation | None = None  # --appearance: the per-image colour transforms and their Adam
     poses: PoseRefinement | None = None  # --pose-opt: the per-image pose corrections and their Adam
 
-    def checkpoint(self, config: TrainConfig, strategies: list[dict]) -> dict[str, Any]:
-        """What checkpoint.pt holds; `strategies` is every process's strategy state (rank 0's first)."""
+    def checkpoint(self, saved_config: dict[str, Any], strategies: list[dict]) -> dict[str, Any]:
+        """What checkpoint.pt holds; `saved_config` is config.json's content (the configuration and the plan it was
+        trained with), `strategies` every process's strategy state (rank 0's first)."""
         return {"step": self.step, "train_seconds": self.train_seconds, "wall_seconds": self.wall_seconds,
                 "model": self.model.state_dict(),
                 "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
@@ -92,31 +79,31 @@ class TrainingState:
                 "generator": self.generator.get_state(), "sampler": self.sampler.state_dict(),
                 "appearance": self.compensation.state_dict() if self.compensation is not None else None,
                 "poses": self.poses.state_dict() if self.poses is not None else None,
-                "config": to_jsonable(config)}
+                "config": saved_config}
 
 
-def start(config: TrainConfig, scene: Scene, device: torch.device, team: Team,
+def start(config: TrainConfig, plan: Plan, scene: Scene, device: torch.device, team: Team,
           checkpoint: dict[str, Any] | None = None, progress: bool = False) -> tuple[TrainingState, str]:
-    """(the state of step 0, or the one `checkpoint` holds; a note on where it came from). Every process calls it;
-    a fresh model is rank 0's on all of them."""
+    """(the state of step 0, or the one `checkpoint` holds; a note on where it came from), with the optimisers and
+    the strategy of `plan`. Every process calls it; a fresh model is rank 0's on all of them."""
     check_fits(config.appearance, len(scene.train), device, config.appearance_grid_shape)  # before any work
     torch.manual_seed(config.seed)
     generator = torch.Generator(device=device).manual_seed(config.seed)
     sampler = ViewSampler(len(scene.train), config.seed)
-    radius, pixels = scene.radius, training_image_pixels(scene)
+    radius, pixels = scene.radius, scene.train_image_pixels
     white = tuple(background_of(config, scene)) == (1.0, 1.0, 1.0)
     if checkpoint is None:
         model, note = initial_model(config, scene, device, generator, progress)
         team.share_parameters(model)
-        optimizers = make_optimizers(model, config.optim, radius)
-        strategy = make_strategy(config, radius, generator, pixels, white)
+        optimizers = make_optimizers(model, plan.optim, radius)
+        strategy = make_strategy(config, plan, radius, generator, pixels, white)
         state = TrainingState(model, optimizers, strategy, generator, sampler)
     else:
         model = GaussianModel.from_state_dict(checkpoint["model"]).to(device)
-        optimizers = make_optimizers(model, config.optim, radius)
+        optimizers = make_optimizers(model, plan.optim, radius)
         for name, opt in optimizers.items():
             opt.load_state_dict(checkpoint["optimizers"][name])
-        strategy = make_strategy(config, radius, generator, pixels, white)
+        strategy = make_strategy(config, plan, radius, generator, pixels, white)
         strategy.load_state_dict((checkpoint.get("strategy_per_process") or [checkpoint["strategy"]])[team.rank])
         generator.set_state(checkpoint["generator"])
         sampler.load_state_dict(checkpoint["sampler"])

@@ -30,7 +30,7 @@ class ProgressBar(Subscriber):
         self.bar: tqdm | None = None
 
     def on_run_started(self, event: RunStarted) -> None:
-        self.bar = tqdm(total=event.run.config.steps, initial=event.start_step, disable=self.quiet,
+        self.bar = tqdm(total=event.run.plan.steps, initial=event.start_step, disable=self.quiet,
                         dynamic_ncols=True, unit="step", mininterval=0.5)
 
     def on_step_done(self, event: StepDone) -> None:
@@ -61,7 +61,7 @@ class ConsoleLog(Subscriber):
         run = event.run
         scene, config = run.scene, run.config
         processes = run.world_size
-        steps = f"{config.steps:,} steps" + (f" of {processes} views ({processes} processes)" if processes > 1 else "")
+        steps = f"{run.plan.steps:,} steps" + (f" of {processes} views ({processes} processes)" if processes > 1 else "")
         if config.budget is not None:
             steps = f"a {config.budget} budget (steps, cap and resolution planned as it runs)"
         self.write(f"mcsplat: {scene.kind} scene {scene.root.name}: {len(scene.train)} train / {len(scene.test)} "

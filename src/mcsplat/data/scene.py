@@ -101,6 +101,12 @@ class Scene:
         return camera_centre([view.camera for view in self.train])
 
     @property
+    def train_image_pixels(self) -> int:
+        """The median pixel count of the training images (0 without any)."""
+        pixels = sorted(v.camera.width * v.camera.height for v in self.train)
+        return pixels[len(pixels) // 2] if pixels else 0
+
+    @property
     def object_centric(self) -> bool:
         """Normalised around one object: a synthetic Blender scene in [-1.3, 1.3]^3, or IDR's unit sphere (where
         a random initialisation fills that box rather than a cube of scene radii)."""

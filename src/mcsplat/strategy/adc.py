@@ -29,7 +29,7 @@ Differences from the reference code (graphdeco-inria/gaussian-splatting):
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Any, Mapping
 
 import torch
@@ -40,7 +40,7 @@ from ..optim import append_rows, remove_rows, set_rows, zero_moments
 from .base import ALONE, RefineReport, l1_regularizers
 from .screen_gradients import ScreenGradients
 
-__all__ = ["ADCConfig", "ADCStrategy", "ADCReport"]
+__all__ = ["ADCConfig", "ADCSchedule", "ADCStrategy", "ADCReport"]
 
 Optimizers = Mapping[str, torch.optim.Optimizer]
 
@@ -48,7 +48,9 @@ SPLIT_CHILDREN = 2            # 3DGS's N in densify_and_split
 SPLIT_SCALE_DIVISOR = 0.8 * SPLIT_CHILDREN
 
 
-@dataclass
+# The densification schedule and the budget here are the options: the strategy follows its ADCSchedule, which a
+# run's plan makes from them (fitted to the run's length, a planned cap).
+@dataclass(frozen=True)
 class ADCConfig:
     """3DGS defaults (its OptimizationParams), with 0-based steps."""
 
@@ -87,7 +89,24 @@ class ADCConfig:
         if self.cap_max is not None:
             if int(self.cap_max) != self.cap_max or self.cap_max < 1:
                 raise ValueError(f"cap_max must be a whole number >= 1 or None, got {self.cap_max}")
-            self.cap_max = int(self.cap_max)
+            object.__setattr__(self, "cap_max", int(self.cap_max))  # frozen: normalised while it is being made
+
+
+@dataclass(frozen=True)
+class ADCSchedule:
+    """When ADC densifies and resets opacities, and its budget: what a run's plan decides (the options' values fitted
+    to the run's length, a planned cap; mcsplat.planning)."""
+
+    densify_start: int = 500
+    densify_stop: int = 15_000
+    densify_every: int = 100
+    reset_every: int = 3000
+    cap_max: int | None = None
+
+    @classmethod
+    def of(cls, config: ADCConfig) -> "ADCSchedule":
+        """The options' values as they are (a strategy made without a plan)."""
+        return cls(**{f.name: getattr(config, f.name) for f in fields(cls)})
 
 
 @dataclass(frozen=True)
@@ -104,12 +123,15 @@ class ADCStrategy:
     """3DGS adaptive density control behind the Strategy protocol (mcsplat.strategy.base)."""
 
     def __init__(self, config: ADCConfig | None = None, scene_radius: float = 1.0,
-                 generator: torch.Generator | None = None, white_background: bool = False) -> None:
+                 generator: torch.Generator | None = None, white_background: bool = False,
+                 schedule: ADCSchedule | None = None) -> None:
         """`white_background`: the scene is trained over white, where 3DGS also resets opacities at densify_start
-        (unless `config.reset_at_start` says otherwise)."""
+        (unless `config.reset_at_start` says otherwise); `schedule`: the run's plan's (default: the configuration's
+        values as they are)."""
         if not (scene_radius > 0 and math.isfinite(scene_radius)):
             raise ValueError(f"scene_radius must be a positive number, got {scene_radius}")
         self.config = config or ADCConfig()
+        self.schedule = schedule or ADCSchedule.of(self.config)
         self.reset_at_start = white_background if self.config.reset_at_start is None else self.config.reset_at_start
         self.scene_radius = scene_radius
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
@@ -130,15 +152,19 @@ class ADCStrategy:
             self.gradients.to(device)
             self.max_radii = self.max_radii.to(device)
 
+    def follow(self, schedule: ADCSchedule) -> None:
+        """Densify on `schedule` from the next step on (--budget plans the run again as it goes)."""
+        self.schedule = schedule
+
     def is_densify_step(self, step: int) -> bool:
-        c = self.config
-        return c.densify_start < step < c.densify_stop and step % c.densify_every == 0
+        s = self.schedule
+        return s.densify_start < step < s.densify_stop and step % s.densify_every == 0
 
     def is_reset_step(self, step: int) -> bool:
-        c = self.config
-        if step >= c.densify_stop:
+        s = self.schedule
+        if step >= s.densify_stop:
             return False
-        return (step > 0 and step % c.reset_every == 0) or (self.reset_at_start and step == c.densify_start)
+        return (step > 0 and step % s.reset_every == 0) or (self.reset_at_start and step == s.densify_start)
 
     # ------------------------------------------------------------------------------------------- the protocol
     def regularization(self, model: GaussianModel) -> torch.Tensor:
@@ -147,7 +173,7 @@ class ADCStrategy:
     @torch.no_grad()
     def step_post_backward(self, step: int, model: GaussianModel, render_result: Any, width: int,
                            height: int) -> None:
-        if step >= self.config.densify_stop or model.num_gaussians == 0:
+        if step >= self.schedule.densify_stop or model.num_gaussians == 0:
             return
         self._ensure_stats(model)
         visible = self.gradients.add(render_result, model.num_gaussians, width, height)
@@ -185,7 +211,7 @@ class ADCStrategy:
 
     # ----------------------------------------------------------------------------------------- densification
     def _densify_and_prune(self, step: int, model: GaussianModel, optimizers: Optimizers) -> dict:
-        c = self.config
+        c, cap = self.config, self.schedule.cap_max
         self._ensure_stats(model)
         self.collective.sum_(self.gradients.total)  # the statistics of every process's views, as one batch gives
         self.collective.sum_(self.gradients.views)
@@ -195,8 +221,8 @@ class ADCStrategy:
         grads = self.gradients.means()
         max_scale = model.scales.detach().max(dim=1).values
         candidates = grads >= c.grad_threshold
-        if c.cap_max is not None:
-            budget = max(c.cap_max - n, 0)  # clone and split each add one Gaussian
+        if cap is not None:
+            budget = max(cap - n, 0)  # clone and split each add one Gaussian
             if int(candidates.sum()) > budget:
                 ranked = torch.where(candidates, grads, torch.full_like(grads, -1.0))
                 keep = torch.topk(ranked, budget).indices
@@ -218,7 +244,7 @@ class ADCStrategy:
 
         prune = model.opacities.detach() < c.min_opacity
         prune[split_idx] = True
-        if step > c.reset_every:
+        if step > self.schedule.reset_every:
             prune |= model.scales.detach().max(dim=1).values > c.max_world_size * self.scene_radius
             if c.screen_size_prune:
                 prune |= max_radii > c.max_screen_size

@@ -8,7 +8,9 @@ Per training step the trainer calls, in this order:
     for each optimizer: optimizer.step(); optimizer.zero_grad(set_to_none=True)
     report = strategy.step_post_optimizer(step, model, optimizers, means_lr)
 
-Steps are 0-based; the report says what the strategy did (RefineReport). A strategy's `collective` attribute (ALONE
+Steps are 0-based; the report says what the strategy did (RefineReport). When and up to how many Gaussians it
+refines is its schedule (MCMCSchedule, ADCSchedule), which the run's plan gives it and hands it again through
+`follow` whenever it plans again (--budget). A strategy's `collective` attribute (ALONE
 by default) is how it agrees with the other processes when several train one model (mcsplat.distributed).
 Strategies may replace the model's Parameters (through mcsplat.optim), so the trainer must read parameters through
 the model after each step rather than keep references to them.
@@ -96,6 +98,10 @@ class Strategy(Protocol):
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Mapping[str, torch.optim.Optimizer],
                             means_lr: float) -> RefineReport:
         """After the Adam steps: densify / relocate / add noise as due; says what it did."""
+        ...
+
+    def follow(self, schedule: Any) -> None:
+        """Refine on `schedule` (the strategy's own schedule type, from the run's plan) from the next step on."""
         ...
 
     def state_dict(self) -> dict:

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Any, Callable, ClassVar, Mapping
 
 import torch
@@ -43,7 +43,7 @@ from .noise import (NOISE_GATE_CENTER, NOISE_GATE_K, NOISE_SCHEDULES, NoiseSched
 from .relocation import DEFAULT_MAX_COPIES, relocation_params, sample_by_weight
 from .screen_gradients import ScreenGradients
 
-__all__ = ["MCMCConfig", "MCMCStrategy", "MCMCReport", "inject_noise", "noise_gate", "relocate_dead", "grow",
+__all__ = ["MCMCConfig", "MCMCSchedule", "MCMCStrategy", "MCMCReport", "inject_noise", "noise_gate", "relocate_dead", "grow",
            "prune_to_cap", "NOISE_GATE_K", "NOISE_GATE_CENTER"]
 
 Optimizers = Mapping[str, torch.optim.Optimizer]
@@ -54,7 +54,9 @@ def _as_drawn(indices: torch.Tensor) -> torch.Tensor:
     return indices
 
 
-@dataclass
+# The refinement schedule, the cap and the growth rate here are the options: the strategy follows its MCMCSchedule,
+# which a run's plan makes from them (fitted to the run's length, a planned cap and growth rate).
+@dataclass(frozen=True)
 class MCMCConfig:
     """The paper's defaults (docs/method.md)."""
 
@@ -110,7 +112,25 @@ class MCMCConfig:
             raise ValueError(f"param_noise_decay must be in (0, 1], got {self.param_noise_decay}")
         if not 1 <= self.max_copies <= 1000:
             raise ValueError(f"max_copies must be in [1, 1000], got {self.max_copies}")
-        self.cap_max = int(self.cap_max)
+        object.__setattr__(self, "cap_max", int(self.cap_max))  # frozen: normalised while it is being made
+
+
+@dataclass(frozen=True)
+class MCMCSchedule:
+    """When MCMC refines, up to how many Gaussians and how fast it grows: what a run's plan decides (the options'
+    values fitted to the run's length, a planned cap and growth rate; mcsplat.planning)."""
+
+    refine_start: int = 500
+    refine_stop: int = 25_000
+    refine_every: int = 100
+    cap_max: int = 1_000_000
+    grow_rate: float = 1.05
+    param_noise_decay: float = 0.9995
+
+    @classmethod
+    def of(cls, config: MCMCConfig) -> "MCMCSchedule":
+        """The options' values as they are (a strategy made without a plan)."""
+        return cls(**{f.name: getattr(config, f.name) for f in fields(cls)})
 
 
 # --------------------------------------------------------------------------------------------------- the pieces
@@ -228,11 +248,14 @@ class MCMCStrategy:
     """The paper's method behind the Strategy protocol (mcsplat.strategy.base)."""
 
     def __init__(self, config: MCMCConfig | None = None, scene_radius: float = 1.0,
-                 generator: torch.Generator | None = None, image_pixels: int | None = None) -> None:
-        """image_pixels: the pixels of a training image, for the automatic cap's ceiling (None: cap_max alone)."""
+                 generator: torch.Generator | None = None, image_pixels: int | None = None,
+                 schedule: MCMCSchedule | None = None) -> None:
+        """image_pixels: the pixels of a training image, for the automatic cap's ceiling (None: cap_max alone);
+        schedule: the run's plan's (default: the configuration's values as they are)."""
         if not (scene_radius > 0 and math.isfinite(scene_radius)):
             raise ValueError(f"scene_radius must be a positive number, got {scene_radius}")
         self.config = config or MCMCConfig()
+        self.schedule = schedule or MCMCSchedule.of(self.config)
         self.scene_radius = scene_radius  # the noise scale comes in through the position learning rate
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.collective = ALONE
@@ -240,15 +263,19 @@ class MCMCStrategy:
         self.chosen_cap: int | None = None   # auto_cap: the count at which growth stopped
         self.image_pixels = image_pixels
 
+    def follow(self, schedule: MCMCSchedule) -> None:
+        """Refine on `schedule` from the next step on (--budget plans the run again as it goes)."""
+        self.schedule = schedule
+
     @property
     def ceiling(self) -> int:
         """The most Gaussians growth may reach: cap_max, and under auto_cap the per-pixel ceiling where lower."""
-        c = self.config
-        return pixel_ceiling(c.cap_max, self.image_pixels, c.gaussians_per_pixel) if c.auto_cap else c.cap_max
+        c, cap = self.config, self.schedule.cap_max
+        return pixel_ceiling(cap, self.image_pixels, c.gaussians_per_pixel) if c.auto_cap else cap
 
     def is_refine_step(self, step: int) -> bool:
-        c = self.config
-        return c.refine_start < step < c.refine_stop and step % c.refine_every == 0
+        s = self.schedule
+        return s.refine_start < step < s.refine_stop and step % s.refine_every == 0
 
     def regularization(self, model: GaussianModel) -> torch.Tensor:
         """opacity_reg mean(sigmoid(o)) + scale_reg mean(exp(s)): means of the activated values, as the official
@@ -258,26 +285,26 @@ class MCMCStrategy:
     def step_post_backward(self, step: int, model: GaussianModel, render_result: Any, width: int,
                            height: int) -> None:
         """With auto_cap, the screen-gradient statistic that decides the growth; the paper's MCMC keeps none."""
-        if (self.config.auto_cap and self.chosen_cap is None and step < self.config.refine_stop
+        if (self.config.auto_cap and self.chosen_cap is None and step < self.schedule.refine_stop
                 and model.num_gaussians):
             self.gradients.add(render_result, model.num_gaussians, width, height)
 
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Optimizers,
                             means_lr: float) -> MCMCReport:
-        c = self.config
+        c, s = self.config, self.schedule
         counts: dict[str, Any] = {}
         if self.is_refine_step(step):
-            counts["pruned"] = prune_to_cap(model, optimizers, c.cap_max)
+            counts["pruned"] = prune_to_cap(model, optimizers, s.cap_max)
             opacities = model.opacities.detach()
             if model.num_gaussians and not bool((opacities > c.min_opacity).any()):
                 warnings.warn(f"MCMC step {step}: every Gaussian has opacity <= {c.min_opacity}, so there is "
                               f"nothing to copy from; relocation and growth skipped (gsplat #1027)", RuntimeWarning,
                               stacklevel=2)
             else:
-                cap, counts["demand"] = self._auto_cap(model) if c.auto_cap else (c.cap_max, None)
+                cap, counts["demand"] = self._auto_cap(model) if c.auto_cap else (s.cap_max, None)
                 slots, _ = relocate_dead(model, optimizers, self.generator, min_opacity=c.min_opacity,
                                          max_copies=c.max_copies, agree=self.collective.agree)
-                added = grow(model, optimizers, self.generator, cap_max=cap, grow_rate=c.grow_rate,
+                added = grow(model, optimizers, self.generator, cap_max=cap, grow_rate=s.grow_rate,
                              min_opacity=c.min_opacity, max_copies=c.max_copies, agree=self.collective.agree)
                 counts["relocated"], counts["added"] = int(slots.numel()), int(added.numel())
             if c.auto_cap and self.chosen_cap is None:
@@ -285,7 +312,7 @@ class MCMCStrategy:
         inject_position_noise(model, c.noise_lr * means_lr, self.generator, covariance=c.noise_covariance,
                               gated=c.noise_gated)
         if c.noise_all_params:
-            inject_parameter_noise(model, c.param_noise_decay ** step, self.generator, gated=c.noise_gated)
+            inject_parameter_noise(model, s.param_noise_decay ** step, self.generator, gated=c.noise_gated)
         return MCMCReport(num_gaussians=model.num_gaussians, **counts)
 
     def _auto_cap(self, model: GaussianModel) -> tuple[int, int | None]:

@@ -11,26 +11,22 @@ variance it adds over the run is unchanged.
 
 from __future__ import annotations
 
-import copy
 import math
+from dataclasses import replace
 
-from ..config import TrainConfig
-from ..schedule import scale_step_schedules
+from .plan import Plan
+from .schedule import scale_schedules
 
 LEARNING_RATES = ("means_lr", "means_lr_final", "sh0_lr", "shN_lr", "opacity_lr", "scales_lr", "quats_lr")
 
 
-def scaled_for_processes(config: TrainConfig, world_size: int) -> TrainConfig:
-    """A copy of `config` for `world_size` processes (config itself when there is one), with world_size recorded."""
+def for_processes(plan: Plan, world_size: int) -> Plan:
+    """`plan` for `world_size` processes (the plan itself when there is one)."""
     if world_size == 1:
-        return config
-    scaled = copy.deepcopy(config)
-    scaled.world_size = world_size
-    scaled.steps = math.ceil(config.steps / world_size)  # at least the views asked for
-    scale_step_schedules(scaled, 1, world_size)
-    factor = math.sqrt(world_size)
-    for name in LEARNING_RATES:
-        setattr(scaled.optim, name, getattr(config.optim, name) * factor)
-    scaled.optim.eps = config.optim.eps / factor
-    scaled.optim.betas = tuple(max(0.0, 1.0 - world_size * (1.0 - beta)) for beta in config.optim.betas)
-    return scaled
+        return plan
+    optim, factor = plan.optim, math.sqrt(world_size)
+    rates = {name: getattr(optim, name) * factor for name in LEARNING_RATES}
+    scaled_optim = replace(optim, **rates, eps=optim.eps / factor,
+                           betas=tuple(max(0.0, 1.0 - world_size * (1.0 - beta)) for beta in optim.betas))
+    return replace(scale_schedules(plan, 1, world_size), steps=math.ceil(plan.steps / world_size),  # at least the
+                   optim=scaled_optim, world_size=world_size)                                     # views asked for

@@ -1,5 +1,9 @@
 """--budget: train for a wall-clock time instead of a number of steps, and hand back the best result that time allows.
 
+BudgetPlanner makes the run's plan (plan.py) and makes it again as the run goes; fixed.py is its counterpart for
+--steps. The trainer asks either of them the same things: the plan, whether the run is done, and after each step
+what it took.
+
 The run keeps the shape of a step-scheduled run (schedule.py): coarse to fine up to `resolution_full_at` of the
 steps, growth to the cap by `growth_share`, the paper's refinement window and learning-rate decay, all fitted to the
 number of steps. What the budget decides is that number and the cap, from the time a step takes on this machine:
@@ -26,15 +30,21 @@ number of steps. What the budget decides is that number and the cap, from the ti
 
 from __future__ import annotations
 
-import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+import torch
 from scipy.optimize import nnls
 
-from .config import TrainConfig, budget_seconds
-from .schedule import PAPER_STEPS, growth_rate_reaching, refine_steps_between, scale_step_schedules
+from ..config import TrainConfig, budget_seconds
+from ..data import Scene
+from ..errors import MCSplatError
+from ..strategy.auto_cap import pixel_ceiling
+from ..strategy.mcmc import prune_to_cap
+from .calibration import Background, RunState, StepFunction, timed_steps
+from .plan import Plan
+from .schedule import PAPER_STEPS, growth_rate_reaching, refine_steps_between, scale_schedules
 
 BALANCE = 2.0                     # balanced_cap: Gaussians' time in a full-size step over the pixels'
 MIN_STEPS, MAX_STEPS = 1000, 30_000  # the cap leaves at least MIN_STEPS; the search for steps stops at 10 x MAX
@@ -47,20 +57,6 @@ WARM_UP_STEPS = 3                 # the run's first steps (one-time costs) are l
 HALF_LIFE_STEPS = 300             # older measurements weigh half every 300 steps
 PREDICTION_POINTS = 400           # the future steps are integrated on this many points
 MIN_START_GAUSSIANS = 1000        # the first plan cuts a large initialisation to no fewer than this
-# What each plan fits to its number of steps, from the values the run started with (the paper's, by default).
-SCHEDULE_KEYS = ("sh_increase_every", "mcmc.refine_start", "mcmc.refine_stop", "mcmc.refine_every",
-                 "adc.densify_start", "adc.densify_stop", "adc.densify_every", "adc.reset_every", "mcmc.grow_rate",
-                 "mcmc.param_noise_decay")
-
-
-def _get(config: TrainConfig, key: str) -> float:
-    owner, _, name = key.rpartition(".")
-    return getattr(getattr(config, owner) if owner else config, name)
-
-
-def _set(config: TrainConfig, key: str, value: float) -> None:
-    owner, _, name = key.rpartition(".")
-    setattr(getattr(config, owner) if owner else config, name, value)
 
 
 @dataclass
@@ -95,28 +91,67 @@ class StepCost:
 
 
 @dataclass
-class Plan:
+class Choice:
+    """What each plan chooses; the schedules follow from its steps."""
+
     steps: int
     cap: int
     grow_rate: float
 
 
-class BudgetPlanner:
-    """Plans and re-plans a --budget run (the module docstring says how). `config` is the run's own configuration:
-    the planner writes the planned steps, schedules, cap and growth rate into it."""
+def budget_planner(config: TrainConfig, plan: Plan, scene: Scene) -> BudgetPlanner:
+    """The planner of a --budget run starting (or resuming) with `plan`, bounded by --cap-max and the automatic cap's
+    3 Gaussians per pixel."""
+    if plan.world_size > 1:
+        raise MCSplatError("--budget does not work with several training processes yet (each would plan its own "
+                           "steps); give --steps instead")
+    cap = config.mcmc.cap_max if config.strategy == "mcmc" else (config.adc.cap_max or config.mcmc.cap_max)
+    return BudgetPlanner(config, pixel_ceiling(cap, scene.train_image_pixels, config.mcmc.gaussians_per_pixel), plan)
 
-    def __init__(self, config: TrainConfig, ceiling: int):
+
+class BudgetPlanner:
+    """Plans and re-plans a --budget run (the module docstring says how). `config` is what the user asked; `plan`
+    the plan the run starts with (a resumed run's, read back: its record keeps the base values and the history)."""
+
+    def __init__(self, config: TrainConfig, ceiling: int, plan: Plan | None = None):
         self.config = config
-        self.budget = budget_seconds(config.budget)
+        self.plan = plan or Plan.literal(config)
+        self.budget_seconds = budget_seconds(config.budget)
         self.ceiling = ceiling  # the most Gaussians allowed whatever the time: --cap-max and 3 per pixel
-        record = config.budget_plan or {}
+        record = self.plan.budget or {}
         # The paper's schedule values the plan fits to each new number of steps (kept across a resume).
-        # A plan saved before a key was added lacks it: the configuration gives its value.
-        self.base = {**{key: _get(config, key) for key in SCHEDULE_KEYS}, **(record.get("base") or {})}
+        # A plan saved before a key was added lacks it: the plan read back gives its value.
+        self.base = {**self.plan.schedule_entries(), **(record.get("base") or {})}
         self.history: list[dict] = list(record.get("history", []))
         self.cost = StepCost()
         self.last_plan_at = -math.inf
         self.sh_fixed = bool(record.get("sh_fixed", False))
+
+    # --------------------------------------------------------------------------------------------- the run
+    def begin(self, state: RunState, scene: Scene, background: Background, device: torch.device,
+              step_function: StepFunction) -> None:
+        """Before the clock starts: time a few steps, make the first plan, and cut an initialisation larger than
+        it affords."""
+        for seconds, gaussians, scale in timed_steps(self.config, self.plan, state.model, scene, background, device,
+                                                     step_function):
+            self.calibrate(seconds, gaussians, scale)
+        self.start(state.step, state.wall_seconds, state.model.num_gaussians)
+        if self.config.strategy == "mcmc" and state.step == 0:
+            prune_to_cap(state.model, state.optimizers, self.plan.mcmc.cap_max)
+
+    def after_step(self, seconds: float, gaussians: int, scale: float, *, step: int, wall_seconds: float,
+                   gaussians_now: int) -> None:
+        """A step of `seconds` with `gaussians` at `scale` of the image size is done: measure it, plan again when
+        due; when the time is up, this step is the last one."""
+        self.observe(seconds, gaussians, scale)
+        if self.due(step, wall_seconds):
+            self.replan(step, wall_seconds, gaussians_now)
+        if self.finished(step, wall_seconds):
+            self.end_at(step)
+
+    def end_at(self, step: int) -> None:
+        """The run ends at `step`: what the last plan said, or fewer."""
+        self._publish(replace(self.plan, steps=step))
 
     # ------------------------------------------------------------------------------------------- measurements
     def calibrate(self, seconds: float, gaussians: int, scale: float) -> None:
@@ -134,38 +169,43 @@ class BudgetPlanner:
             self.replan(step, wall_seconds, gaussians)
             self.last_plan_at = -math.inf  # the first plan from measured steps still comes at FIRST_PLAN_STEP
         else:
-            self._apply(Plan(max(step + 1, MIN_STEPS), min(self.ceiling, max(gaussians, 1)),
-                             self.base["mcmc.grow_rate"]), step)
+            self._apply(Choice(max(step + 1, MIN_STEPS), min(self.ceiling, max(gaussians, 1)),
+                               self.base["mcmc.grow_rate"]), step)
 
     def due(self, step: int, wall_seconds: float) -> bool:
         if step < FIRST_PLAN_STEP:
             return False
-        if step >= self.config.steps:  # ahead of the plan: plan again unless the time is (nearly) up
-            return wall_seconds < (1.0 - END_SLACK) * self.budget
-        share = LATE_REPLAN_SHARE if wall_seconds > 0.9 * self.budget else REPLAN_SHARE
-        return wall_seconds - self.last_plan_at >= max(share * self.budget, 1.0)
+        if step >= self.plan.steps:  # ahead of the plan: plan again unless the time is (nearly) up
+            return wall_seconds < (1.0 - END_SLACK) * self.budget_seconds
+        share = LATE_REPLAN_SHARE if wall_seconds > 0.9 * self.budget_seconds else REPLAN_SHARE
+        return wall_seconds - self.last_plan_at >= max(share * self.budget_seconds, 1.0)
 
     def replan(self, step: int, wall_seconds: float, gaussians: int) -> None:
-        """A new plan from the costs measured so far, applied to the run's configuration."""
+        """A new plan from the costs measured so far."""
         self.cost.fit()
-        self._apply(self._plan(step, wall_seconds, gaussians), step)
+        self._apply(self._choose(step, wall_seconds, gaussians), step)
         self.last_plan_at = wall_seconds
-        self.history.append({"at_seconds": round(wall_seconds, 1), "step": step, "steps": self.config.steps,
-                             "cap": self.config.mcmc.cap_max, "gaussians": gaussians,
+        self.history.append({"at_seconds": round(wall_seconds, 1), "step": step, "steps": self.plan.steps,
+                             "cap": self.plan.mcmc.cap_max, "gaussians": gaussians,
                              "step_ms": round(1000 * float(self.cost.predict(gaussians, 1.0)), 1)})
+        self._publish(self.plan)
 
     def finished(self, step: int, wall_seconds: float) -> bool:
-        return step >= self.config.steps or wall_seconds >= self.budget
+        return step >= self.plan.steps or wall_seconds >= self.budget_seconds
 
-    def record(self) -> dict:
-        """What config.json and the report keep of the plan."""
-        return {"budget_seconds": self.budget, "steps": self.config.steps,
-                "cap": self.config.mcmc.cap_max, "resolution_start": self.config.resolution_start,
-                "resolution_full_at": self.config.resolution_full_at, "growth_share": self.config.mcmc.growth_share,
-                "cost_model_ms": [round(1000 * float(c), 4) for c in self.cost.coefficients], "base": self.base,
-                "sh_fixed": self.sh_fixed, "history": self.history}
+    def _record(self, plan: Plan) -> dict:
+        """What config.json (budget_plan) and the report keep of the planning."""
+        return {"budget_seconds": self.budget_seconds, "steps": plan.steps, "cap": plan.mcmc.cap_max,
+                "resolution_start": plan.resolution_start, "resolution_full_at": plan.resolution_full_at,
+                "growth_share": self.config.mcmc.growth_share,
+                "cost_model_ms": [round(1000 * float(c), 4) for c in self.cost.coefficients], "base": dict(self.base),
+                "sh_fixed": self.sh_fixed, "history": list(self.history)}
 
-    def _plan(self, step: int, wall_seconds: float, gaussians: int) -> Plan:
+    def _publish(self, plan: Plan) -> None:
+        """`plan` becomes the run's, with the record of the planning so far."""
+        self.plan = replace(plan, budget=self._record(plan))
+
+    def _choose(self, step: int, wall_seconds: float, gaussians: int) -> Choice:
         """The cap of `balanced_cap` (within the ceiling, and small enough to leave MIN_STEPS), and the steps that
         fill the time left with it.
 
@@ -173,18 +213,18 @@ class BudgetPlanner:
         more than the steps it saves). Only the starting count can be cut (MCMC keeps the most opaque: a random
         initialisation of more points than the budget affords). Once growth is over (growth_share of the run)
         the cap is the count reached."""
-        left = self.budget - wall_seconds
+        left = self.budget_seconds - wall_seconds
         current = max(gaussians, 1)
         top = max(self.ceiling, 1)
-        if step >= min(self.config.mcmc.growth_share * self.config.steps, self.config.mcmc.refine_stop):
-            return Plan(self._steps_for(step, left, current, current), current, self.base["mcmc.grow_rate"])
+        if step >= min(self.config.mcmc.growth_share * self.plan.steps, self.plan.mcmc.refine_stop):
+            return Choice(self._steps_for(step, left, current, current), current, self.base["mcmc.grow_rate"])
         lowest = min(top, max(MIN_START_GAUSSIANS, current // 10) if step == 0 else current)
         cap = min(top, max(lowest, self.balanced_cap()))
         steps = self._steps_for(step, left, current, cap)
         while steps < MIN_STEPS and cap > lowest:
             cap = max(lowest, int(cap * 0.8))
             steps = self._steps_for(step, left, current, cap)
-        return Plan(steps, cap, self._grow_rate(step, steps, current, cap))
+        return Choice(steps, cap, self._grow_rate(step, steps, current, cap))
 
     def balanced_cap(self) -> int:
         """The count at which a full-size step spends BALANCE times as long on its Gaussians as on its pixels,
@@ -193,7 +233,7 @@ class BudgetPlanner:
         per_gaussian = (c + d) / 1e5
         if per_gaussian <= 0:
             return max(self.ceiling, 1)
-        return int(BALANCE * (a + b) / per_gaussian * math.sqrt(self.budget / 600.0))
+        return int(BALANCE * (a + b) / per_gaussian * math.sqrt(self.budget_seconds / 600.0))
 
     def _steps_for(self, step: int, left: float, gaussians: int, cap: int) -> int:
         """The number of steps (in all) whose predicted times fill `left` seconds from `step` on."""
@@ -219,9 +259,9 @@ class BudgetPlanner:
         per_step = self.cost.predict(self._counts(trial, step, ks, gaussians, cap), scales)
         return float(np.trapezoid(per_step, ks) + per_step[-1]) if len(ks) > 1 else float(per_step[0])
 
-    def _counts(self, trial: TrainConfig, step: int, ks: np.ndarray, gaussians: int, cap: int) -> np.ndarray:
+    def _counts(self, trial: Plan, step: int, ks: np.ndarray, gaussians: int, cap: int) -> np.ndarray:
         """The Gaussians at steps `ks` as MCMC grows towards `cap` at the planned rate (ADC: the cap, at most)."""
-        if trial.strategy != "mcmc":
+        if self.config.strategy != "mcmc":
             return np.full(len(ks), float(cap))
         if cap <= gaussians:
             return np.full(len(ks), float(cap))
@@ -233,33 +273,20 @@ class BudgetPlanner:
         return np.minimum(cap, gaussians * rate ** refines)
 
     def _grow_rate(self, step: int, steps: int, gaussians: int, cap: int) -> float:
-        trial = self._fitted(steps)
-        m = trial.mcmc
-        refines = refine_steps_between(max(step, m.refine_start), min(round(m.growth_share * steps), m.refine_stop),
+        m = self._fitted(steps).mcmc
+        refines = refine_steps_between(max(step, m.refine_start),
+                                       min(round(self.config.mcmc.growth_share * steps), m.refine_stop),
                                        m.refine_every)
         return growth_rate_reaching(gaussians, cap, refines, m.grow_rate)
 
-    def _fitted(self, steps: int) -> TrainConfig:
-        """A light copy of the configuration with its schedules fitted to `steps`."""
-        trial = copy.copy(self.config)
-        trial.mcmc, trial.adc = copy.copy(self.config.mcmc), copy.copy(self.config.adc)
-        self._fit_schedules(trial, steps)
-        return trial
+    def _fitted(self, steps: int) -> Plan:
+        """The plan's base schedules fitted to `steps` (the SH schedule kept once the degree has risen)."""
+        fitted = scale_schedules(replace(self.plan.with_schedule(self.base), steps=steps), steps, PAPER_STEPS)
+        return replace(fitted, sh_increase_every=self.plan.sh_increase_every) if self.sh_fixed else fitted
 
-    def _fit_schedules(self, config: TrainConfig, steps: int) -> None:
-        sh_every = config.sh_increase_every
-        for key, value in self.base.items():
-            _set(config, key, value)
-        config.steps = steps
-        scale_step_schedules(config, steps, PAPER_STEPS)
-        if self.sh_fixed:
-            config.sh_increase_every = sh_every
-
-    def _apply(self, plan: Plan, step: int) -> None:
-        config = self.config
-        if not self.sh_fixed and step >= config.sh_increase_every:
+    def _apply(self, choice: Choice, step: int) -> None:
+        if not self.sh_fixed and step >= self.plan.sh_increase_every:
             self.sh_fixed = True  # the degree has risen once: keep its schedule so it never steps back
-        self._fit_schedules(config, plan.steps)
-        config.mcmc.cap_max = config.adc.cap_max = plan.cap
-        config.mcmc.grow_rate = plan.grow_rate
-        config.budget_plan = self.record()
+        fitted = self._fitted(choice.steps)
+        self._publish(replace(fitted, mcmc=replace(fitted.mcmc, cap_max=choice.cap, grow_rate=choice.grow_rate),
+                              adc=replace(fitted.adc, cap_max=choice.cap)))

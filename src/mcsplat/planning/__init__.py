@@ -1,0 +1,39 @@
+"""What a run decides, beside what the user asked: its plan (plan.py) and the planners that make it.
+
+- plan.py: the Plan (steps, fitted schedules, cap and growth rate, resolution, processes, --budget's record);
+- schedule.py: the paper's schedules fitted to a run's length, and the growth rate that reaches the cap in time;
+- processes.py: the plan for N processes (a view each per step);
+- fixed.py: --steps, one plan made before the first step; budget.py: --budget, planned again as the run goes, from
+  step times measured on this machine (calibration.py: the first ones, before the clock starts);
+- strategy.py: the strategy a run asks for, on its plan's schedule;
+- config_file.py: config.json, the configuration with its plan, written and read back.
+
+`planner_for` gives a run its planner; the trainer asks either kind the same things (the plan, whether the run is
+done, and after each step what it took).
+"""
+
+from __future__ import annotations
+
+from ..config import TrainConfig
+from ..data import Scene
+from .budget import BudgetPlanner, budget_planner
+from .calibration import RunState
+from .config_file import load_run_config, read_record, run_record, save_run_config
+from .fixed import FixedSteps, initial_plan, with_growth
+from .plan import REPLANNED_KEYS, SCHEDULE_KEYS, Plan
+from .processes import for_processes
+from .strategy import make_strategy
+
+Planner = FixedSteps | BudgetPlanner
+
+__all__ = ["BudgetPlanner", "FixedSteps", "Plan", "Planner", "REPLANNED_KEYS", "SCHEDULE_KEYS", "for_processes",
+           "initial_plan", "load_run_config", "make_strategy", "planner_for", "read_record", "run_record",
+           "save_run_config"]
+
+
+def planner_for(config: TrainConfig, plan: Plan, scene: Scene, state: RunState, resumed: bool) -> Planner:
+    """The planner of a run that starts (or resumes) with `plan` and `state`. A new --steps run with --cap-max gets
+    the growth rate that reaches its cap in time."""
+    if config.budget is not None:
+        return budget_planner(config, plan, scene)
+    return FixedSteps(plan if resumed else with_growth(plan, config, state.model.num_gaussians, state.strategy))

@@ -1,0 +1,68 @@
+"""--budget's first measurements: steps of throwaway copies of the starting model, small and large, at full size and at
+the starting size, timed before the clock starts, so that the first plan knows what pixels and Gaussians cost."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+from typing import Any, Iterator, Protocol
+
+import torch
+
+from ..config import TrainConfig
+from ..data import Scene
+from ..gaussians import PARAM_KEYS, GaussianModel
+from ..optim import make_optimizers
+from ..strategy import Strategy
+from .plan import Plan
+from .strategy import make_strategy
+
+CALIBRATION_SMALL, CALIBRATION_LARGE = 2000, 3  # models of 2,000 and of 3x the starting Gaussians are timed
+Background = tuple[float, float, float]
+
+
+class RunState(Protocol):
+    """What a planner sees of the run's state (state.TrainingState)."""
+
+    model: GaussianModel
+    optimizers: dict[str, torch.optim.Optimizer]
+    strategy: Strategy
+    step: int
+    wall_seconds: float
+
+
+class StepFunction(Protocol):
+    """trainer.train_step: one optimisation step (the planners sit below the loop, so the loop hands it down)."""
+
+    def __call__(self, step: int, model: GaussianModel, optimizers: dict, strategy: Any, view: Any, *,
+                 config: TrainConfig, plan: Plan, scene_radius: float, background: Background,
+                 device: torch.device) -> Any:
+        ...
+
+
+def timed_steps(config: TrainConfig, plan: Plan, model: GaussianModel, scene: Scene, background: Background,
+                device: torch.device, step_function: StepFunction) -> Iterator[tuple[float, int, float]]:
+    """(seconds, Gaussians, share of the image size) of each timed step; the first step of each size is a warm-up
+    and not counted. The run's own model and state are left as they are."""
+    count = model.num_gaussians
+    small, large = min(count, CALIBRATION_SMALL), CALIBRATION_LARGE * count
+    start = plan.resolution_start
+    for gaussians, scale in ((small, 1.0), (small, start), (count, 1.0), (large, 1.0), (large, start)):
+        probe = replace(plan, resolution_start=scale, resolution_full_at=1.0, steps=10**9)
+        copy = resized(model, gaussians)
+        optimizers = make_optimizers(copy, probe.optim, scene.radius)
+        strategy = make_strategy(config, probe, scene.radius, torch.Generator(device).manual_seed(0))
+        for i, view in enumerate(scene.train[:2]):
+            tick = time.perf_counter()
+            step_function(0, copy, optimizers, strategy, view, config=config, plan=probe, scene_radius=scene.radius,
+                          background=background, device=device)
+            if i:  # the first is a warm-up
+                yield time.perf_counter() - tick, copy.num_gaussians, scale
+
+
+def resized(model: GaussianModel, count: int) -> GaussianModel:
+    """A detached model of `count` Gaussians: the first `count` of `model`, or copies of it side by side."""
+    copies = -(-count // max(model.num_gaussians, 1))
+    resized = GaussianModel(*(torch.cat([model.params[key].detach()] * copies)[:count] for key in PARAM_KEYS))
+    resized.antialiased = model.antialiased
+    return resized

@@ -1,0 +1,95 @@
+"""A run's plan: what the run decides, beside what the user asked (the configuration, config.py).
+
+The plan holds the run's number of steps, every step schedule fitted to it (refinement, ADC's densification and
+opacity resets, the SH increase, the parameter noise's decay), the cap and the growth rate, the coarse-to-fine
+resolution, the number of processes with the learning rates scaled for them, and --budget's record of how it planned.
+A planner makes it (fixed.py for --steps, budget.py for --budget); the step reads it, the strategy follows its part
+of it, and config.json and the checkpoint keep it (config_file.py), so that --resume continues it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any, Mapping
+
+from ..config import TrainConfig
+from ..optim import OptimConfig
+from ..strategy import ADCSchedule, MCMCSchedule
+
+# The schedule values each plan fits to its steps, named as config.json names them (--budget keeps the values it
+# started from under these keys, its "base").
+SCHEDULE_KEYS = ("sh_increase_every", "mcmc.refine_start", "mcmc.refine_stop", "mcmc.refine_every",
+                 "adc.densify_start", "adc.densify_stop", "adc.densify_every", "adc.reset_every", "mcmc.grow_rate",
+                 "mcmc.param_noise_decay")
+# What a --budget run plans again as it goes: config.json may hold another plan than the one its checkpoint took.
+REPLANNED_KEYS = frozenset(("steps", "mcmc.cap_max", "adc.cap_max") + SCHEDULE_KEYS)
+
+
+@dataclass(frozen=True)
+class Plan:
+    steps: int
+    sh_increase_every: int  # the SH degree rises by one every this many steps ...
+    sh_degree: int  # ... up to the model's
+    resolution_start: float  # coarse to fine: the share of the image size of the first step ...
+    resolution_full_at: float  # ... rising to full size at this share of the steps
+    mcmc: MCMCSchedule
+    adc: ADCSchedule
+    optim: OptimConfig  # the learning rates, scaled for the processes
+    world_size: int = 1  # processes training together, a view each per step
+    budget: dict[str, Any] | None = None  # --budget: how it planned (config.json's budget_plan)
+
+    @classmethod
+    def literal(cls, config: TrainConfig, world_size: int = 1, budget: dict[str, Any] | None = None) -> Plan:
+        """The configuration's values taken as they are: a run's saved configuration (its values are the plan's),
+        or the options before anything is fitted."""
+        return cls(steps=config.steps, sh_increase_every=config.sh_increase_every, sh_degree=config.model.sh_degree,
+                   resolution_start=config.resolution_start, resolution_full_at=config.resolution_full_at,
+                   mcmc=MCMCSchedule.of(config.mcmc), adc=ADCSchedule.of(config.adc), optim=config.optim,
+                   world_size=world_size, budget=budget)
+
+    def schedule_entries(self) -> dict[str, Any]:
+        """The SCHEDULE_KEYS values of the plan."""
+        m, a = self.mcmc, self.adc
+        return {"sh_increase_every": self.sh_increase_every, "mcmc.refine_start": m.refine_start,
+                "mcmc.refine_stop": m.refine_stop, "mcmc.refine_every": m.refine_every,
+                "adc.densify_start": a.densify_start, "adc.densify_stop": a.densify_stop,
+                "adc.densify_every": a.densify_every, "adc.reset_every": a.reset_every, "mcmc.grow_rate": m.grow_rate,
+                "mcmc.param_noise_decay": m.param_noise_decay}
+
+    def with_schedule(self, entries: Mapping[str, Any]) -> Plan:
+        """The plan with the schedule values `entries` gives (all of SCHEDULE_KEYS)."""
+        e = entries
+        mcmc = replace(self.mcmc, refine_start=e["mcmc.refine_start"], refine_stop=e["mcmc.refine_stop"],
+                       refine_every=e["mcmc.refine_every"], grow_rate=e["mcmc.grow_rate"],
+                       param_noise_decay=e["mcmc.param_noise_decay"])
+        adc = replace(self.adc, densify_start=e["adc.densify_start"], densify_stop=e["adc.densify_stop"],
+                      densify_every=e["adc.densify_every"], reset_every=e["adc.reset_every"])
+        return replace(self, sh_increase_every=e["sh_increase_every"], mcmc=mcmc, adc=adc)
+
+    def entries(self) -> dict[str, Any]:
+        """The plan's values in config.json, under its keys ("mcmc.cap_max"): the options' places they take."""
+        return {"steps": self.steps, **self.schedule_entries(), "resolution_start": self.resolution_start,
+                "resolution_full_at": self.resolution_full_at, "mcmc.cap_max": self.mcmc.cap_max,
+                "adc.cap_max": self.adc.cap_max}
+
+    def schedule_for(self, strategy: str) -> MCMCSchedule | ADCSchedule:
+        """The part of the plan the strategy named `strategy` follows."""
+        return self.mcmc if strategy == "mcmc" else self.adc
+
+    def sh_degree_at(self, step: int) -> int:
+        """The SH degree a step renders with (0-based step): one more every `sh_increase_every` steps, up to the
+        model's degree, as 3DGS raises it at iterations 1000, 2000, 3000."""
+        return min(step // self.sh_increase_every, self.sh_degree)
+
+    def final_sh_degree(self, steps_done: int) -> int:
+        """The SH degree of the last step taken, after `steps_done` steps: what a finished model is shown with."""
+        return self.sh_degree_at(max(steps_done - 1, 0))
+
+    def resolution_at(self, step: int) -> float:
+        """The share of the full image size a step trains at: `resolution_start` at the first step, rising
+        geometrically to 1 at `resolution_full_at` of the run (coarse to fine), 1 from there on."""
+        start = self.resolution_start
+        end = self.resolution_full_at * self.steps
+        if start >= 1.0 or step >= end:
+            return 1.0
+        return start ** (1.0 - step / end)

@@ -1,0 +1,71 @@
+"""How a training run begins: its folder prepared (new, resumed or refused), this process's own options, its device
+and threads, the scene, the state (fresh or from the checkpoint), its planner, and the folder's files begun.
+
+The loop (trainer.TrainingRun) starts from what `set_up` gives it; with several processes every process sets up the
+same way, rank 0 alone reading and writing the folder.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from dataclasses import dataclass
+
+import torch
+
+from . import run_dir
+from .compute.device import resolve_device
+from .config import TrainConfig, process_options
+from .data import Scene
+from .distributed import Team, scene_summary, setup_of, threads_per_process
+from .errors import MCSplatError
+from .io.lock import FolderLock
+from .planning import Planner, initial_plan, planner_for
+from .render import set_cpu_threads
+from .state import TrainingState, start
+
+
+@dataclass
+class RunSetup:
+    config: TrainConfig  # what this process trains with: the run's configuration, this process's own options
+    folder: run_dir.RunDir
+    device: torch.device
+    scene: Scene
+    background: run_dir.Background
+    state: TrainingState
+    init_note: str  # where the state came from (the initialisation, or the step resumed at)
+    planner: Planner
+
+
+def set_up(config: TrainConfig, team: Team, lock: FolderLock) -> RunSetup:
+    """Everything a run needs before its first step; rank 0 takes `lock` on the folder (the caller releases it)."""
+    if (config.appearance != "none" or config.pose_opt) and team.world_size > 1:
+        raise MCSplatError("--appearance and --pose-opt do not work with several training processes yet (each "
+                           "holds the corrections of its own views); train in one process, or leave them out")
+    team.check_same_setup(setup_of(config))
+    own = config
+    config, saved_plan = team.on_main(lambda: run_dir.prepare(own, lock, team.world_size))
+    # This process's own options. The data path is its own too (it may differ between machines; the scenes are
+    # compared below), except that a resumed run in one process trains on the data it started with.
+    data = {} if config.resume and team.is_main else {"data": own.data}
+    config = dataclasses.replace(config, **process_options(own), **data)
+    if config.resume:
+        run_dir.check_resumable(saved_plan, team.world_size)
+    plan = saved_plan or initial_plan(config, team.world_size)
+    folder = run_dir.RunDir(config.run_dir)
+    device = team.device(resolve_device(config.device))
+    threads = config.threads if config.threads is not None or team.world_size == 1 else threads_per_process()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    set_cpu_threads(threads)
+    scene = run_dir.scene_of(config)
+    team.check_same_setup(scene_summary(scene))
+    if not scene.test and config.eval_every and team.is_main:
+        warnings.warn(f"--eval-every {config.eval_every} is ignored: the scene has no test views to evaluate "
+                      f"(--test-every {config.test_every})", stacklevel=3)
+    checkpoint = team.on_main(lambda: folder.read_checkpoint_of(config, plan)) if config.resume else None
+    state, note = start(config, plan, scene, device, team, checkpoint, progress=not config.quiet and team.is_main)
+    planner = planner_for(config, plan, scene, state, resumed=config.resume)
+    if team.is_main:
+        folder.begin(config, planner.plan, state.step)
+    return RunSetup(config, folder, device, scene, run_dir.background_of(config, scene), state, note, planner)

@@ -1,0 +1,138 @@
+"""What the user asked and what the run decides are two values: the configuration, frozen once it is made, and the
+plan (its steps, the schedules fitted to them, cap, growth, resolution, processes) that the step and the strategy
+read, that config.json keeps, and that --resume reads back, from the files an older mcsplat wrote too."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+import torch
+import tyro
+
+from mcsplat.cli import COMMANDS
+from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.errors import MCSplatError
+from mcsplat.events import Subscriber
+from mcsplat.io.checkpoint import load_checkpoint
+from mcsplat.planning import Plan, initial_plan, load_run_config, make_strategy, read_record, run_record
+from mcsplat.strategy import MCMCSchedule
+from mcsplat.train import train
+
+DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
+
+
+def parsed(*options: str) -> TrainConfig:
+    """The configuration `mcsplat train DEMO <options>` parses to."""
+    return tyro.extras.subcommand_cli_from_dict(COMMANDS, args=["train", str(DEMO), *options])
+
+
+def test_the_configuration_cannot_be_changed_once_parsed():
+    config = parsed("--steps", "60", "--mcmc.cap-max", "5000")
+    for owner, name, value in ((config, "steps", 5), (config.mcmc, "cap_max", 6000), (config.model, "sh_degree", 1),
+                               (config.optim, "means_lr", 1.0), (config.adc, "reset_every", 7)):
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(owner, name, value)
+    assert (config.steps, config.mcmc.cap_max) == (60, 5000), "the values it was made with"
+    derived = dataclasses.replace(config, steps=90)
+    assert (derived.steps, config.steps) == (90, 60), "replace derives another value; the first stays"
+
+
+def test_the_flags_keep_their_names():
+    config = parsed("--appearance", "affine", "--appearance-lr", "0.01", "--pose-opt", "--pose-opt-lr", "0.001",
+                    "--eval-every", "3", "--mcmc.refine-start", "5", "--model.num-init-points", "100",
+                    "--optim.means-lr", "0.0002", "--cap-max", "auto", "--no-scale-schedule")
+    assert (config.appearance, config.appearance_lr, config.pose_opt, config.pose_opt_lr) == ("affine", 0.01, True,
+                                                                                              0.001)
+    assert (config.eval_every, config.mcmc.refine_start, config.model.num_init_points) == (3, 5, 100)
+    assert config.optim.means_lr == 0.0002 and config.mcmc.auto_cap and not config.scale_schedule
+
+
+def test_the_strategy_follows_the_plan_and_the_options_stay():
+    """--steps 3000 fits refinement to every 10 steps from 50: the strategy refines there, though its options
+    (the paper's, for 30,000 steps) say every 100 from 500; a new plan (--budget plans again) moves it."""
+    config = TrainConfig(data=DEMO, steps=3000, cap_max=5000)
+    plan = initial_plan(config)
+    strategy = make_strategy(config, plan, 1.0, torch.Generator())
+    assert (config.mcmc.refine_start, config.mcmc.refine_every) == (500, 100)
+    assert strategy.is_refine_step(60) and not strategy.is_refine_step(65) and strategy.ceiling == 5000
+    strategy.follow(dataclasses.replace(plan.mcmc, refine_every=7, cap_max=4000))
+    assert strategy.is_refine_step(63) and not strategy.is_refine_step(60) and strategy.ceiling == 4000
+    adc = TrainConfig(data=DEMO, steps=3000, strategy="adc")
+    densifying = make_strategy(adc, initial_plan(adc), 1.0, torch.Generator())
+    assert densifying.is_densify_step(60) and densifying.is_reset_step(300) and adc.adc.reset_every == 3000
+
+
+def test_config_json_keeps_the_plan_and_reads_it_back():
+    """The file has the layout it always had: the plan's values in the options' places, the processes and the
+    --budget record beside them. What is read back is the run's configuration and its plan."""
+    config = TrainConfig(data=DEMO, steps=3000, cap_max=5000)
+    plan = dataclasses.replace(initial_plan(config, 2), budget={"history": [{"step": 1}]})
+    record = json.loads(json.dumps(run_record(config, plan)))
+    assert (record["steps"], record["mcmc"]["refine_every"], record["sh_increase_every"]) == (1500, 5, 50)
+    assert record["world_size"] == 2 and record["budget_plan"] == {"history": [{"step": 1}]}
+    saved, again = read_record(record)
+    assert again == plan and saved.steps == 1500 and saved.mcmc.cap_max == 5000
+
+
+def old_layout(record: dict) -> dict:
+    """config.json as mcsplat wrote it before the plan had a type of its own: the run's decisions were options,
+    world_size, schedule_fitted and budget_plan between dist_timeout and model."""
+    decided = {"world_size": record["world_size"], "schedule_fitted": True, "budget_plan": record["budget_plan"]}
+    old = {}
+    for key, value in record.items():
+        if key == "model":
+            old.update(decided)
+        if key not in decided:
+            old[key] = value
+    return old
+
+
+class StopAt(Subscriber):
+    """Asks the run to stop after step `step` (as Ctrl-C does): it writes a checkpoint and says how to resume."""
+
+    def __init__(self, step: int):
+        self.step, self.run = step, None
+
+    def on_run_started(self, event) -> None:
+        self.run = event.run
+
+    def on_step_done(self, event) -> None:
+        if event.step == self.step:
+            self.run.control.stop()
+
+
+def test_a_run_folder_of_the_old_layout_resumes_bit_for_bit(tmp_path, mini_demo):
+    """A run stopped at step 20 whose config.json an older mcsplat wrote continues as the uninterrupted run: its
+    fitted schedules are read back as the plan, not fitted a second time (which would stop refinement)."""
+    def config(out: Path, **overrides) -> TrainConfig:
+        return TrainConfig(data=mini_demo, out=out, steps=40, cap_max=600, downscale=4, quiet=True, save_every=0,
+                           save_renders=False, lpips_net="alex", threads=2, model=ModelConfig(num_init_points=300),
+                           **overrides)
+
+    train(config(tmp_path / "straight"))
+    run = tmp_path / "run"
+    with pytest.raises(MCSplatError, match="stopped at step 20"):
+        train(config(run), subscribers=[StopAt(20)])
+    written = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps(old_layout(written), indent=2))
+    saved, plan = load_run_config(run / "config.json")
+    assert (plan.steps, plan.mcmc.refine_start, plan.mcmc.refine_every, plan.sh_increase_every) == (40, 1, 1, 1)
+    assert plan.mcmc.grow_rate == written["mcmc"]["grow_rate"] > 1.05, "the growth rate --cap-max planned"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        saved.steps = 80
+    train(config(run, resume=True))
+    straight, resumed = load_checkpoint(tmp_path / "straight" / "checkpoint.pt"), load_checkpoint(run / "checkpoint.pt")
+    assert resumed["step"] == straight["step"] == 40
+    for key, value in straight["model"].items():
+        assert torch.equal(resumed["model"][key], value), key
+
+
+def test_a_plan_made_from_the_options_fits_them_once():
+    config = TrainConfig(data=DEMO, steps=3000)
+    assert Plan.literal(config).mcmc == MCMCSchedule.of(config.mcmc), "the options as they are"
+    assert initial_plan(config).mcmc.refine_start == 50 and initial_plan(config, 2).steps == 1500
+    budget = TrainConfig(data=DEMO, budget="2m")
+    assert initial_plan(budget) == Plan.literal(budget), "--budget fits the schedules as it plans"
