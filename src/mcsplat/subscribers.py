@@ -59,9 +59,9 @@ class ConsoleLog(Subscriber):
 
     def on_run_started(self, event: RunStarted) -> None:
         run = event.run
-        scene, config = run.scene, run.config
+        scene, config, plan = run.scene, run.config, run.plan
         processes = run.world_size
-        steps = f"{run.plan.steps:,} steps" + (f" of {processes} views ({processes} processes)" if processes > 1 else "")
+        steps = f"{plan.steps:,} steps" + (f" of {processes} views ({processes} processes)" if processes > 1 else "")
         if config.budget is not None:
             steps = f"a {config.budget} budget (steps, cap and resolution planned as it runs)"
         self.write(f"mcsplat: {scene.kind} scene {scene.root.name}: {len(scene.train)} train / {len(scene.test)} "

@@ -3,8 +3,7 @@
 One step (docs/method.md, "One training step"; in gsplat's order, see strategy/mcmc.py for how the official code
 differs):
     render a training view (from its corrected pose with --pose-opt; through its colour transform with
-    --appearance) -> loss = 0.8 L1 + 0.2 D-SSIM (over
-    the pixels a mask keeps) + strategy regularizers -> backward
+    --appearance) -> loss = 0.8 L1 + 0.2 D-SSIM (over the pixels a mask keeps) + strategy regularizers -> backward
     -> strategy.step_post_backward (ADC gradient statistics) -> Adam step for every parameter
     -> strategy.step_post_optimizer (MCMC: relocate / grow every 100 steps, then SGLD noise; ADC: densify / prune)
 
@@ -175,8 +174,8 @@ class TrainingRun:
         strategies = self.team.gather_on_main(self.state.strategy.state_dict())
         if not self.team.is_main:
             return
-        if self.plan != self._written_plan:  # --budget planned again: config.json keeps the plan the checkpoint
-            self.folder.write_config(self.config, self.plan)  # continues
+        if self.plan != self._written_plan:  # --budget planned again: config.json keeps the plan it continues
+            self.folder.write_config(self.config, self.plan)
             self._written_plan = self.plan
         self.folder.write_checkpoint(self.state.checkpoint(run_record(self.config, self.plan), strategies))
         self.control.checkpoint_done()
@@ -285,7 +284,7 @@ class TrainingRun:
                                         progress=not config.quiet)
         seen = seen_in_views(state.model, self.scene.train, self.background, self.device, team)
         exported = self.folder.export_splats(state.model) if team.is_main else int(run_dir.alive(state.model).sum())
-        strategy = state.strategy
+        strategy = state.strategy  # --cap-max auto: where growth stopped, and the ceiling
         facts = RunFacts(exported_gaussians=exported, train_seconds=state.train_seconds,
                          wall_seconds=state.wall_seconds, device=str(self.device), strategy=config.strategy,
                          sh_degree=final_degree, processes=team.world_size,

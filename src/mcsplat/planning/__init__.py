@@ -6,7 +6,8 @@
 - fixed.py: --steps, one plan made before the first step; budget.py: --budget, planned again as the run goes, from
   step times measured on this machine (calibration.py: the first ones, before the clock starts);
 - strategy.py: the strategy a run asks for, on its plan's schedule;
-- config_file.py: config.json, the configuration with its plan, written and read back.
+- config_file.py: config.json, the configuration with its plan, written and read back;
+- seam.py: what the loop asks of a planner, and what a planner sees of the run.
 
 `planner_for` gives a run its planner; the trainer asks either kind the same things (the plan, whether the run is
 done, and after each step what it took).
@@ -17,14 +18,12 @@ from __future__ import annotations
 from ..config import TrainConfig
 from ..data import Scene
 from .budget import BudgetPlanner, budget_planner
-from .calibration import RunState
 from .config_file import load_run_config, read_record, run_record, save_run_config
 from .fixed import FixedSteps, initial_plan, with_growth
 from .plan import REPLANNED_KEYS, SCHEDULE_KEYS, Plan
 from .processes import for_processes
+from .seam import Planner, RunState
 from .strategy import make_strategy
-
-Planner = FixedSteps | BudgetPlanner
 
 __all__ = ["BudgetPlanner", "FixedSteps", "Plan", "Planner", "REPLANNED_KEYS", "SCHEDULE_KEYS", "for_processes",
            "initial_plan", "load_run_config", "make_strategy", "planner_for", "read_record", "run_record",

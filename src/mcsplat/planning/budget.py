@@ -42,8 +42,9 @@ from ..data import Scene
 from ..errors import MCSplatError
 from ..strategy.auto_cap import pixel_ceiling
 from ..strategy.mcmc import prune_to_cap
-from .calibration import Background, RunState, StepFunction, timed_steps
+from .calibration import timed_steps
 from .plan import Plan
+from .seam import Background, RunState, StepFunction
 from .schedule import PAPER_STEPS, growth_rate_reaching, refine_steps_between, scale_schedules
 
 BALANCE = 2.0                     # balanced_cap: Gaussians' time in a full-size step over the pixels'

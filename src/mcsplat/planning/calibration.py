@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from typing import Any, Iterator, Protocol
+from typing import Iterator
 
 import torch
 
@@ -13,31 +13,11 @@ from ..config import TrainConfig
 from ..data import Scene
 from ..gaussians import PARAM_KEYS, GaussianModel
 from ..optim import make_optimizers
-from ..strategy import Strategy
 from .plan import Plan
+from .seam import Background, StepFunction
 from .strategy import make_strategy
 
 CALIBRATION_SMALL, CALIBRATION_LARGE = 2000, 3  # models of 2,000 and of 3x the starting Gaussians are timed
-Background = tuple[float, float, float]
-
-
-class RunState(Protocol):
-    """What a planner sees of the run's state (state.TrainingState)."""
-
-    model: GaussianModel
-    optimizers: dict[str, torch.optim.Optimizer]
-    strategy: Strategy
-    step: int
-    wall_seconds: float
-
-
-class StepFunction(Protocol):
-    """trainer.train_step: one optimisation step (the planners sit below the loop, so the loop hands it down)."""
-
-    def __call__(self, step: int, model: GaussianModel, optimizers: dict, strategy: Any, view: Any, *,
-                 config: TrainConfig, plan: Plan, scene_radius: float, background: Background,
-                 device: torch.device) -> Any:
-        ...
 
 
 def timed_steps(config: TrainConfig, plan: Plan, model: GaussianModel, scene: Scene, background: Background,

@@ -9,9 +9,9 @@ import torch
 from ..config import TrainConfig
 from ..data import Scene
 from ..strategy import Strategy
-from .calibration import Background, RunState, StepFunction
 from .plan import Plan
 from .processes import for_processes
+from .seam import Background, RunState, StepFunction
 from .schedule import fitted_to_steps, planned_growth_rate
 
 

@@ -27,7 +27,8 @@ def scale_schedules(plan: Plan, numerator: int, denominator: int) -> Plan:
         return round(step * numerator / denominator)
 
     m, a = plan.mcmc, plan.adc
-    mcmc = replace(m, refine_start=at(m.refine_start), refine_stop=at(m.refine_stop), refine_every=every(m.refine_every),
+    mcmc = replace(m, refine_start=at(m.refine_start), refine_stop=at(m.refine_stop),
+                   refine_every=every(m.refine_every),
                    param_noise_decay=m.param_noise_decay ** (denominator / numerator))  # the same decay over the run
     adc = replace(a, densify_start=at(a.densify_start), densify_stop=at(a.densify_stop),
                   densify_every=every(a.densify_every), reset_every=every(a.reset_every))

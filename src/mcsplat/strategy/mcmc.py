@@ -43,8 +43,8 @@ from .noise import (NOISE_GATE_CENTER, NOISE_GATE_K, NOISE_SCHEDULES, NoiseSched
 from .relocation import DEFAULT_MAX_COPIES, relocation_params, sample_by_weight
 from .screen_gradients import ScreenGradients
 
-__all__ = ["MCMCConfig", "MCMCSchedule", "MCMCStrategy", "MCMCReport", "inject_noise", "noise_gate", "relocate_dead", "grow",
-           "prune_to_cap", "NOISE_GATE_K", "NOISE_GATE_CENTER"]
+__all__ = ["MCMCConfig", "MCMCSchedule", "MCMCStrategy", "MCMCReport", "inject_noise", "noise_gate", "relocate_dead",
+           "grow", "prune_to_cap", "NOISE_GATE_K", "NOISE_GATE_CENTER"]
 
 Optimizers = Mapping[str, torch.optim.Optimizer]
 Agree = Callable[[torch.Tensor], torch.Tensor]
