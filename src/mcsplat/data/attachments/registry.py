@@ -23,10 +23,11 @@ def kind_for(options: object) -> Kind:
 
 
 def with_defaults(requests: Sequence[object]) -> list[object]:
-    """`requests` and the default request of each kind they do not ask for (masks: the scene's masks/ folder)."""
-    asked = {kind.name for kind in kinds_for(requests)}
-    defaults = [kind.default for name, kind in KINDS.items() if name not in asked and kind.default is not None]
-    return [*requests, *defaults]
+    """`requests` and the default request of each kind they do not ask for (masks: the scene's masks/ folder), in
+    the order of KINDS (the order of the scene's notes)."""
+    asked = dict(zip((kind.name for kind in kinds_for(requests)), requests))
+    return [asked.get(name, kind.default) for name, kind in KINDS.items()
+            if asked.get(name, kind.default) is not None]
 
 
 def kinds_for(requests: Sequence[object]) -> list[Kind]:
