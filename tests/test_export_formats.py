@@ -191,6 +191,29 @@ def test_a_damaged_spz_is_one_line_naming_it(tmp_path, capsys):
     assert error.count("\n") == 1 and str(v4["v4_frame"]) in error
 
 
+def test_view_opens_every_format_export_writes(tmp_path):
+    """`mcsplat view` reads each file of Gaussians by its ending, and what it reads renders, a degree-0 file's empty
+    SH included (numpy hands it over with strides of 0, which the kernels refuse)."""
+    pytest.importorskip("viser", reason="the viewer's optional dependency viser is not installed")
+    import torch
+
+    from mcsplat.camera import Camera
+    from mcsplat.render import render
+    from mcsplat.viewer.saved import load_for_viewing
+
+    g = random_gaussians(200, degree=1, seed=9)
+    world_to_camera = torch.eye(4)
+    world_to_camera[2, 3] = 10.0  # the Gaussians lie within +-3 of the origin, 10 in front of the camera
+    camera = Camera(torch.tensor([[40.0, 0, 32], [0, 40.0, 32], [0, 0, 1]]), world_to_camera, 64, 64)
+    for name in ("splat", "compressed-ply", "spz", "sog"):
+        path = tmp_path / f"x{EXTENSIONS[name]}"
+        write_gaussians(name, path, g)
+        model, cameras, _, _ = load_for_viewing(path, torch.device("cpu"))
+        assert model.num_gaussians == 200 and cameras == [], name
+        assert model.sh_degree == (0 if name == "splat" else 1), name
+        assert torch.isfinite(render(model, camera, (0.0, 0.0, 0.0)).rgb).all(), name
+
+
 def test_pruning_keeps_the_most_contributing_gaussians():
     g = random_gaussians(200, degree=0)
     g["opacity_logits"][:50] = -8.0  # opacity 0.0003: dead

@@ -189,3 +189,24 @@ def test_a_damaged_sog_is_one_line_naming_it(tmp_path, capsys):
     assert main(["view", str(tmp_path / "cut.sog")]) == 2
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "cut.sog" in error
+
+
+def test_a_write_cut_short_leaves_the_earlier_file_whole(tmp_path, monkeypatch):
+    """The bundle is written beside its name and moved over it whole (io/atomic.py): a write that fails half-way
+    (here the zip's third member) leaves the earlier .sog as it was and no temporary file."""
+    write_gaussians("sog", tmp_path / "g.sog", random_gaussians(50, degree=1))
+    before = (tmp_path / "g.sog").read_bytes()
+    written = []
+    real = zipfile.ZipFile.writestr
+
+    def failing(self, info, data, *args, **kwargs):
+        written.append(info)
+        if len(written) == 3:
+            raise OSError("the disk went away")
+        return real(self, info, data, *args, **kwargs)
+
+    monkeypatch.setattr(zipfile.ZipFile, "writestr", failing)
+    with pytest.raises(OSError, match="went away"):
+        write_gaussians("sog", tmp_path / "g.sog", random_gaussians(80, degree=1, seed=3))
+    assert (tmp_path / "g.sog").read_bytes() == before
+    assert [path.name for path in tmp_path.iterdir()] == ["g.sog"]

@@ -205,7 +205,8 @@ class Export:
     """Leave out Gaussians farther than this many scene radii from the training cameras' centre: very far splats
     leave viewers that sort by depth too little precision for the scene. Prints the test PSNR with and without."""
     spz_version: Literal[3, 4] = 3
-    """spz: 3 (gzip, read by every .spz reader) or 4 (zstd, smaller; splat-transform, three.js 0.186 or later)."""
+    """spz: 3 (gzip, read by every .spz reader) or 4 (zstd, a little smaller; splat-transform and three.js read it,
+    Spark 2.2 does not)."""
     voxel_size: float | None = None
     """mesh: edge of a voxel of the fusion volume, in scene units (default: the finest the budget allows)."""
     voxel_budget: int = 1 << 24

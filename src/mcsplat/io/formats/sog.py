@@ -24,11 +24,12 @@ W = ceil(sqrt(N) / 4) * 4 and H = ceil(N / W / 4) * 4; the texels after the N-th
 
 A codebook is 256 values (codebook.py: 1D k-means over the values of all three axes or channels); the palette is a
 k-means of the Gaussians' 3(K-1) SH coefficients, weighted by opacity, with P entries (palette_size: every Gaussian
-its own up to 1,024, then about N / 16, at most 65,536 as the 16-bit labels allow). Gaussians are written in Morton order of their centres
-(compressed_ply.morton_order), so that neighbours in space are neighbours in the images, which WebP compresses
-better. Axes: the .ply's own, unturned, as splat-transform writes a .ply's Gaussians into a .sog (PlayCanvas turns
-both alike when it draws them). The layout follows PlayCanvas's specification (developer.playcanvas.com, "The SOG
-Format") and splat-transform 3.7.0's reader.
+its own up to 1,024, then about N / 16, at most 65,536 as the 16-bit labels allow). Gaussians are written in Morton
+order of their centres (compressed_ply.morton_order), so that neighbours in space are neighbours in the images,
+which WebP compresses better. Axes: the .ply's own, unturned. (The specification names x right, y up, z back, but
+splat-transform writes a .ply's values into a .sog as they are and PlayCanvas turns the two alike when it draws
+them: a .sog made here shows as the .ply does.) The layout follows PlayCanvas's specification
+(developer.playcanvas.com, "The SOG Format") and splat-transform 3.7.0's reader and writer.
 """
 
 from __future__ import annotations

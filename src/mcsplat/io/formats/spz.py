@@ -31,8 +31,8 @@ from .common import (AXES_FLIP, SH_FLIP, bases_of, check_params, logit, normaliz
                      read_bytes, sh_degree_of, sigmoid)
 from .spz_container import VERSIONS, SpzHeader, pack, unpack
 
-# Version 3 by default: PlayCanvas's splat-transform (3.7.0) and three.js's SPZLoader (0.187) read 3 and 4 alike, but
-# three.js before 0.186 and Spark (2.2.0) read .spz only as a gzip stream, so version 4 is asked for.
+# Version 3 by default: PlayCanvas's splat-transform (3.7.0) and three.js's SPZLoader (0.186 on) read 3 and 4 alike,
+# but Spark (2.2.0) and tools built on Niantic's library before its version 4 read .spz only as a gzip stream.
 DEFAULT_VERSION = 3
 FRACTIONAL_BITS = 12
 COLOUR_SCALE = 0.15
