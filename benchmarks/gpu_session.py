@@ -6,19 +6,24 @@
 
 A GPU is rarely at hand, so nothing here may need a second try: each phase has a share of the time, is skipped (and
 says so) when too little is left, and a failing phase is recorded and does not stop the others. Nothing is
-downloaded: gsplat must be installed (its CUDA extension is built in the background from the start, with nvcc and
+downloaded (carry the wheels of warp-lang, tyro, docstring-parser, typeguard, plyfile, trimesh, pycolmap for a
+COLMAP capture, gsplat, and the LPIPS weights): gsplat must be installed (its CUDA extension is built in the background from the start, with nvcc and
 ninja) or the gsplat arms are skipped, saying why.
 
     tests     pytest --device cuda: the rasterizer and tile-kernel tests against the dense reference renderer on CUDA
               tensors, the fused SSIM, and a short training run
+    parity    the same short `mcsplat train` of the capture (a quarter of its size, 3,000 steps) on CUDA and on the
+              CPU, same seed: the test PSNR of each every 1,000 steps (the CUDA path's training against the CPU's)
     kernels   the compositing kernels alone on the rasterizer benchmark's scene (100k and 300k at 800x800): the
               tile kernels, the tile backward without its skip of unused pairs, and the scalar kernels before them
     profile   step_profile.py on lego 400 at 300k: the GPU's busy time per step against the wall time, and what
               takes the device's and the host's time
     lego      mcsplat against gsplat 1.5.3 (gpu_vs_gsplat.py) on lego 400, cap 300k, 150k random points
     capture   the same on a capture at full resolution, cap 1M, 500k random points
-    train     `mcsplat train CAPTURE --steps 30000 --cap-max 1000000`, stopped at the deadline (SIGTERM: the run saves
-              and stops); the steps reached, and the minutes 30,000 steps would take at the last logged speed
+    train     `mcsplat train CAPTURE --steps 30000 --cap-max 1000000 --eval-every 5000`, stopped at the deadline
+              (SIGTERM: the run saves and stops); the steps reached, the minutes 30,000 steps would take at the last
+              logged speed, and the test PSNR and count of live Gaussians at each evaluation (its log.jsonl is copied
+              to train_log.jsonl)
 
 Figures go to --out (default benchmarks/results/gpu_session): results.jsonl (one record per phase, with the
 machine) and results.md; each phase's output goes to <phase>.log there, the runs themselves to --runs.
@@ -40,10 +45,11 @@ from pathlib import Path
 import _common as C
 
 REPO = Path(__file__).resolve().parents[1]
-PHASES = ("tests", "kernels", "profile", "lego", "capture", "train")
+PHASES = ("tests", "parity", "kernels", "profile", "lego", "capture", "train")
 # Share of the whole time each phase may take (what one phase leaves is free for the next), and the least it needs.
-SHARES = {"tests": 0.16, "kernels": 0.08, "profile": 0.06, "lego": 0.2, "capture": 0.3, "train": 0.2}
-LEAST_SECONDS = {"tests": 30, "kernels": 20, "profile": 20, "lego": 60, "capture": 90, "train": 40}
+SHARES = {"tests": 0.12, "parity": 0.1, "kernels": 0.06, "profile": 0.05, "lego": 0.17, "capture": 0.25,
+          "train": 0.25}
+LEAST_SECONDS = {"tests": 30, "parity": 60, "kernels": 20, "profile": 20, "lego": 60, "capture": 90, "train": 40}
 # The lego and capture phases are the end-to-end training runs on the GPU (their test PSNR beside gsplat's).
 TEST_FILES = ["tests/test_render_tile.py", "tests/test_render.py", "tests/test_render_kernels.py",
               "tests/test_ssim_warp.py"]
@@ -174,27 +180,73 @@ def phase_compare(args, seconds: float, log: Path, data: Path, cap: int, init: i
     return result
 
 
+def train_command(args, run: Path, device: str, steps: int, cap: int, eval_every: int, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "mcsplat.cli", "train", str(args.capture), "--out", str(run), "--overwrite",
+            "--steps", str(steps), "--cap-max", str(cap), "--eval-every", str(eval_every), "--quiet",
+            "--save-every", "0", "--device", device, "--lpips-net", "alex", *extra]
+
+
+def run_log(run: Path) -> list[dict]:
+    log_file = run / "log.jsonl"
+    if not log_file.exists():
+        return []
+    return [json.loads(line) for line in log_file.read_text().splitlines() if line.strip()]
+
+
+def evaluations(run: Path) -> list[dict]:
+    """The test PSNR at each evaluation of a run (its log, then the final one in metrics.json), with the step, the
+    Gaussians then and how many of them were dead at the last relocation (MCMC moves every Gaussian below the dead
+    opacity)."""
+    found = [{"step": r["step"], "test_psnr": r["test_psnr"], "num_gaussians": r["num_gaussians"],
+              "relocated": r.get("relocated")} for r in run_log(run) if "test_psnr" in r]
+    metrics = run / "metrics.json"
+    if metrics.exists():
+        final = json.loads(metrics.read_text())
+        found.append({"step": final["steps"], "test_psnr": round(final["psnr"], 3),
+                      "num_gaussians": final["num_gaussians"], "relocated": None})
+    return found
+
+
+def phase_parity(args, seconds: float, log: Path) -> dict:
+    """The CUDA path's training against the CPU's: a quarter-size run of the capture, the same seed, on each device.
+    Their test PSNR should agree to run-to-run noise (a few tenths of a dB); a CUDA run far below points at a kernel
+    or a synchronisation that only the GPU has."""
+    steps, cap, every, downscale = (20, 2000, 10, "2") if args.dry_run else (3000, 62_500, 1000, "4")
+    result: dict = {"steps": steps, "cap": cap, "downscale": int(downscale)}
+    started = time.monotonic()
+    for device in ("cuda", "cpu"):
+        run = args.runs / f"parity_{device}"
+        left = seconds - (time.monotonic() - started)
+        code, took = run_logged(train_command(args, run, "cpu" if args.dry_run else device, steps, cap, every,
+                                              "--downscale", downscale), log, left / (2 if device == "cuda" else 1))
+        result[f"on_{device}"] = {"exit_code": code, "seconds": round(took, 1), "evaluations": evaluations(run)}
+    runs = [result["on_cuda"], result["on_cpu"]]  # ("cpu" alone names the machine's processor in the record)
+    result["exit_code"] = max(run["exit_code"] for run in runs)
+    last = [run["evaluations"][-1]["test_psnr"] if run["evaluations"] else None for run in runs]
+    if None not in last:
+        result["psnr_cuda_minus_cpu"] = round(last[0] - last[1], 3)
+    return result
+
+
 def phase_train(args, seconds: float, log: Path) -> dict:
     run = args.runs / "train_run"
-    steps, cap = (30, 3000) if args.dry_run else (30_000, 1_000_000)
-    command = [sys.executable, "-m", "mcsplat.cli", "train", str(args.capture), "--out", str(run), "--overwrite",
-               "--steps", str(steps), "--cap-max", str(cap), "--quiet", "--save-every", "0",
-               "--device", "cpu" if args.dry_run else "cuda", "--lpips-net", "alex"]
-    code, took = run_logged(command, log, seconds)
+    steps, cap, every = (30, 3000, 10) if args.dry_run else (30_000, 1_000_000, 5000)
+    code, took = run_logged(train_command(args, run, "cpu" if args.dry_run else "cuda", steps, cap, every), log,
+                            seconds)
     result = {"exit_code": code, "seconds": round(took, 1), "steps_asked": steps}
-    log_file = run / "log.jsonl"
-    if log_file.exists():
-        records = [json.loads(line) for line in log_file.read_text().splitlines() if line.strip()]
-        if records:
-            last = records[-1]
-            result.update(steps_reached=last["step"], train_seconds=last["elapsed_seconds"],
-                          num_gaussians=last["num_gaussians"], train_psnr=last.get("train_psnr"))
-            if len(records) >= 2:
-                before = records[-2]
-                ms = 1000 * (last["elapsed_seconds"] - before["elapsed_seconds"]) / max(1, last["step"] - before["step"])
-                result["last_ms_per_step"] = round(ms, 2)
-                result["minutes_for_all_steps"] = round(
-                    (last["elapsed_seconds"] + (steps - last["step"]) * ms / 1000) / 60, 1)
+    records = run_log(run)
+    if records:
+        C.write_text(log.parent / "train_log.jsonl", (run / "log.jsonl").read_text())
+        result["evaluations"] = evaluations(run)
+        last = records[-1]
+        result.update(steps_reached=last["step"], train_seconds=last["elapsed_seconds"],
+                      num_gaussians=last["num_gaussians"], train_psnr=last.get("train_psnr"))
+        if len(records) >= 2:
+            before = records[-2]
+            ms = 1000 * (last["elapsed_seconds"] - before["elapsed_seconds"]) / max(1, last["step"] - before["step"])
+            result["last_ms_per_step"] = round(ms, 2)
+            result["minutes_for_all_steps"] = round((last["elapsed_seconds"] + (steps - last["step"]) * ms / 1000) / 60,
+                                                    1)
     metrics = run / "metrics.json"
     if metrics.exists():
         result["metrics"] = {k: v for k, v in json.loads(metrics.read_text()).items()
@@ -205,6 +257,8 @@ def phase_train(args, seconds: float, log: Path) -> dict:
 def run_phase(name: str, args, seconds: float, log: Path) -> dict:
     if name == "tests":
         return phase_tests(args, seconds, log)
+    if name == "parity":
+        return phase_parity(args, seconds, log)
     if name == "kernels":
         return phase_kernels(args, seconds, log)
     if name == "profile":
@@ -227,6 +281,12 @@ def write_page(out: Path, records: list[dict]) -> str:
             result = f"skipped: {r['skipped']}"
         elif r["phase"] == "tests":
             result = f"{r.get('summary')} (exit {r['exit_code']})"
+        elif r["phase"] == "parity":
+            result = "; ".join(f"{d} " + ", ".join(f"{e['test_psnr']:.2f}" for e in r[f"on_{d}"]["evaluations"])
+                               + " dB" for d in ("cuda", "cpu") if f"on_{d}" in r)
+            if "psnr_cuda_minus_cpu" in r:
+                result += f"; CUDA - CPU {r['psnr_cuda_minus_cpu']:+.2f} dB"
+            result += f" (exit {r['exit_code']})"
         elif r["phase"] == "kernels":
             result = "; ".join(
                 f"{k['gaussians']:,} at {k['image']}: fwd {k['composite_forward_ms']} / bwd {k['composite_backward_ms']} ms"
@@ -246,6 +306,7 @@ def write_page(out: Path, records: list[dict]) -> str:
         else:
             result = ", ".join(f"{k} {r[k]}" for k in ("steps_reached", "num_gaussians", "last_ms_per_step",
                                                         "minutes_for_all_steps", "train_psnr") if k in r)
+            result += "".join(f"; test {e['test_psnr']:.2f} dB at {e['step']}" for e in r.get("evaluations", []))
             result += f" (exit {r['exit_code']})"
         lines.append(f"| {r['phase']} | {r.get('seconds', 0)} | {result} |")
     table = "\n".join(lines)

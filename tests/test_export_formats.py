@@ -1,13 +1,18 @@
-"""Export formats (.splat, PlayCanvas compressed .ply, .spz; glTF's in test_export_gltf.py): byte layout checked on
-hand-computed values, and every field read back within the format's quantisation; `mcsplat export --format` with pruning on a trained run."""
+"""Export formats (.splat, PlayCanvas compressed .ply, .spz versions 3 and 4; glTF's in test_export_gltf.py, SOG's in
+test_export_sog.py, what PlayCanvas's splat-transform reads in test_export_splat_transform.py): byte layout checked on
+hand-computed values, and every field read back within the format's quantisation; a damaged file is one line;
+`mcsplat export --format` with pruning on a trained run."""
 
 from __future__ import annotations
 
 import gzip
 import struct
+from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import pytest
+import zstandard
 
 from mcsplat.cli import main
 from mcsplat.errors import MCSplatError
@@ -119,6 +124,96 @@ def test_spz_header_and_read_back_within_quantisation(tmp_path):
     assert_close_to(back["shN"][:, 3:], g["shN"][:, 3:], 8.5 / 128, "SH degrees 2-3 (4 bits)")
 
 
+def test_spz_version_4_is_the_same_blocks_as_zstd_streams_behind_a_plain_header(tmp_path):
+    for degree in (3, 0):
+        g = random_gaussians(500, degree=degree, seed=degree)
+        write_gaussians("spz", tmp_path / "v3.spz", g, antialiased=True)
+        write_gaussians("spz", tmp_path / "v4.spz", g, antialiased=True, spz_version=4)
+        legacy = gzip.decompress((tmp_path / "v3.spz").read_bytes())
+        data = (tmp_path / "v4.spz").read_bytes()
+        streams = 6 if degree else 5  # degree 0 has no SH block, and an empty block is no stream
+        assert struct.unpack_from("<IIIBBBBI", data) == (0x5053474E, 4, 500, degree, 12, 1, streams, 32)
+        assert data[20:32] == bytes(12), "reserved"
+        blocks, start = [], 32 + 16 * streams
+        for index in range(streams):
+            compressed, size = struct.unpack_from("<QQ", data, 32 + 16 * index)
+            blocks.append(zstandard.ZstdDecompressor().decompress(data[start:start + compressed]))
+            assert len(blocks[-1]) == size
+            start += compressed
+        assert start == len(data)
+        assert b"".join(blocks) == legacy[16:], "version 4 holds the very bytes of version 3, split into streams"
+        assert legacy[4] == 3 and legacy[14] == 1
+        v3, v4 = read_gaussians("spz", tmp_path / "v3.spz"), read_gaussians("spz", tmp_path / "v4.spz")
+        assert all(np.array_equal(v3[key], v4[key]) for key in v3)
+    with pytest.raises(MCSplatError, match="versions 3 and 4"):
+        write_gaussians("spz", tmp_path / "v5.spz", g, spz_version=5)
+
+
+def damaged_copies(good: Path, cuts: dict[str, Callable[[bytes], bytes]]) -> dict[str, Path]:
+    """name -> a copy of `good` changed by cuts[name] (bytes -> bytes), beside it."""
+    paths = {}
+    for name, change in cuts.items():
+        paths[name] = good.with_name(f"{name}{good.suffix}")
+        paths[name].write_bytes(change(good.read_bytes()))
+    return paths
+
+
+def assert_one_line_naming(path, read):
+    with pytest.raises(MCSplatError) as error:
+        read(path)
+    assert str(error.value).startswith(f"{path}: ") and "\n" not in str(error.value), str(error.value)
+
+
+def test_a_damaged_spz_is_one_line_naming_it(tmp_path, capsys):
+    """`view` reads any .spz a user hands it: cut short, a bad stream, a wrong version or a count that does not
+    match is one line naming the file, never a traceback."""
+    g = random_gaussians(300, degree=2)
+    write_gaussians("spz", tmp_path / "v3.spz", g)
+    write_gaussians("spz", tmp_path / "v4.spz", g, spz_version=4)
+    v3 = damaged_copies(tmp_path / "v3.spz", {
+        "v3_cut": lambda b: b[:len(b) // 2],
+        "v3_version_2": lambda b: gzip.compress(gzip.decompress(b)[:4] + struct.pack("<I", 2) + gzip.decompress(b)[8:]),
+        "v3_count": lambda b: gzip.compress(gzip.decompress(b)[:8] + struct.pack("<I", 301) + gzip.decompress(b)[12:]),
+        "not_spz": lambda b: b"PK\x03\x04" + b[4:]})
+    v4 = damaged_copies(tmp_path / "v4.spz", {
+        "v4_cut": lambda b: b[:len(b) - 100],
+        "v4_trailing": lambda b: b + b"\0",
+        "v4_count": lambda b: b[:8] + struct.pack("<I", 10 ** 9) + b[12:],
+        "v4_streams": lambda b: b[:15] + bytes([7]) + b[16:],
+        "v4_frame": lambda b: b[:32 + 16 * 6 + 4] + bytes(20) + b[32 + 16 * 6 + 24:],
+        "v4_short": lambda b: b[:20]})
+    for path in (*v3.values(), *v4.values()):
+        assert_one_line_naming(path, lambda p: read_gaussians("spz", p))
+    pytest.importorskip("viser", reason="the viewer's optional dependency viser is not installed")
+    capsys.readouterr()
+    assert main(["view", str(v4["v4_frame"])]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and str(v4["v4_frame"]) in error
+
+
+def test_view_opens_every_format_export_writes(tmp_path):
+    """`mcsplat view` reads each file of Gaussians by its ending, and what it reads renders, a degree-0 file's empty
+    SH included (numpy hands it over with strides of 0, which the kernels refuse)."""
+    pytest.importorskip("viser", reason="the viewer's optional dependency viser is not installed")
+    import torch
+
+    from mcsplat.camera import Camera
+    from mcsplat.render import render
+    from mcsplat.viewer.saved import load_for_viewing
+
+    g = random_gaussians(200, degree=1, seed=9)
+    world_to_camera = torch.eye(4)
+    world_to_camera[2, 3] = 10.0  # the Gaussians lie within +-3 of the origin, 10 in front of the camera
+    camera = Camera(torch.tensor([[40.0, 0, 32], [0, 40.0, 32], [0, 0, 1]]), world_to_camera, 64, 64)
+    for name in ("splat", "compressed-ply", "spz", "sog"):
+        path = tmp_path / f"x{EXTENSIONS[name]}"
+        write_gaussians(name, path, g)
+        model, cameras, _, _ = load_for_viewing(path, torch.device("cpu"))
+        assert model.num_gaussians == 200 and cameras == [], name
+        assert model.sh_degree == (0 if name == "splat" else 1), name
+        assert torch.isfinite(render(model, camera, (0.0, 0.0, 0.0)).rgb).all(), name
+
+
 def test_pruning_keeps_the_most_contributing_gaussians():
     g = random_gaussians(200, degree=0)
     g["opacity_logits"][:50] = -8.0  # opacity 0.0003: dead
@@ -133,17 +228,22 @@ def test_pruning_keeps_the_most_contributing_gaussians():
 
 def test_cli_export_each_format_with_pruning(tiny_run, tmp_path, capsys):
     total = read_ply(tiny_run / "point_cloud.ply")["means"].shape[0]
-    for name in ("ply", "splat", "compressed-ply", "spz", "glb", "gltf"):
+    for name in ("ply", "splat", "compressed-ply", "spz", "sog", "glb", "gltf"):
         out = tmp_path / f"x{EXTENSIONS.get(name, '.ply')}"
         assert main(["export", str(tiny_run), "--format", name, "--out", str(out), "--max-gaussians", "300"]) == 0
         back = read_ply(out) if name == "ply" else read_gaussians(name, out)
         assert back["means"].shape[0] == min(300, total), name
+    assert main(["export", str(tiny_run), "--out", str(tmp_path / "x4.spz"), "--max-gaussians", "300",
+                 "--spz-version", "4"]) == 0
+    assert (tmp_path / "x4.spz").read_bytes()[:8] == b"NGSP\x04\0\0\0"
     assert main(["export", str(tiny_run), "--format", "spz"]) == 0
     assert (tiny_run / "point_cloud.spz").is_file(), "the default name is the run's point_cloud.<format>"
+    assert (tiny_run / "point_cloud.spz").read_bytes()[:2] == b"\x1f\x8b", "version 3 (gzip) unless asked"
     sizes = {name: (tmp_path / f"x{EXTENSIONS.get(name, '.ply')}").stat().st_size for name in EXTENSIONS}
     sizes["ply"] = (tmp_path / "x.ply").stat().st_size
     assert sizes["splat"] == 300 * 32
     assert sizes["spz"] < sizes["compressed-ply"] < sizes["ply"] / 3, sizes  # both keep SH degree 3
+    assert (tmp_path / "x4.spz").stat().st_size < sizes["spz"]
     capsys.readouterr()
     assert main(["export", str(tiny_run), "--format", "spz", "--min-opacity", "0.9999"]) == 2
     error = capsys.readouterr().err
@@ -167,7 +267,8 @@ def test_export_never_replaces_a_run_file_and_the_format_follows_the_name(tiny_r
     assert (tiny_run / "checkpoint.pt").read_bytes() == checkpoint
     assert list(folder.iterdir()) == [] and not (tmp_path / "x.ply").exists()
     # Without --format the name decides: an .spz is written as spz, a .compressed.ply as compressed-ply.
-    for name, format_name in (("y.spz", "spz"), ("y.compressed.ply", "compressed-ply"), ("y.splat", "splat")):
+    for name, format_name in (("y.spz", "spz"), ("y.compressed.ply", "compressed-ply"), ("y.splat", "splat"),
+                              ("y.sog", "sog")):
         assert main(["export", str(tiny_run), "--out", str(tmp_path / name)]) == 0
         assert read_gaussians(format_name, tmp_path / name)["means"].shape[0] > 0, name
 
@@ -208,7 +309,7 @@ def test_one_table_holds_every_format_and_the_cli_takes_it_as_it_is(tmp_path):
     from mcsplat.io.formats import FORMATS
     from mcsplat.run_dir import RunDir
 
-    assert list(EXPORT_FORMATS) == ["ply", "splat", "compressed-ply", "spz", "glb", "gltf", "mesh"]
+    assert list(EXPORT_FORMATS) == ["ply", "splat", "compressed-ply", "spz", "sog", "glb", "gltf", "mesh"]
     assert [name for name, entry in EXPORT_FORMATS.items() if entry.ending is not None] == list(FORMATS)
     annotation = typing.get_type_hints(Export, include_extras=True)["format"]
     choices, _ = typing.get_args(typing.get_args(annotation)[0])  # Annotated[Literal[...] | None, help]
@@ -217,7 +318,8 @@ def test_one_table_holds_every_format_and_the_cli_takes_it_as_it_is(tmp_path):
     folder = RunDir(tmp_path)
     assert {name: entry.default_file(folder).name for name, entry in EXPORT_FORMATS.items()} == {
         "ply": "point_cloud.ply", "splat": "point_cloud.splat", "compressed-ply": "point_cloud.compressed.ply",
-        "spz": "point_cloud.spz", "glb": "point_cloud.glb", "gltf": "point_cloud.gltf", "mesh": "mesh.ply"}
+        "spz": "point_cloud.spz", "sog": "point_cloud.sog", "glb": "point_cloud.glb", "gltf": "point_cloud.gltf",
+        "mesh": "mesh.ply"}
     command = {field.name: field.default for field in dataclasses.fields(Export) if field.name != "run"}
     assert command == {field.name: field.default for field in dataclasses.fields(ExportOptions)}
 

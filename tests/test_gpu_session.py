@@ -13,11 +13,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_the_gpu_session_dry_run_completes_every_phase(tmp_path):
     out = tmp_path / "session"
-    done = subprocess.run([sys.executable, str(REPO / "benchmarks" / "gpu_session.py"), "--dry-run", "--minutes", "4",
+    done = subprocess.run([sys.executable, str(REPO / "benchmarks" / "gpu_session.py"), "--dry-run", "--minutes", "5",
                            "--out", str(out)], capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     records = {r["phase"]: r for r in map(json.loads, (out / "results.jsonl").read_text().splitlines())}
-    assert list(records) == ["tests", "kernels", "profile", "lego", "capture", "train"]
+    assert list(records) == ["tests", "parity", "kernels", "profile", "lego", "capture", "train"]
     for name, record in records.items():
         assert record["dry_run"] and "skipped" not in record and "error" not in record, (name, record)
         assert record["exit_code"] == 0, (name, (out / f"{name}.log").read_text()[-2000:])
@@ -28,5 +28,12 @@ def test_the_gpu_session_dry_run_completes_every_phase(tmp_path):
         (arm,) = records[name]["records"]
         assert arm["arm"] == "mcsplat" and arm["steps"] == 20 and arm["psnr"] > 5
     assert records["train"]["steps_reached"] == 30 and records["train"]["metrics"]["psnr"] > 5
+    assert [e["step"] for e in records["train"]["evaluations"]] == [10, 20, 30]  # the last from metrics.json
+    assert (out / "train_log.jsonl").exists()
+    parity = records["parity"]
+    for device in ("cuda", "cpu"):  # both on the CPU in the dry run
+        assert [e["step"] for e in parity[f"on_{device}"]["evaluations"]] == [10, 20], parity
+    # The dry run trains the same seed twice on one device: the two runs agree (the CPU path is deterministic).
+    assert parity["psnr_cuda_minus_cpu"] == 0
     page = (out / "results.md").read_text()
-    assert page.count("\n") == 8 and "| train |" in page
+    assert page.count("\n") == 9 and "| train |" in page

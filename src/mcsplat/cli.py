@@ -188,8 +188,8 @@ class Export:
     # Its choices and help come from the table of export formats (export/formats.py): a new format adds no line here.
     format: Annotated[Literal[FORMAT_NAMES] | None, tyro.conf.arg(help=format_help())] = None
     out: Path | None = None
-    """Output file, named .ply, .splat, .compressed.ply or .spz (default: RUN/point_cloud.<that ending>); with
-    --format mesh, .ply, .glb or .obj (default: RUN/mesh.ply)."""
+    """Output file, named .ply, .splat, .compressed.ply, .spz, .sog, .glb or .gltf (default: RUN/point_cloud.<that
+    ending>); with --format mesh, .ply, .glb or .obj (default: RUN/mesh.ply)."""
     min_opacity: float = DEAD_OPACITY
     """Leave out Gaussians of this opacity or less (0.005: the dead ones MCMC relocates)."""
     max_gaussians: int | None = None
@@ -203,6 +203,9 @@ class Export:
     max_distance: float | None = None
     """Leave out Gaussians farther than this many scene radii from the training cameras' centre: very far splats
     leave viewers that sort by depth too little precision for the scene. Prints the test PSNR with and without."""
+    spz_version: Literal[3, 4] = 3
+    """spz: 3 (gzip, read by every .spz reader) or 4 (zstd, a little smaller; splat-transform and three.js read it,
+    Spark 2.2 does not)."""
     voxel_size: float | None = None
     """mesh: edge of a voxel of the fusion volume, in scene units (default: the finest the budget allows)."""
     voxel_budget: int = 1 << 24

@@ -1,7 +1,7 @@
 """`mcsplat process --masks DIR`: the user's masks handed to SIFT, and carried into the scene it writes.
 
-The masks are named as training masks are (data/masks.py: `<photo stem>.png`, `<photo name>.png` ...; nonzero =
-keep, --invert-masks swaps). For SfM they are rewritten in COLMAP's convention (`<photo name>.png`, 0 = no features
+The masks are named as training masks are (data/attachments/masks.py: `<photo stem>.png`, `<photo name>.png` ...;
+nonzero = keep, --invert-masks swaps). For SfM they are rewritten in COLMAP's convention (`<photo name>.png`, 0 = no features
 there) into the work folder; a second copy, named exactly like the photos, goes through the same undistortion as the
 photos (pycolmap.undistort_images), so that the scene gets a masks/ folder aligned with its undistorted images,
 which `mcsplat train` then uses.
@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from mcsplat.data import masks as training_masks
+from mcsplat.data.attachments import masks as training_masks
 from mcsplat.errors import MCSplatError
 
 SIFT_MASKS = "sift_masks"          # work/sift_masks/<photo name>.png: what pycolmap's mask_path reads

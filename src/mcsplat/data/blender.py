@@ -13,7 +13,6 @@ import numpy as np
 
 from mcsplat.data import images, undistort
 from mcsplat.data.assemble import Frame, assemble
-from mcsplat.data.masks import MaskOptions
 from mcsplat.data.poses import intrinsic_matrix, opengl_c2w_to_opencv_w2c, scale_intrinsics
 from mcsplat.data.scene import Background, Scene, split_every
 from mcsplat.errors import DataError
@@ -221,8 +220,7 @@ def _resolved(frames: list[_ListedFrame], sources: list[Path], downscale: int) -
     return resolved
 
 
-def load_blender(root: Path, downscale: int, background: Background | None, test_every: int,
-                 mask_options: MaskOptions | None = None) -> Scene:
+def load_blender(root: Path, downscale: int, background: Background | None, test_every: int) -> Scene:
     notes = []
     if (root / SPLIT_FILES[0]).is_file():
         train_file = root / SPLIT_FILES[0]
@@ -252,4 +250,4 @@ def load_blender(root: Path, downscale: int, background: Background | None, test
     if downscale > 1:
         notes.append(f"images resized to 1/{downscale}")
     return assemble(_resolved(frames, sources, downscale), kind="blender", root=root, background=background,
-                    train_count=len(train_frames), notes=notes, mask_options=mask_options)
+                    train_count=len(train_frames), notes=notes)

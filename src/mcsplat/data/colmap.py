@@ -9,7 +9,6 @@ import numpy as np
 
 from mcsplat.data import colmap_files, images, undistort
 from mcsplat.data.assemble import Frame, Points, assemble
-from mcsplat.data.masks import MaskOptions
 from mcsplat.data.poses import check_translation, intrinsic_matrix, rigid_rotation, scale_intrinsics
 from mcsplat.data.scene import Background, Scene
 from mcsplat.errors import DataError
@@ -92,8 +91,7 @@ def _fits(actual: tuple[int, int], camera_size: tuple[int, int], factor: int) ->
     return all(abs(a - c / factor) <= 1.0 for a, c in zip(actual, camera_size))
 
 
-def load_colmap(root: Path, downscale: int, background: Background | None, test_every: int,
-                mask_options: MaskOptions | None = None) -> Scene:
+def load_colmap(root: Path, downscale: int, background: Background | None, test_every: int) -> Scene:
     found = find_model(root)
     if found is None:
         raise DataError(incomplete_model(root) or f"no COLMAP model in {root}")
@@ -146,7 +144,7 @@ def load_colmap(root: Path, downscale: int, background: Background | None, test_
         view_name = str(PurePosixPath(name).with_suffix(""))
         if camera_id in pinholes:
             # Undistort at the file's size (an images_N/ copy has the camera shrunk by N), then resize like the rest.
-            distorted = _rescaled(reconstruction.cameras[camera_id], size)
+            distorted = undistort.rescaled_camera(reconstruction.cameras[camera_id], size)
             pinhole = undistort.pinhole_camera(distorted, str(cameras_file)) if factor > 1 else pinholes[camera_id]
             undistorted_size = (pinhole.width, pinhole.height)
             K = _intrinsics(pinhole, cameras_file)
@@ -164,16 +162,5 @@ def load_colmap(root: Path, downscale: int, background: Background | None, test_
         note += f" (no folder for downscale {downscale}; using the smaller images as they are)"
     return assemble(frames, kind="colmap", root=root, background=background, test_every=test_every,
                     points=Points(xyz, rgb, str(folder / f"points3D.{ext}")),
-                    notes=[f"model: {folder.relative_to(root)}/*.{ext}", note], mask_options=mask_options)
+                    notes=[f"model: {folder.relative_to(root)}/*.{ext}", note])
 
-
-def _rescaled(camera, size: tuple[int, int]):
-    """A copy of a pycolmap camera for images of `size` (width, height)."""
-    import pycolmap
-
-    if (camera.width, camera.height) == tuple(size):
-        return camera
-    copy = pycolmap.Camera(model=camera.model.name, width=camera.width, height=camera.height,
-                           params=np.asarray(camera.params, dtype=np.float64))
-    copy.rescale(int(size[0]), int(size[1]))
-    return copy

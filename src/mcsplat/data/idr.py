@@ -19,7 +19,6 @@ import scipy.linalg
 
 from mcsplat.data import images
 from mcsplat.data.assemble import Frame, assemble
-from mcsplat.data.masks import MaskOptions
 from mcsplat.data.poses import scale_intrinsics
 from mcsplat.data.scene import Background, Scene
 from mcsplat.errors import DataError
@@ -42,8 +41,10 @@ def image_paths(root: Path) -> list[Path]:
     return sorted(found, key=lambda p: p.name)
 
 
-def read_projections(path: Path, count: int) -> list[np.ndarray]:
-    """The count 3x4 projections world_mat_i @ scale_mat_i (scale_mat_i: identity where absent)."""
+def read_projections(path: Path, count: int) -> list[tuple[np.ndarray, float]]:
+    """The count 3x4 projections world_mat_i @ scale_mat_i (scale_mat_i: identity where absent), each with the
+    scene units per unit of the capture (1 / scale_mat_i's scale): a length measured in the capture is that times
+    smaller in the unit sphere."""
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {key: np.asarray(data[key], dtype=np.float64) for key in data.files}
@@ -61,7 +62,9 @@ def read_projections(path: Path, count: int) -> list[np.ndarray]:
         if world.shape != (4, 4) or scale.shape != (4, 4) or not (np.isfinite(world).all() and np.isfinite(scale).all()):
             raise DataError(f"{path}: world_mat_{i} and scale_mat_{i} must be finite 4x4 matrices, got "
                             f"{list(world.shape)} and {list(scale.shape)}")
-        projections.append((world @ scale)[:3, :4])
+        volume = abs(np.linalg.det(scale[:3, :3]))  # a singular one is refused by decompose
+        units = 1.0 / volume ** (1.0 / 3.0) if volume > 0 else 1.0
+        projections.append(((world @ scale)[:3, :4], units))
     return projections
 
 
@@ -102,8 +105,7 @@ def intrinsics_for(K: np.ndarray, image_size: tuple[int, int], where: str) -> tu
                     "the ones the cameras were calibrated for")
 
 
-def load_idr(root: Path, downscale: int, background: Background | None, test_every: int,
-             mask_options: MaskOptions | None = None) -> Scene:
+def load_idr(root: Path, downscale: int, background: Background | None, test_every: int) -> Scene:
     paths = image_paths(root)
     cameras_file = root / CAMERAS_FILE
     if not paths:
@@ -115,15 +117,14 @@ def load_idr(root: Path, downscale: int, background: Background | None, test_eve
                             "images of the scene must have one size")
     target = images.downscaled_size(*sizes[0], downscale)
     frames, notes = [], []
-    for index, (path, projection) in enumerate(zip(paths, read_projections(cameras_file, len(paths)))):
+    for index, (path, (projection, units)) in enumerate(zip(paths, read_projections(cameras_file, len(paths)))):
         where = f"{cameras_file} camera {index}"
         K, w2c = decompose(projection, where)
         K, note = intrinsics_for(K, sizes[0], where)
         if note and note not in notes:
             notes.append(note)
-        frames.append(Frame(path, path.stem, scale_intrinsics(K, sizes[0], target), w2c, target))
+        frames.append(Frame(path, path.stem, scale_intrinsics(K, sizes[0], target), w2c, target, units=units))
     if target != sizes[0]:
         notes.append(f"images resized to {target[0]}x{target[1]}")
     notes.append("no SfM points (the object fills the unit sphere: random init)")
-    return assemble(frames, kind="idr", root=root, background=background, test_every=test_every, notes=notes,
-                    mask_options=mask_options)
+    return assemble(frames, kind="idr", root=root, background=background, test_every=test_every, notes=notes)

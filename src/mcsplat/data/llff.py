@@ -13,7 +13,6 @@ import numpy as np
 
 from mcsplat.data import colmap_files, images
 from mcsplat.data.assemble import Frame, Points, assemble
-from mcsplat.data.masks import MaskOptions
 from mcsplat.data.poses import intrinsic_matrix, llff_to_opencv_w2c
 from mcsplat.data.scene import Background, Scene
 from mcsplat.errors import DataError
@@ -47,8 +46,7 @@ def _points(root: Path) -> Points | None:
     return None
 
 
-def load_llff(root: Path, downscale: int, background: Background | None, test_every: int,
-              mask_options: MaskOptions | None = None) -> Scene:
+def load_llff(root: Path, downscale: int, background: Background | None, test_every: int) -> Scene:
     poses_file = root / POSES_FILE
     array = read_poses_bounds(poses_file)
     poses = array[:, :15].reshape(-1, 3, 5)
@@ -92,4 +90,4 @@ def load_llff(root: Path, downscale: int, background: Background | None, test_ev
     if points is None:
         notes.append("no sparse/0/points3D.bin: no SfM points")
     return assemble(frames, kind="llff", root=root, background=background, test_every=test_every, points=points,
-                    notes=notes, mask_options=mask_options)
+                    notes=notes)

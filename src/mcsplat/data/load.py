@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Sequence
 
 from mcsplat.data import blender, colmap, idr, llff
-from mcsplat.data.masks import MaskOptions
+from mcsplat.data.attachments import MaskOptions, attach, with_defaults
 from mcsplat.data.scene import NAMED_BACKGROUNDS, Scene, check_options, parse_background
 from mcsplat.errors import DataError
 
@@ -31,7 +31,7 @@ def detect_kind(root: Path) -> str:
 
 
 def load_scene(path: str | os.PathLike, downscale: int = 1, background: str | Sequence[float] | None = None,
-               test_every: int = 8, masks: MaskOptions | None = None) -> Scene:
+               test_every: int = 8, masks: MaskOptions | None = None, attachments: Sequence[object] = ()) -> Scene:
     """Load a COLMAP, Blender/NeRF, LLFF or IDR (cameras.npz) scene folder (auto-detected).
 
     downscale: load images at 1/N resolution (images_N/ when the folder has it, else resized); K follows.
@@ -39,10 +39,15 @@ def load_scene(path: str | os.PathLike, downscale: int = 1, background: str | Se
         (NeRF-Synthetic's convention), black otherwise. Images with an alpha channel are composited on it.
     test_every: every N-th view (sorted by name, starting with the first) is a test view; 0 = none. Blender scenes
         with transforms_test.json (or _val) keep their own split.
-    masks: where the training masks come from (data/masks.py); default: the scene's masks/ folder when it has one.
+    masks: where the training masks come from (data/attachments/masks.py); default: the scene's masks/ folder when
+        it has one.
+    attachments: the options of the other per-view inputs to find beside the photos (data/attachments/), such as
+        DepthOptions(); a kind the scene has no files of is left out (a mask may be asked for here too).
     Raises mcsplat.errors.DataError (one line: the file and what is wrong) for any problem with the data.
     """
     downscale, test_every = check_options(downscale, test_every)
+    # Checked before the data is read: a request for no kind, or two for one, is the caller's mistake, not the data's.
+    requests = with_defaults([*([masks] if masks is not None else []), *attachments])
     root = Path(path).expanduser()
     if not root.exists():
         raise DataError(f"scene folder {root} does not exist")
@@ -54,7 +59,8 @@ def load_scene(path: str | os.PathLike, downscale: int = 1, background: str | Se
     loader = {"colmap": colmap.load_colmap, "blender": blender.load_blender, "llff": llff.load_llff,
               "idr": idr.load_idr}[kind]
     try:
-        scene = loader(root, downscale, rgb, test_every, masks or MaskOptions())
+        scene = loader(root, downscale, rgb, test_every)
+        attach(scene, requests)  # after the loader, which knows nothing of them
     except DataError:
         raise
     except (OSError, ValueError, KeyError, IndexError, TypeError, struct.error) as exc:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import torch
 
@@ -12,25 +12,42 @@ from mcsplat.camera import Camera
 from mcsplat.data.image_store import LazyImage
 from mcsplat.errors import MCSplatError
 
+if TYPE_CHECKING:
+    from mcsplat.data.attachments.kind import Attachment
+
 KINDS = ("colmap", "blender", "llff", "idr")
 
 Background = tuple[float, float, float]
 NAMED_BACKGROUNDS: dict[str, Background] = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
+@dataclass(frozen=True)
+class ImageSource:
+    """Where a view's pixels came from, for what must line up with them (data/attachments/): the photo as the scene
+    holds it, the size the undistortion started from (the distorted camera's; for a pinhole camera the loaded
+    size), that undistortion (a data.undistort.Job, or None) and the scene units per unit of the capture (a loader
+    that rescales the world says so: IDR's scale_mat)."""
+
+    photo: Path
+    before_undistortion: tuple[int, int]
+    undistort: object | None = None
+    units: float = 1.0
+
+
 class View:
     """One image with the camera that took it. `image` is uint8 [H, W, 3] on the CPU; convert when used.
 
     The pixels are either a tensor or a LazyImage (decoded on demand from the scene's ImageStore); `image` returns
-    the tensor in both cases, and `prefetch()` asks for it ahead of time. `mask`, when the scene has masks, is the
-    uint8 [H, W] weight of each pixel in the loss (255 kept, 0 left out; data/masks.py).
+    the tensor in both cases, and `prefetch()` asks for it ahead of time. `attachments` holds the per-view inputs
+    found beside the photo (data/attachments/: a mask, a depth map), by kind, each at the image's size.
     """
 
-    __slots__ = ("camera", "name", "_image", "mask")
+    __slots__ = ("camera", "name", "_image", "source", "attachments")
 
     def __init__(self, camera: Camera, image: "torch.Tensor | LazyImage", name: str,
-                 mask: torch.Tensor | None = None):
-        self.camera, self.name, self._image, self.mask = camera, name, image, mask
+                 source: ImageSource | None = None, attachments: "dict[str, Attachment] | None" = None):
+        self.camera, self.name, self._image, self.source = camera, name, image, source
+        self.attachments = dict(attachments or {})
 
     @property
     def image(self) -> torch.Tensor:
@@ -55,17 +72,31 @@ class View:
         chw = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(size[1], size[0]), mode="area")
         return chw[0].permute(1, 2, 0).contiguous()
 
+    def attachment(self, kind: str, device: torch.device | str = "cpu", size: tuple[int, int] | None = None
+                   ) -> torch.Tensor | None:
+        """The view's input of `kind` (a key of data.attachments.KINDS) as float32 [H, W, 1] on `device`, resampled
+        to `size` (width, height) as its kind says (a mask by area, as image_float; a depth by nearest), or None
+        for a view without one."""
+        attached = self.attachments.get(kind)
+        if attached is None:
+            from mcsplat.data.attachments.registry import KINDS
+
+            if kind not in KINDS:  # a misspelt kind would otherwise read as "this view has none"
+                raise KeyError(f"no attachment kind {kind!r}: the kinds are {', '.join(KINDS)}")
+            return None
+        return attached.at(device, size)
+
+    @property
+    def mask(self) -> torch.Tensor | None:
+        """The uint8 [H, W] keep weight of each pixel in the loss (255 kept, 0 left out), or None."""
+        attached = self.attachments.get("mask")
+        return None if attached is None else attached.values
+
     def mask_float(self, device: torch.device | str = "cpu", size: tuple[int, int] | None = None
                    ) -> torch.Tensor | None:
         """The mask as float32 [H, W, 1] keep weights in [0, 1] (area-averaged to `size` as image_float is), or
         None for a view without one."""
-        if self.mask is None:
-            return None
-        mask = self.mask.to(device, non_blocking=True).to(torch.float32).div_(255.0)[:, :, None]
-        if size is None or tuple(size) == (mask.shape[1], mask.shape[0]):
-            return mask
-        return torch.nn.functional.interpolate(mask.permute(2, 0, 1)[None], size=(size[1], size[0]),
-                                               mode="area")[0].permute(1, 2, 0).contiguous()
+        return self.attachment("mask", device, size)
 
     def camera_at(self, scale: float) -> Camera:
         """The view's camera for its image shrunk to `scale` of its size (at least one pixel a side)."""

@@ -62,6 +62,18 @@ def pinhole_camera(camera, where: str):
     return pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), camera)
 
 
+
+def rescaled_camera(camera, size: images.Size):
+    """A copy of a pycolmap camera for images of `size` (width, height); the camera itself when it has that size."""
+    import pycolmap
+
+    if (camera.width, camera.height) == tuple(size):
+        return camera
+    copy = pycolmap.Camera(model=camera.model.name, width=camera.width, height=camera.height,
+                           params=np.asarray(camera.params, dtype=np.float64))
+    copy.rescale(int(size[0]), int(size[1]))
+    return copy
+
 def _check_field_of_view(camera, where: str) -> None:
     """A pinhole camera sees less than 180 degrees: pixels on the image border must map to rays in front of it.
 

@@ -1,5 +1,6 @@
 """Everything `mcsplat export` writes, in one table: each Gaussian format of io/formats (the 3DGS .ply, .splat,
-PlayCanvas compressed .ply, Niantic .spz), which takes the choice of Gaussians (selection.py), and the mesh.
+PlayCanvas compressed .ply, Niantic .spz, PlayCanvas .sog, glTF), which takes the choice of Gaussians (selection.py),
+and the mesh.
 
 A new Gaussian format is its module in io/formats/ and its entry in io/formats' FORMATS: it appears here on its own.
 Another kind of output (as the mesh) is its module in this package and its entry below. The CLI takes --format's

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..gaussians import DEAD_OPACITY
+from ..io.formats.spz import DEFAULT_VERSION as DEFAULT_SPZ_VERSION
 
 
 @dataclass(frozen=True)
@@ -20,6 +21,7 @@ class ExportOptions:
     prune: bool = False               # leave out those no training view shows
     max_scale: float | None = None    # scene radii
     max_distance: float | None = None  # scene radii from the training cameras' centre
+    spz_version: int = DEFAULT_SPZ_VERSION  # the .spz container: 3 (gzip) or 4 (zstd)
     # The mesh (mesh.py; mesh/extract.py's MeshOptions)
     voxel_size: float | None = None
     voxel_budget: int = 1 << 24

@@ -1,5 +1,6 @@
-"""`mcsplat view`: the viewer on a finished (or stopped) run, on any 3DGS .ply or glTF of Gaussians
-(KHR_gaussian_splatting), or on a mesh (.ply with faces, .glb, .obj), which the browser draws itself (viser's mesh)."""
+"""`mcsplat view`: the viewer on a finished (or stopped) run, on any 3DGS .ply, on a file of Gaussians that
+`mcsplat export` writes (.splat, .compressed.ply, .spz, .sog, glTF's KHR_gaussian_splatting), or on a mesh (.ply with
+faces, .glb, .obj), which the browser draws itself (viser's mesh)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import torch
 from .. import run_dir
 from ..errors import MCSplatError
 from ..gaussians import GaussianModel
-from ..io.formats import read_gaussians
+from ..io.formats import format_named_by, read_gaussians
 from ..io.formats.gltf import holds_gaussians
 from ..io.ply import read_ply
 from ..mesh import holds_mesh, read_mesh
@@ -22,7 +23,7 @@ from .server import ViewerServer
 
 
 def load_for_viewing(path: Path, device: torch.device):
-    """(model, training cameras, background, scene radius) of a run directory, a .ply, .glb or .gltf file."""
+    """(model, training cameras, background, scene radius) of a run directory or a file of Gaussians."""
     if path.is_dir():
         run = run_dir.load(path, device)
         model = finite_gaussians(run.model, path)
@@ -32,17 +33,24 @@ def load_for_viewing(path: Path, device: torch.device):
             warnings.warn(f"no training cameras shown: the scene cannot be loaded ({error})")
             return model, [], (0.0, 0.0, 0.0), _radius_of(model)
         return model, [v.camera for v in scene.train], run.background, scene.radius
-    if path.suffix.lower() in (".glb", ".gltf") and holds_gaussians(path):  # `mcsplat export --format glb|gltf`'s
-        params = read_gaussians(path.suffix.lower()[1:], path)
-        model = finite_gaussians(GaussianModel(**{k: torch.from_numpy(v) for k, v in params.items()}), path)
+    named = format_named_by(path)  # the formats `mcsplat export` writes; a .glb / .gltf may be a mesh's instead
+    if named not in (None, "ply", "glb", "gltf") or (named in ("glb", "gltf") and holds_gaussians(path)):
+        params = read_gaussians(named, path)
+        model = finite_gaussians(GaussianModel(**{k: _tensor(v) for k, v in params.items()}), path)
         return model.to(device), [], (0.0, 0.0, 0.0), _radius_of(model)
     if path.suffix.lower() != ".ply":
-        raise MCSplatError(f"{path}: give a run directory, a 3DGS .ply file, a .glb or .gltf of Gaussians or a mesh "
-                           "(.ply, .glb, .obj)")
+        raise MCSplatError(f"{path}: give a run directory, a 3DGS .ply file, a file of Gaussians (.splat, "
+                           ".compressed.ply, .spz, .sog, .glb, .gltf) or a mesh (.ply, .glb, .obj)")
     model = GaussianModel(**read_ply(path)).to(device)
     if model.num_gaussians == 0:
         raise MCSplatError(f"{path}: holds no Gaussians (0 vertices), so there is nothing to show")
     return model, [], (0.0, 0.0, 0.0), _radius_of(model)  # read_ply refuses NaN or infinite values
+
+
+def _tensor(values) -> torch.Tensor:
+    """A reader's array as a tensor; an empty one (the SH rest of degree 0) made afresh, since numpy gives it strides
+    of 0 that the render kernels refuse."""
+    return torch.from_numpy(values) if values.size else torch.zeros(values.shape, dtype=torch.float32)
 
 
 def finite_gaussians(model: GaussianModel, source: Path) -> GaussianModel:

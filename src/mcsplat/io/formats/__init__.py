@@ -1,6 +1,6 @@
 """Gaussians in the file formats that viewers read: the 3DGS `.ply`, `.splat`, PlayCanvas compressed `.ply`,
-Niantic `.spz`, glTF's KHR_gaussian_splatting (`.glb`, `.gltf`); one table of them (FORMATS), which `mcsplat export`
-offers as they are (export/formats.py).
+Niantic `.spz` (versions 3 and 4), PlayCanvas `.sog`, glTF's KHR_gaussian_splatting (`.glb`, `.gltf`); one table of
+them (FORMATS), which `mcsplat export` offers as they are (export/formats.py).
 
 Every writer takes the model's raw parameters as numpy arrays (the keys of GaussianModel.params: means, log_scales,
 quats (w, x, y, z), opacity_logits, sh0 [N,1,3], shN [N,K-1,3]) and writes atomically; every reader returns the same
@@ -17,10 +17,11 @@ from typing import Callable
 
 import numpy as np
 
-from . import compressed_ply, gltf, plain_ply, splat, spz
+from . import compressed_ply, gltf, plain_ply, sog, splat, spz
 from .prune import select_gaussians
 
-__all__ = ["GaussianFormat", "FORMATS", "EXTENSIONS", "select_gaussians", "write_gaussians", "read_gaussians"]
+__all__ = ["GaussianFormat", "FORMATS", "EXTENSIONS", "select_gaussians", "write_gaussians", "read_gaussians",
+           "format_named_by"]
 
 Params = dict[str, np.ndarray]
 
@@ -32,10 +33,16 @@ class GaussianFormat:
     name: str                      # what `mcsplat export --format` calls it
     ending: str                    # what its files' names end with (the longest ending that matches decides)
     summary: str                   # its sentence in --format's help: who reads it, how large it is
-    write: Callable[..., None]     # (path, params), and antialiased= when the format records it
+    write: Callable[..., None]     # (path, params), and the keyword settings it takes
     read: Callable[[Path], Params]
-    records_antialiasing: bool = False  # the file can say that the scene is drawn with the 2D filter
+    # The keyword settings of write_gaussians its writer takes: "antialiased" (the file can say that the scene is
+    # drawn with the 2D filter), "spz_version".
+    settings: tuple[str, ...] = ()
     companions: Callable[[Path], tuple[Path, ...]] = lambda path: ()  # the other files written beside it (a .bin)
+
+    @property
+    def records_antialiasing(self) -> bool:
+        return "antialiased" in self.settings
 
 
 FORMATS: dict[str, GaussianFormat] = {entry.name: entry for entry in (
@@ -43,8 +50,11 @@ FORMATS: dict[str, GaussianFormat] = {entry.name: entry for entry in (
     GaussianFormat("splat", ".splat", "32 bytes each, no SH.", splat.write_splat, splat.read_splat),
     GaussianFormat("compressed-ply", ".compressed.ply", "SuperSplat/PlayCanvas, ~4x smaller.",
                    compressed_ply.write_compressed_ply, compressed_ply.read_compressed_ply),
-    GaussianFormat("spz", ".spz", "Niantic's gzip format, ~10x smaller.", spz.write_spz, spz.read_spz,
-                   records_antialiasing=True),
+    GaussianFormat("spz", ".spz", f"Niantic's format, ~10x smaller: version 3 (gzip, every reader) or 4 (zstd, "
+                   f"newer readers), --spz-version (default {spz.DEFAULT_VERSION}).", spz.write_spz, spz.read_spz,
+                   settings=("antialiased", "spz_version")),
+    GaussianFormat("sog", ".sog", "PlayCanvas SOG, WebP images of quantised attributes in a zip (SuperSplat, "
+                   "PlayCanvas, Spark), ~15x smaller.", sog.write_sog, sog.read_sog, settings=("antialiased",)),
     GaussianFormat("glb", ".glb", "glTF binary, Khronos KHR_gaussian_splatting (three.js, Babylon.js, PlayCanvas), "
                    "full SH, float32.", gltf.write_glb, gltf.read_glb),
     GaussianFormat("gltf", ".gltf", "the same as glTF JSON with its buffer in a .bin beside it.",
@@ -53,14 +63,22 @@ FORMATS: dict[str, GaussianFormat] = {entry.name: entry for entry in (
 EXTENSIONS = {name: entry.ending for name, entry in FORMATS.items()}
 
 
-def write_gaussians(format_name: str, path: str | os.PathLike, params: Params, *, antialiased: bool = False) -> None:
-    """`antialiased`: the scene was trained to be drawn with the 2D filter; written where the format records it."""
+def write_gaussians(format_name: str, path: str | os.PathLike, params: Params, *, antialiased: bool = False,
+                    spz_version: int = spz.DEFAULT_VERSION) -> None:
+    """`antialiased`: the scene was trained to be drawn with the 2D filter; written where the format records it.
+    `spz_version`: the .spz container (3: gzip, 4: zstd); the other formats have one layout."""
     entry = FORMATS[format_name]
-    if entry.records_antialiasing:
-        entry.write(Path(path), params, antialiased=antialiased)
-    else:
-        entry.write(Path(path), params)
+    offered = {"antialiased": antialiased, "spz_version": spz_version}
+    entry.write(Path(path), params, **{name: offered[name] for name in entry.settings})
 
 
 def read_gaussians(format_name: str, path: str | os.PathLike) -> Params:
     return FORMATS[format_name].read(Path(path))
+
+
+def format_named_by(path: str | os.PathLike) -> str | None:
+    """The format whose ending `path`'s name has (the longest that matches: x.compressed.ply is compressed-ply,
+    x.ply ply), None for none."""
+    name = Path(path).name.lower()
+    matching = [(len(entry.ending), entry.name) for entry in FORMATS.values() if name.endswith(entry.ending)]
+    return max(matching)[1] if matching else None

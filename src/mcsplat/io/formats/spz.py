@@ -1,7 +1,6 @@
-"""Niantic's `.spz` (version 3): a gzip stream (written here with the standard library) holding, uncompressed:
+"""Niantic's `.spz`: the attributes quantised into six blocks, in the container of version 3 (one gzip stream, read by
+every .spz reader) or 4 (zstd streams, about a third smaller, read by newer ones): spz_container.py. The blocks:
 
-    header, 16 bytes little-endian: u32 magic 0x5053474e ("NGSP"), u32 version 3, u32 number of points N,
-        u8 SH degree, u8 fractional bits (12), u8 flags (1 = antialiased training, else 0), u8 reserved (0)
     positions  N x 3 x 24-bit signed fixed point (little-endian, 2^-12 units), x y z of each point in turn
     alphas     N x u8   round(sigmoid(opacity) * 255)
     colours    N x 3 u8 round(f_dc * 0.15 * 255 + 127.5)   (the SH DC coefficient, not the colour)
@@ -12,15 +11,16 @@
     SH         N x (K-1) x 3 u8, per point coefficient-major then r g b: round(v * 128) + 128, rounded to
                multiples of 8 (5 bits) for degree 1 and of 16 (4 bits) for degrees 2-3, as Niantic's writer does
 
+The header says N, the SH degree, 12 fractional bits and the flags (1 = antialiased training, else 0).
+
 Axes: SPZ stores RUB coordinates (x right, y up, z back) and the 3DGS .ply RDF (y down, z forward), so the writer
 turns the scene 180 degrees about x (y -> -y, z -> -z, quaternion (w, x, -y, -z), and the SH coefficients whose
-basis function is odd in y and z change sign), as Niantic's converter does; the reader turns it back.
+basis function is odd in y and z change sign), as Niantic's converter does; the reader turns it back. (PlayCanvas's
+splat-transform reads .spz without that turn, as if it held the .ply's axes: there the scene is upside down.)
 """
 
 from __future__ import annotations
 
-import gzip
-import struct
 from pathlib import Path
 
 import numpy as np
@@ -29,12 +29,13 @@ from ...errors import MCSplatError
 from ..atomic import atomic_write_bytes
 from .common import (AXES_FLIP, SH_FLIP, bases_of, check_params, logit, normalized_quats,
                      read_bytes, sh_degree_of, sigmoid)
+from .spz_container import VERSIONS, SpzHeader, pack, unpack
 
-MAGIC = 0x5053474E
-VERSION = 3
+# Version 3 by default: PlayCanvas's splat-transform (3.7.0) and three.js's SPZLoader (0.186 on) read 3 and 4 alike,
+# but Spark (2.2.0) and tools built on Niantic's library before its version 4 read .spz only as a gzip stream.
+DEFAULT_VERSION = 3
 FRACTIONAL_BITS = 12
 COLOUR_SCALE = 0.15
-_HEADER = struct.Struct("<IIIBBBB")
 FLAG_ANTIALIASED = 1  # the scene was trained with Mip-Splatting's 2D filter: viewers should draw it with the filter
 
 
@@ -77,7 +78,11 @@ def _unpack_rotations(packed: np.ndarray) -> np.ndarray:
     return q[:, [3, 0, 1, 2]]  # w x y z
 
 
-def write_spz(path: Path, params: dict[str, np.ndarray], antialiased: bool = False) -> None:
+def write_spz(path: Path, params: dict[str, np.ndarray], antialiased: bool = False,
+              spz_version: int = DEFAULT_VERSION) -> None:
+    if spz_version not in VERSIONS:
+        raise MCSplatError(f"--spz-version {spz_version}: .spz versions {' and '.join(map(str, VERSIONS))} are "
+                           "written")
     n = check_params(params)
     degree = sh_degree_of(params["shN"])
     means = params["means"].astype(np.float64) * AXES_FLIP
@@ -88,8 +93,7 @@ def write_spz(path: Path, params: dict[str, np.ndarray], antialiased: bool = Fal
     positions = (fixed & 0xFFFFFF).astype("<u4").view(np.uint8).reshape(n, 3, 4)[:, :, :3]
     quats = params["quats"].astype(np.float64) * np.array([1.0, 1.0, -1.0, -1.0])
     rest = params["shN"].astype(np.float64) * SH_FLIP[:bases_of(degree), None]
-    parts = [
-        _HEADER.pack(MAGIC, VERSION, n, degree, FRACTIONAL_BITS, FLAG_ANTIALIASED if antialiased else 0, 0),
+    blocks = [
         positions.tobytes(),
         _u8(sigmoid(params["opacity_logits"]) * 255.0).tobytes(),
         _u8(params["sh0"][:, 0, :].astype(np.float64) * (COLOUR_SCALE * 255.0) + 127.5).tobytes(),
@@ -97,36 +101,20 @@ def write_spz(path: Path, params: dict[str, np.ndarray], antialiased: bool = Fal
         _pack_rotations(quats).tobytes(),
         _quantize_sh(rest).tobytes(),
     ]
-    blob = gzip.compress(b"".join(parts), mtime=0)
-    atomic_write_bytes(path, blob)
+    header = SpzHeader(spz_version, n, degree, FRACTIONAL_BITS, FLAG_ANTIALIASED if antialiased else 0)
+    atomic_write_bytes(path, pack(header, blocks))
 
 
 def read_spz(path: Path) -> dict[str, np.ndarray]:
-    try:
-        data = gzip.decompress(read_bytes(path))
-    except (OSError, EOFError) as error:
-        raise MCSplatError(f"{path}: not a gzip-compressed .spz file ({error})") from None
-    if len(data) < _HEADER.size:
-        raise MCSplatError(f"{path}: too short for an .spz header")
-    magic, version, n, degree, fractional, _, _ = _HEADER.unpack_from(data)
-    if magic != MAGIC or degree > 3:
-        raise MCSplatError(f"{path}: not an .spz file (magic {magic:#x}, SH degree {degree})")
-    if version != VERSION:
-        raise MCSplatError(f"{path}: .spz version {version}; only version 3 (gzip, smallest-three rotations) is read")
-    k = bases_of(degree)
-    sizes = [n * 9, n, n * 3, n * 3, n * 4, n * k * 3]
-    if len(data) != _HEADER.size + sum(sizes):
-        raise MCSplatError(f"{path}: {len(data)} bytes do not match {n} points of SH degree {degree}")
-    blocks, offset = [], _HEADER.size
-    for size in sizes:
-        blocks.append(np.frombuffer(data, dtype=np.uint8, count=size, offset=offset))
-        offset += size
-    positions, alphas, colours, scales, rotations, sh = blocks
+    """Versions 3 and 4 (spz_container.py); a damaged file is one MCSplatError naming it."""
+    header, blocks = unpack(path, read_bytes(path))
+    n, k = header.count, bases_of(header.sh_degree)
+    positions, alphas, colours, scales, rotations, sh = (np.frombuffer(block, dtype=np.uint8) for block in blocks)
     raw = np.zeros((n * 3, 4), dtype=np.uint8)
     raw[:, :3] = positions.reshape(n * 3, 3)
     fixed = raw.view("<u4")[:, 0].astype(np.int64)
     fixed = np.where(fixed >= 1 << 23, fixed - (1 << 24), fixed)
-    means = fixed.reshape(n, 3) / float(1 << fractional) * AXES_FLIP
+    means = fixed.reshape(n, 3) / float(1 << header.fractional_bits) * AXES_FLIP
     quats = _unpack_rotations(rotations.view("<u4")) * np.array([1.0, 1.0, -1.0, -1.0])
     rest = (sh.reshape(n, k, 3).astype(np.float64) - 128.0) / 128.0 * SH_FLIP[:k, None]
     return {
