@@ -23,8 +23,8 @@ LAYERS = [
     ("loop", ("trainer", "stopping", "subscribers")),
     ("run", ("run_setup", "state", "run_dir", "events", "run_metrics", "evaluation")),
     ("set-up", ("distributed", "initialization", "planning", "config", "config_types")),
-    ("method", ("strategy", "mesh", "appearance", "pose_refinement", "visibility", "metrics", "optim")),
-    ("building blocks", ("render", "losses", "ssim_cpu", "ssim_warp", "capture", "data", "io", "camera_path")),
+    ("method", ("loss_terms", "strategy", "mesh", "appearance", "pose_refinement", "visibility", "metrics", "optim")),
+    ("building blocks", ("render", "losses", "ssim_cpu", "ssim_warp", "capture", "data", "io", "camera_path", "per_image")),
     ("model", ("gaussians",)),
     ("foundation", ("geometry", "compute", "camera", "errors", "")),
 ]

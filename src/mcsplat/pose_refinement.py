@@ -10,7 +10,8 @@ the camera's own axes:
 learned with its own Adam and weight decay (gsplat's `pose_opt`). The gradient reaches W' through the projection
 kernel's hand-written backward (render/project_kernel.py) and torch takes it on to (omega, tau) through the matrix
 exponential. Held-out views keep their poses: they are the reference the scene is scored against. The corrections
-are in the checkpoint; the scene and its exports do not depend on them.
+are in the checkpoint (under "poses"); the scene and its exports do not depend on them. It is a per-image module
+(per_image.py): it moves the camera, and adds no loss term (its pull toward zero is Adam's weight decay).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ import math
 import torch
 
 from .camera import Camera
+from .errors import MCSplatError
+from .per_image import PerImageModule, PlanSteps
 
 
 def correction_matrix(delta: torch.Tensor, scene_radius: float) -> torch.Tensor:
@@ -32,8 +35,10 @@ def correction_matrix(delta: torch.Tensor, scene_radius: float) -> torch.Tensor:
     return torch.linalg.matrix_exp(twist)
 
 
-class PoseRefinement:
+class PoseRefinement(PerImageModule):
     """The corrections of `count` training images [count, 6] and their Adam."""
+
+    key = "poses"
 
     def __init__(self, count: int, scene_radius: float, device: torch.device, lr: float, weight_decay: float):
         self.scene_radius = scene_radius
@@ -46,7 +51,8 @@ class PoseRefinement:
         corrected = correction_matrix(self.deltas[index], self.scene_radius).to(view) @ view
         return Camera(K=camera.K, world_to_camera=corrected, width=camera.width, height=camera.height)
 
-    def step(self) -> None:
+    def step(self, step: int = 0, plan: PlanSteps | None = None) -> None:
+        """A constant learning rate: the step and the plan do not matter."""
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
 
@@ -61,7 +67,10 @@ class PoseRefinement:
     def state_dict(self) -> dict:
         return {"deltas": self.deltas.detach().clone(), "optimizer": self.optimizer.state_dict()}
 
-    def load_state_dict(self, state: dict) -> None:
+    def load_state_dict(self, state: dict | None) -> None:
+        if state is None:
+            raise MCSplatError("--pose-opt: the checkpoint was trained without it; resume without --pose-opt, "
+                               "or train a new run")
         with torch.no_grad():
             self.deltas.copy_(state["deltas"])
         self.optimizer.load_state_dict(state["optimizer"])

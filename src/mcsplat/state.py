@@ -8,7 +8,7 @@ uninterrupted one would have taken (same seed and thread count).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -17,10 +17,11 @@ from .appearance import Compensation, check_fits, make_appearance
 from .config import TrainConfig
 from .data import Scene
 from .distributed import Team
-from .errors import MCSplatError
 from .gaussians import GaussianModel
 from .initialization import initial_model
+from .loss_terms import LossTerm, standard_terms
 from .optim import make_optimizers
+from .per_image import PerImageModule
 from .planning import Plan, make_strategy
 from .pose_refinement import PoseRefinement
 from .run_dir import background_of
@@ -66,8 +67,14 @@ class TrainingState:
     step: int = 0  # steps done
     train_seconds: float = 0.0  # time spent in steps (pauses, evaluations and consumers not counted)
     wall_seconds: float = 0.0  # time spent in the training loop, pauses not counted (what --budget counts)
-    compensation: Compensation | None = None  # --appearance: the per-image colour transforms and their Adam
-    poses: PoseRefinement | None = None  # --pose-opt: the per-image pose corrections and their Adam
+    # Learned per training image with the scene (per_image.py): --appearance's colour transforms, --pose-opt's
+    # pose corrections, each with its own Adam and its own entry in the checkpoint.
+    modules: list[PerImageModule] = field(default_factory=list)
+    loss_terms: list[LossTerm] = field(default_factory=list)  # what train_step sums (loss_terms.py)
+
+    def module(self, key: str) -> PerImageModule | None:
+        """The module saved under `key` ("appearance", "poses"), if the run has it."""
+        return next((module for module in self.modules if module.key == key), None)
 
     def checkpoint(self, saved_config: dict[str, Any], strategies: list[dict]) -> dict[str, Any]:
         """What checkpoint.pt holds; `saved_config` is config.json's content (the configuration and the plan it was
@@ -77,9 +84,7 @@ class TrainingState:
                 "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
                 "strategy": strategies[0], "strategy_per_process": strategies if len(strategies) > 1 else None,
                 "generator": self.generator.get_state(), "sampler": self.sampler.state_dict(),
-                "appearance": self.compensation.state_dict() if self.compensation is not None else None,
-                "poses": self.poses.state_dict() if self.poses is not None else None,
-                "config": saved_config}
+                **{module.key: module.state_dict() for module in self.modules}, "config": saved_config}
 
 
 def start(config: TrainConfig, plan: Plan, scene: Scene, device: torch.device, team: Team,
@@ -112,28 +117,23 @@ def start(config: TrainConfig, plan: Plan, scene: Scene, device: torch.device, t
                               wall_seconds=checkpoint.get("wall_seconds", checkpoint["train_seconds"]))
         note = f"resumed at step {state.step:,}"
     model.antialiased = config.antialiased
-    state.compensation = _compensation(config, len(scene.train), device)
-    if state.compensation is not None and checkpoint is not None:
-        saved = checkpoint.get("appearance")
-        if saved is None or saved.get("mode", "affine") != config.appearance:
-            trained = "without it" if saved is None else f"with --appearance {saved.get('mode', 'affine')}"
-            raise MCSplatError(f"--appearance {config.appearance}: the checkpoint was trained {trained}; resume "
-                               "with the run's own --appearance, or train a new run")
-        state.compensation.load_state_dict(saved)
-    if config.pose_opt:
-        state.poses = PoseRefinement(len(scene.train), radius, device, config.pose_opt_lr, config.pose_opt_reg)
-        if checkpoint is not None:
-            if checkpoint.get("poses") is None:
-                raise MCSplatError("--pose-opt: the checkpoint was trained without it; resume without --pose-opt, "
-                                   "or train a new run")
-            state.poses.load_state_dict(checkpoint["poses"])
+    state.modules = per_image_modules(config, len(scene.train), radius, device)
+    if checkpoint is not None:
+        for module in state.modules:
+            module.load_state_dict(checkpoint.get(module.key))  # refuses a checkpoint trained without it
+    state.loss_terms = standard_terms(config.ssim_weight, strategy, state.modules)
     strategy.collective = team.collective
     return state, note
 
 
-def _compensation(config: TrainConfig, images: int, device: torch.device) -> Compensation | None:
+def per_image_modules(config: TrainConfig, images: int, scene_radius: float,
+                      device: torch.device) -> list[PerImageModule]:
+    """The per-image modules the options ask for, in the order a step applies them and takes their Adam steps."""
+    modules: list[PerImageModule] = []
     transforms = make_appearance(config.appearance, images, device, config.appearance_reg, config.appearance_grid_tv,
                                  config.appearance_grid_shape)
-    if transforms is None:
-        return None
-    return Compensation(transforms, config.appearance_lr, config.appearance_lr_final)
+    if transforms is not None:
+        modules.append(Compensation(transforms, config.appearance_lr, config.appearance_lr_final))
+    if config.pose_opt:
+        modules.append(PoseRefinement(images, scene_radius, device, config.pose_opt_lr, config.pose_opt_reg))
+    return modules

@@ -2,9 +2,9 @@
 
 One step (docs/method.md, "One training step"; in gsplat's order, see strategy/mcmc.py for how the official code
 differs):
-    render a training view (from its corrected pose with --pose-opt; through its colour transform with
-    --appearance) -> loss = 0.8 L1 + 0.2 D-SSIM (over the pixels a mask keeps) + strategy regularizers -> backward
-    -> strategy.step_post_backward (ADC gradient statistics) -> Adam step for every parameter
+    render a training view (camera and render through the per-image modules, per_image.py: --pose-opt, --appearance)
+    -> loss = the sum of the loss terms (loss_terms.py: 0.8 L1 + 0.2 D-SSIM over the pixels a mask keeps, strategy
+    and module regularizers) -> backward -> strategy.step_post_backward (ADC gradient statistics) -> Adam steps
     -> strategy.step_post_optimizer (MCMC: relocate / grow every 100 steps, then SGLD noise; ADC: densify / prune)
 
 Where the run's files go is run_dir.py's business, how its state starts and what a checkpoint holds state.py's, what
@@ -22,7 +22,7 @@ from typing import Any, Callable, Protocol, Sequence
 import torch
 
 from . import losses, render, run_dir
-from .appearance import Compensation, training_kernels as appearance_kernels
+from .appearance import training_kernels as appearance_kernels
 from .compute.compile import compile_kernels, modules_to_compile
 from .config import TrainConfig
 from .data import View
@@ -33,11 +33,11 @@ from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Lis
                      RunStarted, StepDone, close_all)
 from .gaussians import GaussianModel
 from .io.lock import FolderLock
-from .losses import masked_photometric_loss
+from .loss_terms import LossTerm, StepContext, standard_terms, total_loss
 from .metrics import psnr
 from .optim import means_lr_at, set_means_lr
 from .planning import Plan, run_record
-from .pose_refinement import PoseRefinement
+from .per_image import PerImageModule
 from .render import RenderResult
 from .run_metrics import RunFacts, metrics
 from .run_setup import set_up
@@ -78,29 +78,30 @@ class StepPhases(Protocol):
 
 def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view: View, *, config: TrainConfig,
                plan: Plan, scene_radius: float, background, device: torch.device, reduce: Reduce = _alone,
-               phases: StepPhases | None = None, compensation: Compensation | None = None,
-               poses: PoseRefinement | None = None, view_index: int = 0) -> StepResult:
+               phases: StepPhases | None = None, modules: Sequence[PerImageModule] = (),
+               loss_terms: Sequence[LossTerm] | None = None, view_index: int = 0) -> StepResult:
     """One optimisation step on one training view (the module docstring lists its parts, in order), as `plan` has
     it at this step (learning rates, resolution, SH degree; the strategy follows the plan's schedule).
 
     `reduce(model, [loss, psnr])` runs between the backward and the Adam step: with several processes it averages
-    the gradients (and the two values) over them (distributed/team.py). With `compensation` (--appearance) the
-    render goes through training view `view_index`'s colour transform before the loss; with `poses` (--pose-opt)
-    the view is rendered from its corrected pose, and the correction takes a step with the scene."""
+    the gradients (and the two values) over them (distributed/team.py). Each of `modules` sees training view
+    `view_index`'s camera and render, in order, and takes its own step after the scene's. The loss is the sum of
+    `loss_terms` (by default loss_terms.standard_terms: photometric, the strategy's, each module's)."""
     lap = phases.lap if phases is not None else (lambda phase: None)
     set_means_lr(optimizers, means_lr_at(step, plan.steps, plan.optim, scene_radius))
     camera = view.camera_at(plan.resolution_at(step)).to(device)  # coarse to fine, when configured
-    if poses is not None:
-        camera = poses.camera(view_index, camera)
+    for module in modules:
+        camera = module.camera(view_index, camera)
     target = view.image_float(device, size=(camera.width, camera.height))
     keep = view.mask_float(device, size=(camera.width, camera.height))  # None unless the scene has masks
     lap("other")
     result = render.render(model, camera, background, plan.sh_degree_at(step))
     lap("render")
-    rgb = result.rgb if compensation is None else compensation.apply(view_index, result.rgb)
-    loss = masked_photometric_loss(rgb, target, keep, config.ssim_weight) + strategy.regularization(model)
-    if compensation is not None:
-        loss = loss + compensation.regularization(view_index)
+    rgb = result.rgb
+    for module in modules:
+        rgb = module.apply(view_index, rgb)
+    terms = loss_terms if loss_terms is not None else standard_terms(config.ssim_weight, strategy, modules)
+    loss = total_loss(terms, StepContext(step, view, view_index, camera, rgb, target, keep, model, result))
     lap("loss")
     if phases is not None:
         phases.rendered(result)
@@ -116,10 +117,8 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
     for opt in optimizers.values():
         opt.step()
         opt.zero_grad(set_to_none=True)
-    if compensation is not None:
-        compensation.step(step, plan.steps)
-    if poses is not None:
-        poses.step()
+    for module in modules:
+        module.step(step, plan)
     lap("optimizer")
     # The noise uses the position learning rate after this step's decay, as gsplat does (docs/method.md), or the
     # schedule an ablation puts in its place (strategy/noise.py).
@@ -225,8 +224,8 @@ class TrainingRun:
                 count, scale = state.model.num_gaussians, plan.resolution_at(state.step)
                 done = train_step(state.step, state.model, state.optimizers, state.strategy, view, config=config,
                                   plan=plan, scene_radius=self.scene.radius, background=self.background,
-                                  device=self.device, reduce=self.requests.reduce, compensation=state.compensation,
-                                  poses=state.poses, view_index=view_index)
+                                  device=self.device, reduce=self.requests.reduce, modules=state.modules,
+                                  loss_terms=state.loss_terms, view_index=view_index)
                 if changed(done.refine):
                     emit(RefineDone(step=state.step, report=done.refine))
                 state.step += 1
@@ -291,7 +290,7 @@ class TrainingRun:
                          invisible_gaussians=count_invisible(state.model, seen).as_dict(),
                          budget_seconds=self.planner.budget_seconds,
                          auto_cap=(strategy.chosen_cap, strategy.ceiling) if config.cap_max == "auto" else None,
-                         pose_corrections=state.poses.summary() if state.poses is not None else None)
+                         pose_corrections=poses.summary() if (poses := state.module("poses")) else None)
         record = metrics(evaluation, config.lpips_net, state.step, state.model.num_gaussians, facts)
         if team.is_main:
             self.folder.write_metrics(record)

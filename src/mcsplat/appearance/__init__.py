@@ -8,7 +8,9 @@ rate (log-linear decay, as 3DGS's per-image exposure), a small pull toward ident
 held at identity, so that a transform only explains how its photo departs from the typical one. The transforms are
 not part of the scene: renders, the viewer and every export show the scene without them.
 
-Held-out views have no learned transform; heldout.py has 3DGS's `train_test_exp` protocol for scoring them.
+`Compensation` is what a training step sees of it: a per-image module (per_image.py) that changes the render and
+adds its regularizer to the loss, saved under "appearance" in the checkpoint. Held-out views have no learned
+transform; heldout.py has 3DGS's `train_test_exp` protocol for scoring them.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import torch
 
 from ..compute.device import free_memory
 from ..errors import MCSplatError
+from ..per_image import PerImageModule, PlanSteps
 from .affine import AffineAppearance
 from .bilateral_grid import GRID_SHAPE, BilateralGridAppearance, grids_bytes
 from .heldout import apply_transform, fitted_transform, split_halves
@@ -71,8 +74,10 @@ def _set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
         group["lr"] = lr
 
 
-class Compensation:
+class Compensation(PerImageModule):
     """What a training step needs of the appearance model: the transforms, their Adam and its schedule."""
+
+    key = "appearance"
 
     def __init__(self, transforms: Transforms, lr: float, lr_final: float):
         self.transforms, self.lr, self.lr_final = transforms, lr, lr_final
@@ -84,9 +89,9 @@ class Compensation:
     def regularization(self, index: int) -> torch.Tensor:
         return self.transforms.penalty(index)
 
-    def step(self, step: int, steps: int) -> None:
+    def step(self, step: int, plan: PlanSteps) -> None:
         """The Adam step of this training step (at its scheduled learning rate)."""
-        _set_lr(self.optimizer, lr_at(step, steps, self.lr, self.lr_final))
+        _set_lr(self.optimizer, lr_at(step, plan.steps, self.lr, self.lr_final))
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.transforms.centre(step)
@@ -95,6 +100,11 @@ class Compensation:
         return {"mode": self.transforms.MODE, "transforms": self.transforms.state_dict(),
                 "optimizer": self.optimizer.state_dict()}
 
-    def load_state_dict(self, state: dict) -> None:
+    def load_state_dict(self, state: dict | None) -> None:
+        mode = self.transforms.MODE
+        if state is None or state.get("mode", "affine") != mode:  # checkpoints before bilateral grids: affine
+            trained = "without it" if state is None else f"with --appearance {state.get('mode', 'affine')}"
+            raise MCSplatError(f"--appearance {mode}: the checkpoint was trained {trained}; resume with the run's "
+                               "own --appearance, or train a new run")
         self.transforms.load_state_dict(state["transforms"])
         self.optimizer.load_state_dict(state["optimizer"])

@@ -1,0 +1,94 @@
+"""The training loss as a list of terms: trainer.train_step sums what each term returns for the step's view.
+
+A term is any callable taking the step's `StepContext` (the render, the photo, the mask, the model, ...) and
+returning a scalar tensor, or None when it has nothing to add for that view. The standard loss is three kinds of
+term, in this order (the order of the additions, so that a CPU run is bit for bit what it was):
+
+    photometric            0.8 L1 + 0.2 D-SSIM over the pixels the view's mask keeps (losses.py)
+    strategy               the strategy's regularizers (MCMC's opacity and scale L1; ADC's, zero by default)
+    each module's          a per-image module's regularizer (per_image.py), e.g. --appearance's pull to identity
+
+A new loss (a depth prior reading `ctx.view.attachment("depth", ...)`) is one more term in the list that
+state.start makes (docs/extending.md, "A loss term"); train_step does not change.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol, Sequence
+
+import torch
+
+from .camera import Camera
+from .data import View
+from .gaussians import GaussianModel
+from .losses import masked_photometric_loss
+from .per_image import PerImageModule
+from .render import RenderResult
+
+
+@dataclass(frozen=True)
+class StepContext:
+    """What a loss term sees of one training step, after the render."""
+
+    step: int
+    view: View  # the training view (its attachments: view.attachment(kind, device, size))
+    view_index: int  # its index in scene.train (the per-image modules' index)
+    camera: Camera  # the camera rendered from (at the step's resolution, moved by the modules)
+    rgb: torch.Tensor  # [H, W, 3] the render as the modules changed it
+    target: torch.Tensor  # [H, W, 3] the photo at the render's size
+    keep: torch.Tensor | None  # [H, W, 1] the mask's weights, None when the scene has no masks
+    model: GaussianModel
+    result: RenderResult  # the render itself: alpha, expected depth, ...
+
+
+class LossTerm(Protocol):
+    def __call__(self, ctx: StepContext) -> torch.Tensor | None:
+        ...
+
+
+class Photometric:
+    """(1 - ssim_weight) L1 + ssim_weight D-SSIM over the pixels the view's mask keeps."""
+
+    def __init__(self, ssim_weight: float):
+        self.ssim_weight = ssim_weight
+
+    def __call__(self, ctx: StepContext) -> torch.Tensor:
+        return masked_photometric_loss(ctx.rgb, ctx.target, ctx.keep, self.ssim_weight)
+
+
+class StrategyRegularization:
+    """The strategy's regularizers (strategy.regularization(model))."""
+
+    def __init__(self, strategy: Any):
+        self.strategy = strategy
+
+    def __call__(self, ctx: StepContext) -> torch.Tensor:
+        return self.strategy.regularization(ctx.model)
+
+
+class ModuleRegularization:
+    """A per-image module's regularizer for the step's view."""
+
+    def __init__(self, module: PerImageModule):
+        self.module = module
+
+    def __call__(self, ctx: StepContext) -> torch.Tensor | None:
+        return self.module.regularization(ctx.view_index)
+
+
+def standard_terms(ssim_weight: float, strategy: Any, modules: Sequence[PerImageModule] = ()) -> list[LossTerm]:
+    """The loss every run trains with: the photometric term, the strategy's, then each module's."""
+    return [Photometric(ssim_weight), StrategyRegularization(strategy), *map(ModuleRegularization, modules)]
+
+
+def total_loss(terms: Sequence[LossTerm], ctx: StepContext) -> torch.Tensor:
+    """The sum of the terms, added left to right (the first must give a tensor: the photometric term does)."""
+    loss = None
+    for term in terms:
+        value = term(ctx)
+        if value is not None:
+            loss = value if loss is None else loss + value
+    if loss is None:
+        raise ValueError("no loss term gave a value for this step")
+    return loss
