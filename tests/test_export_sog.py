@@ -14,7 +14,6 @@ import pytest
 from PIL import Image
 
 from mcsplat.cli import main
-from mcsplat.errors import MCSplatError
 from mcsplat.io.formats import read_gaussians, write_gaussians
 from mcsplat.io.formats.compressed_ply import morton_order
 from mcsplat.io.formats.sog import palette_size

@@ -1,4 +1,4 @@
-"""Training masks (data/masks.py): found by the image's name, inverted on request, undistorted with their image, the
+"""Training masks (data/attachments/masks.py): found by the image's name, inverted on request, undistorted with their image, the
 alpha channel as a mask; the loss leaves masked pixels out; on a real capture with a block painted over every photo,
 the block shows in the renders without its mask and not with it."""
 
@@ -14,7 +14,7 @@ import torch
 from PIL import Image
 
 from mcsplat.data import load_scene
-from mcsplat.data.masks import MaskOptions
+from mcsplat.data.attachments.masks import MaskOptions
 from mcsplat.errors import DataError
 from mcsplat.losses import masked_photometric_loss, photometric_loss
 from mcsplat.metrics import masked_psnr, masked_ssim, psnr, ssim_metric

@@ -49,7 +49,7 @@ class Info:
 
     def run_command(self) -> int:
         from mcsplat.data import load_scene
-        from mcsplat.data.masks import MaskOptions
+        from mcsplat.data.attachments.masks import MaskOptions
         from mcsplat.initialization import start_without_points
 
         background = None if self.background.strip().lower() == "auto" else self.background

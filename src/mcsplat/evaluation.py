@@ -35,7 +35,7 @@ class Evaluation:
     lpips_net: str
     views: int
     per_view_psnr: dict[str, float] = field(default_factory=dict)  # view name -> PSNR
-    # Over the pixels the masks keep (data/masks.py): the means over the views that have a mask, else None.
+    # Over the pixels the masks keep (data/attachments/masks.py): the means over the views that have a mask, else None.
     masked_psnr: float | None = None
     masked_ssim: float | None = None
     masked_views: int = 0

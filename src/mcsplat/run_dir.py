@@ -31,7 +31,7 @@ import torch
 
 from .config import PROCESS_OPTIONS, TrainConfig, flat_options, options_given, process_options, to_jsonable
 from .data import Scene, detect_kind, load_scene
-from .data.masks import MaskOptions
+from .data.attachments.masks import MaskOptions
 from .errors import DataError, MCSplatError
 from .gaussians import DEAD_OPACITY, GaussianModel
 from .io.atomic import atomic_path, atomic_write_text, remove_stale_temporaries

@@ -12,7 +12,7 @@ from typing import Callable
 
 from tqdm import tqdm
 
-from .data import masks
+from .data.attachments import masks
 from .events import CheckpointWritten, EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
 from .io.disk import writing_into
 from .metrics import LPIPS_HINT

@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from mcsplat.errors import MCSplatError
 
 Matcher = Literal["auto", "exhaustive", "sequential"]
 MIN_REGISTERED = 3  # images a model needs to be a scene
