@@ -20,6 +20,7 @@ from ..geometry.sh import degree_from_bases
 from .binning import TileBins
 from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
 from .median import median_depth as _median_depth
+from .normals import gaussian_normals
 from .paths import RenderPath, current_render_path
 
 __all__ = ["render", "RenderResult", "Splats", "GaussiansLike", "set_cpu_threads", "cpu_threads", "ensure_warp",
@@ -65,6 +66,10 @@ class RenderResult:
     # the accumulated alpha first reaches 0.5 (the last one composited where it never does) is densest; 0 where none
     # is composited. No gradient. See median.py.
     median_depth: torch.Tensor | None = None
+    # [H, W, 3] with render(normals=True), else None: each Gaussian's camera-space normal (its shortest axis, facing
+    # the camera) composited like the colour over zero, with gradients. A second compositing pass, so that a render
+    # without it costs nothing more. See normals.py.
+    normal: torch.Tensor | None = None
 
     @property
     def visible(self) -> torch.Tensor:
@@ -75,11 +80,12 @@ class RenderResult:
 def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float] | torch.Tensor | None = None,
            sh_degree: int | None = None, *, near: float = NEAR_PLANE, far: float = FAR_PLANE,
            eps2d: float = LOW_PASS, opacity_aware_radius: bool = False, path: RenderPath | None = None,
-           median_depth: bool = False, antialiased: bool | None = None) -> RenderResult:
+           median_depth: bool = False, antialiased: bool | None = None, normals: bool = False) -> RenderResult:
     """Render one view. `sh_degree` None uses every SH coefficient given; `background` defaults to black; `path`
     the stages to run (default: current_render_path(), the kernels unless a caller chose otherwise); `median_depth`
     also gives the median depth (forward kernels of their own, so that a render without it costs nothing more);
-    `antialiased` draws with Mip-Splatting's 2D filter (None: as the Gaussians' own `antialiased` flag says)."""
+    `antialiased` draws with Mip-Splatting's 2D filter (None: as the Gaussians' own `antialiased` flag says);
+    `normals` also gives the normal map (a second compositing pass, differentiable)."""
     stages = path or current_render_path()
     means, quats, scales, opacities = gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities
     sh, sh_rest = _sh_arrays(gaussians)
@@ -111,9 +117,13 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
         **({"median_gaussian": True} if median_depth else {}))
     depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))
     median = _median_depth(median_ids[0], means, quats, scales, camera) if median_depth else None
+    normal = None
+    if normals:  # the same weights as the colour: the compositing pass again, with the normals as its colours
+        normal = stages.composite(means2d, projection.conics, opacities, gaussian_normals(means, quats, scales, camera),
+                                  projection.depths, torch.zeros_like(bg), bins, camera.width, camera.height)[0]
     return RenderResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=projection.radii,
                         depths=projection.depths, contributed=contributed, num_pairs=bins.num_pairs,
-                        median_depth=median)
+                        median_depth=median, normal=normal)
 
 
 def _sh_arrays(gaussians: GaussiansLike) -> tuple[torch.Tensor, torch.Tensor | None]:

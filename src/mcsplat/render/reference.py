@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from ..camera import Camera
+from ..geometry.rotation import covariance_3d
 from ..geometry.sh import eval_sh
 from .constants import (ALPHA_MAX, ALPHA_MIN, LOW_PASS, MEDIAN_TRANSMITTANCE, NEAR_PLANE, TILE_SIZE,
                         TRANSMITTANCE_MIN)
@@ -220,3 +221,13 @@ def reference_median_depth(median_ids, means, quats, scales, camera: Camera):
         reach = 3.0 * float(scale.max())
         depth[row, column] = float(min(max(peak, mean[2] - reach), mean[2] + reach))
     return depth
+
+
+def reference_normals(means, quats, scales, camera: Camera):
+    """[N, 3]: each Gaussian's normal in camera space, found another way than normals.py: the eigenvector of the
+    smallest eigenvalue of its 3D covariance, seen from the camera, turned towards it."""
+    _, vectors = torch.linalg.eigh(covariance_3d(quats, scales))  # eigenvalues ascending
+    w2c = camera.world_to_camera.to(means.dtype)
+    normal = vectors[:, :, 0] @ w2c[:3, :3].T
+    center = means @ w2c[:3, :3].T + w2c[:3, 3]
+    return normal * torch.where((normal * center).sum(dim=-1, keepdim=True) > 0, -1.0, 1.0).to(means.dtype)

@@ -1,0 +1,113 @@
+"""The normal map (render(normals=True), render/normals.py) against the dense reference renderer: each Gaussian's
+normal found another way (the covariance's smallest eigenvector) and composited by the reference, forward and every
+gradient, in float64 and float32, through each compositing kernel."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from mcsplat.camera import Camera, intrinsics
+from mcsplat.render import Splats, render
+from mcsplat.render.launch import cpu_kernels, set_cpu_kernels
+from mcsplat.render.reference import reference_composite, reference_normals, reference_project
+
+from test_render import assert_close_relative, leaf, make_camera, random_splats
+
+GRADIENT_PARAMS = ("means", "quats", "scales", "opacities")
+
+
+def reference_normal_map(splats: Splats, camera: Camera) -> torch.Tensor:
+    means2d, conics, depths, radii, tile_min, tile_max, _ = reference_project(
+        splats.means, splats.quats, splats.scales, splats.opacities, camera)
+    normals = reference_normals(splats.means, splats.quats, splats.scales, camera)
+    zero = torch.zeros(3, dtype=splats.means.dtype)
+    return reference_composite(means2d, conics, splats.opacities, normals, depths, radii, tile_min, tile_max, zero,
+                               camera.width, camera.height)[0]
+
+
+def random_linear_loss(image: torch.Tensor, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return (image * torch.randn(image.shape, generator=g, dtype=torch.float64).to(image.dtype)).sum()
+
+
+@pytest.mark.parametrize("kernels,dtype,rtol", [("simd", torch.float32, 2e-4), ("tile", torch.float32, 2e-4),
+                                                ("scalar", torch.float64, 1e-8)])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_normal_map_and_its_gradients_match_the_reference(kernels, dtype, rtol, seed):
+    splats = random_splats(80, seed, dtype=dtype, log_scale=(-3.0, -1.2))
+    camera = make_camera(45, 37)
+    # The reference runs in float64 always: the eigenvector's backward divides by the gaps between the eigenvalues,
+    # which float32 rounding turns into noise of about 1e-3 of the scales' gradient.
+    fast_in = leaf(splats)
+    ref_in = leaf(Splats(*(getattr(splats, p).double() for p in ("means", "quats", "scales", "opacities", "sh"))))
+    previous = cpu_kernels()
+    set_cpu_kernels(kernels)
+    try:
+        fast = render(fast_in, camera, normals=True).normal
+        random_linear_loss(fast, seed).backward()
+    finally:
+        set_cpu_kernels(previous)
+    expected = reference_normal_map(ref_in, camera)
+    random_linear_loss(expected, seed).backward()
+    assert fast.shape == (37, 45, 3) and expected.abs().max() > 0.5, "the scene should cover part of the image"
+    torch.testing.assert_close(fast.double(), expected, atol=1e-5 if dtype == torch.float32 else 1e-10, rtol=0)
+    for name in GRADIENT_PARAMS:
+        assert_close_relative(getattr(fast_in, name).grad.double(), getattr(ref_in, name).grad, rtol, name)
+
+
+def flat_disk(tilt_degrees: float, dtype=torch.float64) -> Splats:
+    """One opaque Gaussian flattened along its local z, rotated about the x axis, in front of make_camera()."""
+    half = math.radians(tilt_degrees) / 2
+    quat = torch.tensor([[math.cos(half), math.sin(half), 0.0, 0.0]], dtype=dtype)
+    return Splats(means=torch.zeros(1, 3, dtype=dtype), quats=quat,
+                  scales=torch.tensor([[0.5, 0.5, 0.01]], dtype=dtype), opacities=torch.tensor([0.99], dtype=dtype),
+                  sh=torch.zeros(1, 1, 3, dtype=dtype))
+
+
+@pytest.mark.parametrize("tilt", [0.0, 30.0, 150.0])
+def test_a_flat_disk_shows_its_normal_facing_the_camera(tilt):
+    """At the centre pixel the map is 0.99 times the disk's axis (its local z turned by `tilt` about x), flipped so
+    that it points back at the camera (negative camera z): 150 degrees puts the axis away from the camera."""
+    camera = Camera(K=intrinsics(50.0, 50.0, 22.5, 18.5), world_to_camera=make_camera().world_to_camera,
+                    width=45, height=37)
+    normal = render(flat_disk(tilt), camera, normals=True).normal[18, 22]
+    angle = math.radians(tilt)
+    axis = torch.tensor([0.0, -math.sin(angle), math.cos(angle)], dtype=torch.float64)
+    if axis[2] > 0:
+        axis = -axis
+    torch.testing.assert_close(normal, 0.99 * axis, atol=2e-3, rtol=0)
+
+
+def test_a_render_without_normals_has_none_and_the_same_image():
+    splats = random_splats(50, 3)
+    camera = make_camera()
+    plain, with_normals = render(splats, camera), render(splats, camera, normals=True)
+    assert plain.normal is None
+    assert torch.equal(plain.rgb, with_normals.rgb) and torch.equal(plain.alpha, with_normals.alpha)
+
+
+def test_the_normals_are_the_shortest_axis_whatever_its_index():
+    """The same disk with its thin axis stored as x, y or z (quaternion and scales permuted alike) has one normal."""
+    base = flat_disk(20.0)
+    found = []
+    for thin in range(3):
+        scales = torch.full((1, 3), 0.5, dtype=torch.float64)
+        scales[0, thin] = 0.01
+        # A rotation taking local axis `thin` to local z: about y for x, about x for y, none for z.
+        turn = {0: [math.cos(math.pi / 4), 0.0, math.sin(math.pi / 4), 0.0],
+                1: [math.cos(math.pi / 4), -math.sin(math.pi / 4), 0.0, 0.0], 2: [1.0, 0.0, 0.0, 0.0]}[thin]
+        quat = _quaternion_product(base.quats[0], torch.tensor(turn, dtype=torch.float64))[None]
+        disk = Splats(base.means, quat, scales, base.opacities, base.sh)
+        found.append(render(disk, make_camera(45, 37), normals=True).normal[18, 22])
+    torch.testing.assert_close(found[0], found[2], atol=2e-3, rtol=0)
+    torch.testing.assert_close(found[1], found[2], atol=2e-3, rtol=0)
+
+
+def _quaternion_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return torch.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
