@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from mcsplat.camera import Camera, intrinsics
+from mcsplat.geometry.depth_normals import normals_from_depth, points_from_depth
 from mcsplat.render import Splats, render
 from mcsplat.render.launch import cpu_kernels, set_cpu_kernels
 from mcsplat.render.reference import reference_composite, reference_normals, reference_project
@@ -58,13 +59,13 @@ def test_normal_map_and_its_gradients_match_the_reference(kernels, dtype, rtol, 
         assert_close_relative(getattr(fast_in, name).grad.double(), getattr(ref_in, name).grad, rtol, name)
 
 
-def flat_disk(tilt_degrees: float, dtype=torch.float64) -> Splats:
+def flat_disk(tilt_degrees: float, dtype=torch.float64, radius: float = 0.5) -> Splats:
     """One opaque Gaussian flattened along its local z, rotated about the x axis, in front of make_camera()."""
     half = math.radians(tilt_degrees) / 2
     quat = torch.tensor([[math.cos(half), math.sin(half), 0.0, 0.0]], dtype=dtype)
     return Splats(means=torch.zeros(1, 3, dtype=dtype), quats=quat,
-                  scales=torch.tensor([[0.5, 0.5, 0.01]], dtype=dtype), opacities=torch.tensor([0.99], dtype=dtype),
-                  sh=torch.zeros(1, 1, 3, dtype=dtype))
+                  scales=torch.tensor([[radius, radius, 0.01]], dtype=dtype),
+                  opacities=torch.tensor([0.99], dtype=dtype), sh=torch.zeros(1, 1, 3, dtype=dtype))
 
 
 @pytest.mark.parametrize("tilt", [0.0, 30.0, 150.0])
@@ -111,3 +112,35 @@ def _quaternion_product(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     w2, x2, y2, z2 = b
     return torch.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
                         w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def test_the_normal_of_a_planes_depth_map_is_the_planes_normal():
+    """A tilted plane's exact depth at each pixel centre: every interior pixel gets the plane's normal (facing the
+    camera) to rounding; the border and a hole (depth 0) get none."""
+    camera = Camera(K=intrinsics(40.0, 44.0, 20.3, 15.1), world_to_camera=make_camera().world_to_camera,
+                    width=40, height=30)
+    normal = torch.nn.functional.normalize(torch.tensor([0.3, -0.5, -1.0], dtype=torch.float64), dim=0)
+    offset = float(normal @ torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64))  # the plane through (0, 0, 3)
+    rays = points_from_depth(torch.ones(30, 40, dtype=torch.float64), camera)
+    depth = offset / (rays @ normal)
+    depth[10, 12] = 0.0
+    found, valid = normals_from_depth(depth, camera)
+    assert not valid[0].any() and not valid[:, -1].any() and not valid[10, 12] and not valid[10, 13]
+    assert valid.sum() == 28 * 38 - 5
+    torch.testing.assert_close(found[valid], normal.expand(int(valid.sum()), 3), atol=1e-10, rtol=0)
+    assert (found[~valid] == 0).all()
+
+
+def test_the_median_depths_normal_agrees_with_the_normal_map_on_a_flat_disk():
+    """A disk seen at 35 degrees: the normal of its median depth (where each ray crosses its plane) and its normal
+    map point the same way inside it; the expected depth (each Gaussian at its centre's depth) would not."""
+    camera = make_camera(45, 37, dtype=torch.float64)
+    out = render(flat_disk(35.0, radius=1.0), camera, median_depth=True, normals=True)
+    from_depth, valid = normals_from_depth(out.median_depth, camera)
+    inside = valid & (out.alpha > 0.5)
+    assert inside.sum() > 100
+    mapped = torch.nn.functional.normalize(out.normal[inside], dim=-1)
+    assert (mapped * from_depth[inside]).sum(dim=-1).min() > 0.999
+    flat, flat_valid = normals_from_depth(out.depth, camera)
+    assert (torch.nn.functional.normalize(out.normal[flat_valid & inside], dim=-1)
+            * flat[flat_valid & inside]).sum(dim=-1).max() < 0.95
