@@ -156,3 +156,33 @@ def test_the_two_modules_of_the_options_keep_their_checkpoint_keys_and_refusals(
         appearance.load_state_dict(None)
     with pytest.raises(MCSplatError, match="--pose-opt: the checkpoint was trained without it"):
         poses.load_state_dict(None)
+
+
+class NormalsFacingTheCamera:
+    """A toy surface term: pulls the normal map toward the camera (-z), so it reads an output render() gives only when
+    asked."""
+
+    render_outputs = frozenset({"normals"})
+
+    def __init__(self):
+        self.seen = []
+
+    def __call__(self, ctx: StepContext) -> torch.Tensor:
+        self.seen.append(ctx.result.normal is not None)
+        return (ctx.result.normal[..., 2] + ctx.result.alpha).mean()
+
+
+def test_a_term_that_reads_the_normal_map_gets_it_and_its_gradient(scene):
+    grads = []
+    term = NormalsFacingTheCamera()
+    for extra in ([], [term]):
+        config, model, optimizers, strategy = _setup(scene)
+        phases = GradientAtBackward(model)
+        seen = []
+        terms = standard_terms(config.ssim_weight, strategy) + extra + [lambda ctx: seen.append(ctx.result.normal)]
+        _step(scene, 0, model, optimizers, strategy, config, 1, loss_terms=terms, phases=phases)
+        grads.append(phases.grads)
+        assert (seen[0] is None) == (not extra), "the normal map is rendered only when a term asks for it"
+    assert term.seen == [True]
+    without, with_term = grads
+    assert (with_term["quats"] - without["quats"]).abs().max() > 0, "the normals' gradient reaches the rotations"

@@ -9,7 +9,9 @@ term, in this order (the order of the additions, so that a CPU run is bit for bi
     each module's          a per-image module's regularizer (per_image.py), e.g. --appearance's pull to identity
 
 A new loss (a depth prior reading `ctx.view.attachment("depth", ...)`) is one more term in the list that
-state.start makes (docs/extending.md, "A loss term"); train_step does not change.
+state.start makes (docs/extending.md, "A loss term"); train_step does not change. A term that reads an output the
+render gives only on request (the normal map, the median depth) names it in `render_outputs`, render()'s keyword:
+the step asks for the union of its terms' outputs, so that a run whose terms read none pays for none.
 """
 
 from __future__ import annotations
@@ -43,8 +45,14 @@ class StepContext:
 
 
 class LossTerm(Protocol):
+    # Optionally, as a class attribute: render_outputs = frozenset({"normals"}), the outputs it reads from ctx.result.
     def __call__(self, ctx: StepContext) -> torch.Tensor | None:
         ...
+
+
+def render_outputs(terms: Sequence[LossTerm]) -> dict[str, bool]:
+    """render()'s keywords for the optional outputs the terms read (`normals=True`, ...): none for the standard loss."""
+    return {name: True for term in terms for name in sorted(getattr(term, "render_outputs", ()))}
 
 
 class Photometric:

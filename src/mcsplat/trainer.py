@@ -33,7 +33,7 @@ from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Lis
                      RunStarted, StepDone, close_all)
 from .gaussians import GaussianModel
 from .io.lock import FolderLock
-from .loss_terms import LossTerm, StepContext, standard_terms, total_loss
+from .loss_terms import LossTerm, StepContext, render_outputs, standard_terms, total_loss
 from .metrics import psnr
 from .optim import means_lr_at, set_means_lr
 from .planning import Plan, run_record
@@ -94,13 +94,13 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
         camera = module.camera(view_index, camera)
     target = view.image_float(device, size=(camera.width, camera.height))
     keep = view.mask_float(device, size=(camera.width, camera.height))  # None unless the scene has masks
+    terms = loss_terms if loss_terms is not None else standard_terms(config.ssim_weight, strategy, modules)
     lap("other")
-    result = render.render(model, camera, background, plan.sh_degree_at(step))
+    result = render.render(model, camera, background, plan.sh_degree_at(step), **render_outputs(terms))
     lap("render")
     rgb = result.rgb
     for module in modules:
         rgb = module.apply(view_index, rgb)
-    terms = loss_terms if loss_terms is not None else standard_terms(config.ssim_weight, strategy, modules)
     loss = total_loss(terms, StepContext(step, view, view_index, camera, rgb, target, keep, model, result))
     lap("loss")
     if phases is not None:
