@@ -144,3 +144,63 @@ def test_the_median_depths_normal_agrees_with_the_normal_map_on_a_flat_disk():
     flat, flat_valid = normals_from_depth(out.depth, camera)
     assert (torch.nn.functional.normalize(out.normal[flat_valid & inside], dim=-1)
             * flat[flat_valid & inside]).sum(dim=-1).max() < 0.95
+
+
+def reference_planar_depth(splats: Splats, camera: Camera) -> torch.Tensor:
+    """The planes' depth the reference way: composited normals and plane distances, each pixel's ray from K^-1."""
+    means2d, conics, depths, radii, tile_min, tile_max, _ = reference_project(
+        splats.means, splats.quats, splats.scales, splats.opacities, camera)
+    normals = reference_normals(splats.means, splats.quats, splats.scales, camera)
+    w2c = camera.world_to_camera.to(splats.means.dtype)
+    distances = (normals * (splats.means @ w2c[:3, :3].T + w2c[:3, 3])).sum(dim=-1, keepdim=True)
+    zero = torch.zeros(3, dtype=splats.means.dtype)
+    composite = [reference_composite(means2d, conics, splats.opacities, values, depths, radii, tile_min, tile_max,
+                                     zero, camera.width, camera.height)[0] for values in (normals, distances.expand(-1, 3))]
+    ys, xs = torch.meshgrid(torch.arange(camera.height, dtype=torch.float64),
+                            torch.arange(camera.width, dtype=torch.float64), indexing="ij")
+    pixels = torch.stack([xs + 0.5, ys + 0.5, torch.ones_like(xs)], dim=-1)
+    rays = pixels @ torch.linalg.inv(camera.K.double()).T.to(splats.means.dtype)
+    slant = (composite[0] * rays).sum(dim=-1)
+    depth = composite[1][..., 0] / torch.where(slant.abs() >= 1e-3, slant, torch.ones_like(slant))
+    return torch.where((slant.abs() >= 1e-3) & (depth > 0), depth, torch.zeros_like(depth))
+
+
+@pytest.mark.parametrize("kernels,dtype,rtol", [("simd", torch.float32, 2e-3), ("scalar", torch.float64, 1e-8)])
+def test_the_planar_depth_and_its_gradients_match_the_reference(kernels, dtype, rtol):
+    splats = random_splats(80, 5, dtype=dtype, log_scale=(-3.0, -1.2))
+    camera = make_camera(45, 37)
+    fast_in = leaf(splats)
+    ref_in = leaf(Splats(*(getattr(splats, p).double() for p in ("means", "quats", "scales", "opacities", "sh"))))
+    previous = cpu_kernels()
+    set_cpu_kernels(kernels)
+    try:
+        fast = render(fast_in, camera, planar_depth=True)
+    finally:
+        set_cpu_kernels(previous)
+    expected = reference_planar_depth(ref_in, camera)
+    # Pixels where a plane is seen almost edge-on are ill-conditioned; compare where it is well seen.
+    seen = (expected > 0) & (fast.planar_depth.double() > 0) & (fast.alpha.double() > 0.3)
+    assert fast.normal is None and seen.sum() > 100
+    torch.testing.assert_close(fast.planar_depth.double()[seen], expected[seen], atol=2e-4, rtol=1e-3)
+    weights = torch.randn(expected.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+    (fast.planar_depth * torch.where(seen, weights, 0.0).to(dtype)).sum().backward()
+    (expected * torch.where(seen, weights, 0.0)).sum().backward()
+    for name in GRADIENT_PARAMS:
+        assert_close_relative(getattr(fast_in, name).grad.double(), getattr(ref_in, name).grad, rtol, name)
+
+
+def test_a_tilted_disks_planar_depth_is_its_plane_and_its_normal_the_disks():
+    """Inside a disk seen at 35 degrees the planar depth is where each ray meets the disk's plane, and the normal of
+    that depth map is the disk's normal, as the normal map says."""
+    camera = make_camera(45, 37, dtype=torch.float64)
+    out = render(flat_disk(35.0, radius=1.0), camera, normals=True, planar_depth=True)
+    angle = math.radians(35.0)
+    axis = torch.tensor([0.0, math.sin(angle), -math.cos(angle)], dtype=torch.float64)  # facing the camera
+    rays = points_from_depth(torch.ones(37, 45, dtype=torch.float64), camera)
+    plane = (axis @ torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)) / (rays @ axis)
+    inside = out.alpha > 0.5
+    assert inside.sum() > 200
+    torch.testing.assert_close(out.planar_depth[inside], plane[inside], atol=1e-9, rtol=0)
+    from_depth, valid = normals_from_depth(out.planar_depth, camera)
+    both = valid & inside
+    torch.testing.assert_close(from_depth[both], axis.expand(int(both.sum()), 3), atol=1e-9, rtol=0)
