@@ -155,7 +155,8 @@ def reference_planar_depth(splats: Splats, camera: Camera) -> torch.Tensor:
     distances = (normals * (splats.means @ w2c[:3, :3].T + w2c[:3, 3])).sum(dim=-1, keepdim=True)
     zero = torch.zeros(3, dtype=splats.means.dtype)
     composite = [reference_composite(means2d, conics, splats.opacities, values, depths, radii, tile_min, tile_max,
-                                     zero, camera.width, camera.height)[0] for values in (normals, distances.expand(-1, 3))]
+                                     zero, camera.width, camera.height)[0]
+                 for values in (normals, distances.expand(-1, 3))]
     ys, xs = torch.meshgrid(torch.arange(camera.height, dtype=torch.float64),
                             torch.arange(camera.width, dtype=torch.float64), indexing="ij")
     pixels = torch.stack([xs + 0.5, ys + 0.5, torch.ones_like(xs)], dim=-1)
