@@ -34,23 +34,29 @@ def random_linear_loss(image: torch.Tensor, seed: int) -> torch.Tensor:
     return (image * torch.randn(image.shape, generator=g, dtype=torch.float64).to(image.dtype)).sum()
 
 
+def rendered_with(kernels: str, splats: Splats, camera: Camera, **outputs):
+    """(the render through `kernels` of leaf copies of `splats`, those leaves, float64 leaves for the reference).
+    The reference runs in float64 always: the eigenvector's backward divides by the gaps between the eigenvalues,
+    which float32 rounding turns into noise of about 1e-3 of the scales' gradient."""
+    fast_in = leaf(splats)
+    ref_in = leaf(Splats(*(getattr(splats, p).double() for p in ("means", "quats", "scales", "opacities", "sh"))))
+    previous = cpu_kernels()
+    set_cpu_kernels(kernels)
+    try:
+        return render(fast_in, camera, **outputs), fast_in, ref_in
+    finally:
+        set_cpu_kernels(previous)
+
+
 @pytest.mark.parametrize("kernels,dtype,rtol", [("simd", torch.float32, 2e-4), ("tile", torch.float32, 2e-4),
                                                 ("scalar", torch.float64, 1e-8)])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_normal_map_and_its_gradients_match_the_reference(kernels, dtype, rtol, seed):
     splats = random_splats(80, seed, dtype=dtype, log_scale=(-3.0, -1.2))
     camera = make_camera(45, 37)
-    # The reference runs in float64 always: the eigenvector's backward divides by the gaps between the eigenvalues,
-    # which float32 rounding turns into noise of about 1e-3 of the scales' gradient.
-    fast_in = leaf(splats)
-    ref_in = leaf(Splats(*(getattr(splats, p).double() for p in ("means", "quats", "scales", "opacities", "sh"))))
-    previous = cpu_kernels()
-    set_cpu_kernels(kernels)
-    try:
-        fast = render(fast_in, camera, normals=True).normal
-        random_linear_loss(fast, seed).backward()
-    finally:
-        set_cpu_kernels(previous)
+    out, fast_in, ref_in = rendered_with(kernels, splats, camera, normals=True)
+    fast = out.normal
+    random_linear_loss(fast, seed).backward()
     expected = reference_normal_map(ref_in, camera)
     random_linear_loss(expected, seed).backward()
     assert fast.shape == (37, 45, 3) and expected.abs().max() > 0.5, "the scene should cover part of the image"
@@ -170,14 +176,7 @@ def reference_planar_depth(splats: Splats, camera: Camera) -> torch.Tensor:
 def test_the_planar_depth_and_its_gradients_match_the_reference(kernels, dtype, rtol):
     splats = random_splats(80, 5, dtype=dtype, log_scale=(-3.0, -1.2))
     camera = make_camera(45, 37)
-    fast_in = leaf(splats)
-    ref_in = leaf(Splats(*(getattr(splats, p).double() for p in ("means", "quats", "scales", "opacities", "sh"))))
-    previous = cpu_kernels()
-    set_cpu_kernels(kernels)
-    try:
-        fast = render(fast_in, camera, planar_depth=True)
-    finally:
-        set_cpu_kernels(previous)
+    fast, fast_in, ref_in = rendered_with(kernels, splats, camera, planar_depth=True)
     expected = reference_planar_depth(ref_in, camera)
     # Pixels where a plane is seen almost edge-on are ill-conditioned; compare where it is well seen.
     seen = (expected > 0) & (fast.planar_depth.double() > 0) & (fast.alpha.double() > 0.3)
