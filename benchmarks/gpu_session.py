@@ -6,9 +6,9 @@
 
 A GPU is rarely at hand, so nothing here may need a second try: each phase has a share of the time, is skipped (and
 says so) when too little is left, and a failing phase is recorded and does not stop the others. Nothing is
-downloaded (carry the wheels of warp-lang, tyro, docstring-parser, typeguard, plyfile, trimesh, pycolmap for a
-COLMAP capture, gsplat, and the LPIPS weights): gsplat must be installed (its CUDA extension is built in the background from the start, with nvcc and
-ninja) or the gsplat arms are skipped, saying why.
+downloaded: carry the wheels of warp-lang, tyro, docstring-parser, typeguard, plyfile, trimesh, pycolmap (for a
+COLMAP capture) and gsplat, and the LPIPS weights. gsplat must be installed (its CUDA extension is built in the
+background from the start, with nvcc and ninja) or the gsplat arms are skipped, saying why.
 
     tests     pytest --device cuda: the rasterizer and tile-kernel tests against the dense reference renderer on CUDA
               tensors, the fused SSIM, and a short training run
@@ -22,8 +22,8 @@ ninja) or the gsplat arms are skipped, saying why.
     capture   the same on a capture at full resolution, cap 1M, 500k random points
     train     `mcsplat train CAPTURE --steps 30000 --cap-max 1000000 --eval-every 5000`, stopped at the deadline
               (SIGTERM: the run saves and stops); the steps reached, the minutes 30,000 steps would take at the last
-              logged speed, and the test PSNR and count of live Gaussians at each evaluation (its log.jsonl is copied
-              to train_log.jsonl)
+              logged speed, and the test PSNR at each evaluation with the Gaussians MCMC found dead at the last
+              relocation before it (its log.jsonl is copied to train_log.jsonl)
 
 Figures go to --out (default benchmarks/results/gpu_session): results.jsonl (one record per phase, with the
 machine) and results.md; each phase's output goes to <phase>.log there, the runs themselves to --runs.
