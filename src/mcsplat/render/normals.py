@@ -3,8 +3,8 @@
 A Gaussian pulled flat toward a surface element (2DGS, PGSR) has its shortest axis across the surface, so that axis
 is its normal. It is turned to face the camera (a surface is seen from its front), then composited with the same
 weights as the colour, over a zero background: the map holds sum_i w_i n_i, which is a unit vector only where the
-pixel is opaque and its Gaussians agree. Which axis is shortest is a choice, not a function of the parameters, so
-gradients reach the rotation (and, through the compositing, the weights) but not the scales.
+pixel is opaque and its Gaussians agree. Which axis is shortest is a choice, not a function of the parameters: the
+normal passes its gradient to the rotation only (the scales get theirs through the compositing weights).
 
 The planar depth (PGSR's unbiased depth) goes with it: each Gaussian's plane is {x : n . x = d} with d = n . mean,
 the plane distances are composited like the normals, and each pixel's depth is where its ray meets the plane of the
