@@ -53,6 +53,8 @@ TRAIN_OPTIONS = ["--steps", "3000", "--cap-max", "100000", "--sh-increase-every"
                  "--no-save-renders"]
 STRATEGY_OPTIONS = {
     "mcmc": ["--mcmc.refine-start", "50", "--mcmc.refine-every", "10", "--mcmc.refine-stop", "2500"],
+    "mcmc-surface": ["--mcmc.refine-start", "50", "--mcmc.refine-every", "10", "--mcmc.refine-stop", "2500",
+                     "--surface"],
     "adc": ["--strategy", "adc", "--adc.densify-start", "50", "--adc.densify-every", "10", "--adc.densify-stop",
             "1500", "--adc.reset-every", "300"]}
 NEAR_VOXELS = 3           # "on the surface": within this many voxels of the mesh

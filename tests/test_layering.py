@@ -23,7 +23,7 @@ LAYERS = [
     ("loop", ("trainer", "stopping", "subscribers")),
     ("run", ("run_setup", "state", "run_dir", "events", "run_metrics", "evaluation")),
     ("set-up", ("distributed", "initialization", "planning", "config", "config_types")),
-    ("method", ("loss_terms", "strategy", "mesh", "appearance", "pose_refinement", "visibility", "metrics", "optim")),
+    ("method", ("surface", "loss_terms", "strategy", "mesh", "appearance", "pose_refinement", "visibility", "metrics", "optim")),
     ("building blocks", ("render", "losses", "ssim_cpu", "ssim_warp", "capture", "data", "io", "camera_path", "per_image")),
     ("model", ("gaussians",)),
     ("foundation", ("geometry", "compute", "camera", "errors", "")),

@@ -11,7 +11,8 @@ term, in this order (the order of the additions, so that a CPU run is bit for bi
 A new loss (a depth prior reading `ctx.view.attachment("depth", ...)`) is one more term in the list that
 state.start makes (docs/extending.md, "A loss term"); train_step does not change. A term that reads an output the
 render gives only on request (the normal map, the median depth) names it in `render_outputs`, render()'s keyword:
-the step asks for the union of its terms' outputs, so that a run whose terms read none pays for none.
+the step asks for the union of its terms' outputs, so that a run whose terms read none pays for none. --surface's
+terms are in surface.py.
 """
 
 from __future__ import annotations
@@ -42,17 +43,24 @@ class StepContext:
     keep: torch.Tensor | None  # [H, W, 1] the mask's weights, None when the scene has no masks
     model: GaussianModel
     result: RenderResult  # the render itself: alpha, expected depth, ...
+    steps: int = 0  # the run's planned steps (a term that starts part-way through reads it)
 
 
 class LossTerm(Protocol):
-    # Optionally, as a class attribute: render_outputs = frozenset({"normals"}), the outputs it reads from ctx.result.
+    # Optionally: render_outputs, the outputs it reads from ctx.result, as a set (frozenset({"normals"})) or as a
+    # method render_outputs(step, steps) giving the set for that step (empty while the term is off).
     def __call__(self, ctx: StepContext) -> torch.Tensor | None:
         ...
 
 
-def render_outputs(terms: Sequence[LossTerm]) -> dict[str, bool]:
-    """render()'s keywords for the optional outputs the terms read (`normals=True`, ...): none for the standard loss."""
-    return {name: True for term in terms for name in sorted(getattr(term, "render_outputs", ()))}
+def render_outputs(terms: Sequence[LossTerm], step: int = 0, steps: int = 0) -> dict[str, bool]:
+    """render()'s keywords for the optional outputs the terms read at `step` (`normals=True`, ...): none for the
+    standard loss."""
+    wanted: set[str] = set()
+    for term in terms:
+        outputs = getattr(term, "render_outputs", ())
+        wanted.update(outputs(step, steps) if callable(outputs) else outputs)
+    return {name: True for name in sorted(wanted)}
 
 
 class Photometric:

@@ -20,6 +20,7 @@ from .distributed import Team
 from .gaussians import GaussianModel
 from .initialization import initial_model
 from .loss_terms import LossTerm, standard_terms
+from .surface import surface_terms
 from .optim import make_optimizers
 from .per_image import PerImageModule
 from .planning import Plan, make_strategy
@@ -122,6 +123,8 @@ def start(config: TrainConfig, plan: Plan, scene: Scene, device: torch.device, t
         for module in state.modules:
             module.load_state_dict(checkpoint.get(module.key))  # refuses a checkpoint trained without it
     state.loss_terms = standard_terms(config.ssim_weight, strategy, state.modules)
+    if config.surface:
+        state.loss_terms += surface_terms(config.surface_flatten, config.surface_normal, config.surface_from, radius)
     strategy.collective = team.collective
     return state, note
 

@@ -96,12 +96,14 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
     keep = view.mask_float(device, size=(camera.width, camera.height))  # None unless the scene has masks
     terms = loss_terms if loss_terms is not None else standard_terms(config.ssim_weight, strategy, modules)
     lap("other")
-    result = render.render(model, camera, background, plan.sh_degree_at(step), **render_outputs(terms))
+    result = render.render(model, camera, background, plan.sh_degree_at(step),
+                           **render_outputs(terms, step, plan.steps))
     lap("render")
     rgb = result.rgb
     for module in modules:
         rgb = module.apply(view_index, rgb)
-    loss = total_loss(terms, StepContext(step, view, view_index, camera, rgb, target, keep, model, result))
+    loss = total_loss(terms, StepContext(step, view, view_index, camera, rgb, target, keep, model, result,
+                                         plan.steps))
     lap("loss")
     if phases is not None:
         phases.rendered(result)

@@ -1,0 +1,78 @@
+"""--surface: the loss terms that train Gaussians into a surface a mesh can be made of (PGSR's single-view terms).
+
+    flatten          surface_flatten * mean over the Gaussians the step sees of their smallest scale / scene radius:
+                     each Gaussian pulled toward a flat surface element, whose shortest axis is then its normal
+    depth-normal     from --surface-from of the run on, surface_normal * mean over the pixels of
+                     (1 - |image gradient|)^2 * |N(planar depth) - rendered normal|_1: the normal map
+                     (render/normals.py) held to the normal of the depth of its own planes
+                     (geometry/depth_normals.py), less at the photo's edges, where depth may jump
+
+Both are loss terms (loss_terms.py) and work with either strategy. For MCMC nothing else changes: its position noise
+is shaped by each Gaussian's covariance, so a flat Gaussian moves within its plane and hardly across it, and Eq. 9's
+relocation scales all three axes by one factor, so a copy stays as flat as its source (tests/test_surface.py).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .geometry.depth_normals import normals_from_depth
+from .loss_terms import StepContext
+
+NORMAL_EPS = 1e-6  # a rendered normal shorter than this (no Gaussian there) is left out
+
+
+class Flatten:
+    """The mean smallest scale of the Gaussians the step's view sees, in scene radii."""
+
+    def __init__(self, weight: float, scene_radius: float):
+        self.weight, self.scene_radius = weight, scene_radius
+
+    def __call__(self, ctx: StepContext) -> torch.Tensor | None:
+        seen = ctx.result.visible
+        if self.weight == 0 or not bool(seen.any()):
+            return None
+        smallest = ctx.model.scales[seen].min(dim=-1).values
+        return self.weight * smallest.mean() / self.scene_radius
+
+
+def edge_weight(image: torch.Tensor) -> torch.Tensor:
+    """[H, W] (1 - g)^2, g the grey image's gradient magnitude (central differences) over its largest: 1 where the
+    photo is flat, 0 at its strongest edge."""
+    grey = image.mean(dim=-1)
+    across = torch.zeros_like(grey)
+    down = torch.zeros_like(grey)
+    across[:, 1:-1] = grey[:, 2:] - grey[:, :-2]
+    down[1:-1, :] = grey[2:, :] - grey[:-2, :]
+    gradient = torch.sqrt(across ** 2 + down ** 2)
+    return (1.0 - gradient / gradient.max().clamp_min(1e-12)) ** 2
+
+
+class DepthNormal:
+    """The rendered normals against the normals of the planar depth, from a share of the run on."""
+
+    def __init__(self, weight: float, start_share: float):
+        self.weight, self.start_share = weight, start_share
+
+    def active(self, step: int, steps: int) -> bool:
+        return self.weight > 0 and step >= self.start_share * steps
+
+    def render_outputs(self, step: int, steps: int) -> frozenset[str]:
+        """The normal map and the planar depth, once the term is on (the two passes cost nothing before)."""
+        return frozenset({"normals", "planar_depth"}) if self.active(step, steps) else frozenset()
+
+    def __call__(self, ctx: StepContext) -> torch.Tensor | None:
+        if not self.active(ctx.step, ctx.steps):
+            return None
+        rendered = ctx.result.normal
+        length = rendered.norm(dim=-1, keepdim=True)
+        from_depth, valid = normals_from_depth(ctx.result.planar_depth, ctx.camera)
+        valid = valid & (length[..., 0] > NORMAL_EPS)
+        difference = (from_depth - rendered / length.clamp_min(NORMAL_EPS)).abs().sum(dim=-1)
+        weight = edge_weight(ctx.target).detach() * valid
+        return self.weight * (weight * difference).mean()
+
+
+def surface_terms(flatten: float, normal: float, start_share: float, scene_radius: float) -> list:
+    """The --surface terms, in the order they are added after the standard ones."""
+    return [Flatten(flatten, scene_radius), DepthNormal(normal, start_share)]
