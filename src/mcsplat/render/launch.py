@@ -31,7 +31,8 @@ _cuda_kernels = "tile"
 
 
 def set_cpu_kernels(name: str) -> None:
-    """'simd' (the default) or 'scalar': which compositing kernels float32 renders on the CPU use."""
+    """'simd' (the default), 'scalar' or 'tile' (the CUDA kernels on CPU fibers, for tests): which compositing
+    kernels float32 renders on the CPU use."""
     global _cpu_kernels
     if name not in CPU_KERNELS:
         raise ValueError(f"CPU kernels must be one of {', '.join(CPU_KERNELS)}, got {name!r}")
