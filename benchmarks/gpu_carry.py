@@ -8,8 +8,9 @@ Then make the three calls back to back (a machine stays warm only about 30 s bet
     A  carry [".gpu/a"]  command: bash .gpu/a/run.sh           Warp's library, its first part, parked in /tmp/g
     B  carry [".gpu/b"]  command: bash .gpu/b/run.sh           Warp assembled, the wheels, pycolmap; gsplat's build and
                                                                Warp's CUDA kernels start compiling in the background
-    C  carry [".gpu/c"]  command: MINUTES=8 bash .gpu/c/run.sh Warp's CPU compiler, lego, the bird, the LPIPS weights;
-                                                               gpu_session.py (PHASES="..." picks some phases)
+                                                               (NO_GSPLAT=1 bash ...: no gsplat build)
+    C  carry [".gpu/c"]  command: MINUTES=8 bash .gpu/c/run.sh Warp's CPU compiler, zstandard, lego, the bird, the LPIPS
+                                                               weights; gpu_session.py (PHASES="..." picks phases)
 
 Give call C a timeout_s a little above MINUTES and what B's reply says is left. Warp's wheel is the reason for three
 calls: its library is 81 MB even as xz. The folder is listed in .git/info/exclude, so it never reaches a commit.
@@ -30,7 +31,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 LIMIT = 64 * 2**20  # what one device call carries, the repository included
 PART_BYTES = 56_000_000  # the first part of Warp's library; the rest goes with call B
-PINNED = ("warp-lang", "pycolmap", "plyfile", "tyro", "trimesh")  # their versions from constraints.txt
+PINNED = ("warp-lang", "pycolmap", "plyfile", "tyro", "trimesh", "zstandard")  # their versions from constraints.txt
 ALSO = ("gsplat==1.5.3", "docstring-parser==0.18.0", "typeguard==4.6.1")  # not pinned by the project
 LEGO_TEST_VIEWS = 25  # the first test views: gpu_vs_gsplat.py's PSNR over them
 
@@ -40,13 +41,14 @@ mkdir -p /tmp/g && cp .gpu/a/warp.so.xz.aa /tmp/g/ && nvidia-smi --query-gpu=nam
 """
 RUN_B = """#!/bin/bash
 # Call B: Warp, the wheels and pycolmap into /tmp/site; gsplat's JIT build and Warp's CUDA kernels compile in their own
-# sessions (they outlive this call; call C waits for them).
+# sessions (they outlive this call; call C waits for them). NO_GSPLAT=1 skips gsplat's build (phases without gsplat
+# then have the machine's cores to themselves).
 REPO=$(pwd); export PYTHONUNBUFFERED=1; S=/tmp/site; mkdir -p $S
 ( cd $S && tar -xJf $REPO/.gpu/b/warp-py.tar.xz && mkdir -p warp/bin && cat /tmp/g/warp.so.xz.aa $REPO/.gpu/b/warp.so.xz.ab | xz -d -T16 > warp/bin/warp.so && tar -xJf $REPO/.gpu/b/pycolmap.tar.xz ) || exit 3
 python3 -m pip install -q --no-index --no-deps --no-compile --target $S $REPO/.gpu/b/*.whl || exit 4
 export PYTHONPATH=$S:$REPO/src TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=12
 python3 -c "import warp as wp, pycolmap; wp.init(); print(wp.__version__, wp.get_cuda_devices(), pycolmap.__version__)" || exit 5
-setsid nohup python3 -c "import time; t=time.time(); import torch; from gsplat.cuda._backend import _C; print('gsplat built', _C is not None, round(time.time()-t,1))" > /tmp/gsplat_build.log 2>&1 < /dev/null &
+[ -n "$NO_GSPLAT" ] && echo "gsplat built: not asked for (NO_GSPLAT)" > /tmp/gsplat_build.log || setsid nohup python3 -c "import time; t=time.time(); import torch; from gsplat.cuda._backend import _C; print('gsplat built', _C is not None, round(time.time()-t,1))" > /tmp/gsplat_build.log 2>&1 < /dev/null &
 setsid nohup python3 -c "import time; t=time.time(); import torch, mcsplat; from mcsplat.trainer import step_kernels; from mcsplat.compute.compile import compile_kernels; d=torch.device('cuda'); compile_kernels(step_kernels(d), d); print('warp compiled', round(time.time()-t,1))" > /tmp/warp_compile.log 2>&1 < /dev/null &
 sleep 3; echo B done
 """
@@ -54,6 +56,7 @@ RUN_C = """#!/bin/bash
 # Call C: Warp's CPU compiler and the LPIPS weights; wait for the builds; then gpu_session.py.
 REPO=$(pwd); export PYTHONUNBUFFERED=1; S=/tmp/site
 xz -d -T16 -c $REPO/.gpu/c/warp-clang.so.xz > $S/warp/bin/warp-clang.so || exit 3
+python3 -m pip install -q --no-index --no-deps --no-compile --target $S $REPO/.gpu/c/*.whl || exit 4
 export PYTHONPATH=$S:$REPO/src MCSPLAT_LPIPS_WEIGHTS=$REPO/.gpu/c/lpips TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=12
 for i in $(seq 1 45); do grep -q "gsplat built\\|Error" /tmp/gsplat_build.log && grep -q "warp compiled\\|Error" /tmp/warp_compile.log && break; sleep 2; done
 tail -n 2 /tmp/gsplat_build.log /tmp/warp_compile.log
@@ -185,6 +188,8 @@ def main() -> None:
                 pack_warp(wheel, work, a, b, c)
             elif wheel.name.startswith("pycolmap"):
                 pack_folder_of_wheel(wheel, b / "pycolmap.tar.xz", work)
+            elif wheel.name.startswith("zstandard"):  # (SPZ's compression) B has no room left
+                shutil.copy2(wheel, c)
             else:
                 shutil.copy2(wheel, b)
     (c / "lpips").mkdir()

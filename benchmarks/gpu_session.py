@@ -12,18 +12,25 @@ background from the start, with nvcc and ninja) or the gsplat arms are skipped, 
 
     tests     pytest --device cuda: the rasterizer and tile-kernel tests against the dense reference renderer on CUDA
               tensors, the fused SSIM, and a short training run
-    parity    the same short `mcsplat train` of the capture (a quarter of its size, 3,000 steps) on CUDA and on the
-              CPU, same seed: the test PSNR of each every 1,000 steps (the CUDA path's training against the CPU's)
+    parity    `mcsplat train` of the capture at a quarter of its size (30,000 steps, cap 62,500) on CUDA, beside the
+              same run on the CPU (same seed): the test PSNR every 2,500 steps and the training PSNR along the way.
+              The CPU arm takes 22 minutes on 2 cores, so by default its recorded log stands in for it
+              (--parity-reference, results/gpu_session/cpu_reference); --parity-cpu runs it here as well
     kernels   the compositing kernels alone on the rasterizer benchmark's scene (100k and 300k at 800x800): the
               tile kernels, the tile backward without its skip of unused pairs, and the scalar kernels before them
     profile   step_profile.py on lego 400 at 300k: the GPU's busy time per step against the wall time, and what
               takes the device's and the host's time
     lego      mcsplat against gsplat 1.5.3 (gpu_vs_gsplat.py) on lego 400, cap 300k, 150k random points
     capture   the same on a capture at full resolution, cap 1M, 500k random points
+    collapse  the same from the capture's SfM points, 14,000 steps (the cap is reached near step 11,000), with the
+              share of dead Gaussians every 1,000 steps on each arm: does gsplat's MCMC also end with nearly all
+              dead where mcsplat's `train` at 1M does (benchmarks/README.md, "GPU")?
     train     `mcsplat train CAPTURE --steps 30000 --cap-max 1000000 --eval-every 5000`, stopped at the deadline
               (SIGTERM: the run saves and stops); the steps reached, the minutes 30,000 steps would take at the last
               logged speed, and the test PSNR at each evaluation with the Gaussians MCMC found dead at the last
               relocation before it (its log.jsonl is copied to train_log.jsonl)
+    agreement device_agreement.py on the runs the parity and train phases left: the image, the loss and every
+              gradient of a step on CUDA (tile and scalar kernels) against the CPU's, on the same model and views
 
 Figures go to --out (default benchmarks/results/gpu_session): results.jsonl (one record per phase, with the
 machine) and results.md; each phase's output goes to <phase>.log there, the runs themselves to --runs.
@@ -45,11 +52,14 @@ from pathlib import Path
 import _common as C
 
 REPO = Path(__file__).resolve().parents[1]
-PHASES = ("tests", "parity", "kernels", "profile", "lego", "capture", "train")
+PHASES = ("tests", "parity", "kernels", "profile", "lego", "capture", "collapse", "train", "agreement")
 # Share of the whole time each phase may take (what one phase leaves is free for the next), and the least it needs.
-SHARES = {"tests": 0.12, "parity": 0.1, "kernels": 0.06, "profile": 0.05, "lego": 0.17, "capture": 0.25,
-          "train": 0.25}
-LEAST_SECONDS = {"tests": 30, "parity": 60, "kernels": 20, "profile": 20, "lego": 60, "capture": 90, "train": 40}
+SHARES = {"tests": 0.1, "parity": 0.2, "kernels": 0.05, "profile": 0.05, "lego": 0.12, "capture": 0.18,
+          "collapse": 0.3, "train": 0.25, "agreement": 0.05}
+LEAST_SECONDS = {"tests": 30, "parity": 60, "kernels": 20, "profile": 20, "lego": 60, "capture": 90, "collapse": 90,
+                 "train": 40, "agreement": 20}
+# The training PSNR the parity phase reports at these steps (the log has it every 100 steps).
+PARITY_STEPS = (100, 500, 1000, 2500, 5000, 10000, 15000, 20000, 25000, 30000)
 # The lego and capture phases are the end-to-end training runs on the GPU (their test PSNR beside gsplat's).
 TEST_FILES = ["tests/test_render_tile.py", "tests/test_render.py", "tests/test_render_kernels.py",
               "tests/test_ssim_warp.py"]
@@ -159,7 +169,7 @@ class GsplatBuild:
 
 
 def phase_compare(args, seconds: float, log: Path, data: Path, cap: int, init: int, steps: int, timed: int,
-                  init_method: str) -> dict:
+                  init_method: str, *extra: str) -> dict:
     started = time.monotonic()
     built = "not asked" if args.dry_run else args.gsplat_build.wait(seconds / 2)
     seconds -= time.monotonic() - started
@@ -167,7 +177,7 @@ def phase_compare(args, seconds: float, log: Path, data: Path, cap: int, init: i
     out = args.runs / log.stem
     command = [sys.executable, "benchmarks/gpu_vs_gsplat.py", "--data", str(data), "--cap", str(cap),
                "--init", str(init), "--init-method", init_method, "--steps", str(steps), "--timed", str(timed),
-               "--arms", *arms, "--out", str(out), "--device", "cpu" if args.dry_run else "cuda"]
+               "--arms", *arms, "--out", str(out), "--device", "cpu" if args.dry_run else "cuda", *extra]
     code, took = run_logged(command, log, seconds)
     records = [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
     result = {"exit_code": code, "seconds": round(took, 1), "arms": arms, "records": records,
@@ -207,23 +217,40 @@ def evaluations(run: Path) -> list[dict]:
     return found
 
 
+def train_psnr_at(run: Path, steps: tuple[int, ...]) -> dict[str, float]:
+    """The logged training PSNR at each of `steps` the run reached."""
+    logged = {r["step"]: r["train_psnr"] for r in run_log(run) if "train_psnr" in r}
+    return {str(step): logged[step] for step in steps if step in logged}
+
+
+def parity_arm(run: Path, code: int, took: float, steps: tuple[int, ...]) -> dict:
+    return {"exit_code": code, "seconds": round(took, 1), "evaluations": evaluations(run),
+            "train_psnr": train_psnr_at(run, steps)}
+
+
 def phase_parity(args, seconds: float, log: Path) -> dict:
-    """The CUDA path's training against the CPU's: a quarter-size run of the capture, the same seed, on each device.
-    Their test PSNR should agree to run-to-run noise (a few tenths of a dB); a CUDA run far below points at a kernel
-    or a synchronisation that only the GPU has."""
-    steps, cap, every, downscale = (20, 2000, 10, "2") if args.dry_run else (3000, 62_500, 1000, "4")
+    """The CUDA path's training against the CPU's: a quarter-size run of the capture, the same seed, on each device
+    (the CPU's from its recorded run unless --parity-cpu). Their test PSNR should agree to run-to-run noise (a few
+    tenths of a dB), and their training PSNR early on closely; a CUDA run far below points at a kernel or a
+    synchronisation that only the GPU has."""
+    steps, cap, every, downscale = (20, 2000, 10, "2") if args.dry_run else (args.parity_steps, 62_500, 2500, "4")
+    marks = (10, 20) if args.dry_run else PARITY_STEPS
     result: dict = {"steps": steps, "cap": cap, "downscale": int(downscale)}
     started = time.monotonic()
-    for device in ("cuda", "cpu"):
+    devices = ("cuda", "cpu") if args.parity_cpu or args.dry_run else ("cuda",)
+    for device in devices:
         run = args.runs / f"parity_{device}"
         left = seconds - (time.monotonic() - started)
         code, took = run_logged(train_command(args, run, "cpu" if args.dry_run else device, steps, cap, every,
-                                              "--downscale", downscale), log, left / (2 if device == "cuda" else 1))
-        result[f"on_{device}"] = {"exit_code": code, "seconds": round(took, 1), "evaluations": evaluations(run)}
-    runs = [result["on_cuda"], result["on_cpu"]]  # ("cpu" alone names the machine's processor in the record)
+                                              "--downscale", downscale), log, left / (len(devices) if device == "cuda"
+                                                                                      else 1))
+        result[f"on_{device}"] = parity_arm(run, code, took, marks)
+    if "on_cpu" not in result and args.parity_reference and (args.parity_reference / "log.jsonl").exists():
+        result["on_cpu"] = {**parity_arm(args.parity_reference, 0, 0.0, marks), "recorded": True}
+    runs = [result[f"on_{d}"] for d in ("cuda", "cpu") if f"on_{d}" in result]
     result["exit_code"] = max(run["exit_code"] for run in runs)
     last = [run["evaluations"][-1]["test_psnr"] if run["evaluations"] else None for run in runs]
-    if None not in last:
+    if len(last) == 2 and None not in last:
         result["psnr_cuda_minus_cpu"] = round(last[0] - last[1], 3)
     return result
 
@@ -254,11 +281,27 @@ def phase_train(args, seconds: float, log: Path) -> dict:
     return result
 
 
+def phase_agreement(args, seconds: float, log: Path) -> dict:
+    """device_agreement.py on the runs of this session that left a checkpoint."""
+    runs = [run for run in (args.runs / "parity_cuda", args.runs / "train_run") if (run / "checkpoint.pt").exists()]
+    if not runs:
+        return {"exit_code": 0, "seconds": 0.0, "runs": []}
+    command = [sys.executable, "benchmarks/device_agreement.py", *map(str, runs),
+               "--views", "2" if args.dry_run else "3"]
+    code, took = run_logged(command, log, seconds)
+    records = [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
+    return {"exit_code": code, "seconds": round(took, 1), "runs": [str(r) for r in runs],
+            "summaries": [r for r in records if r.get("summary")], "records": [r for r in records
+                                                                             if not r.get("summary")]}
+
+
 def run_phase(name: str, args, seconds: float, log: Path) -> dict:
     if name == "tests":
         return phase_tests(args, seconds, log)
     if name == "parity":
         return phase_parity(args, seconds, log)
+    if name == "agreement":
+        return phase_agreement(args, seconds, log)
     if name == "kernels":
         return phase_kernels(args, seconds, log)
     if name == "profile":
@@ -271,6 +314,11 @@ def run_phase(name: str, args, seconds: float, log: Path) -> dict:
         steps, timed = (20, 10) if args.dry_run else (args.capture_steps, 500)
         cap = 3000 if args.dry_run else 1_000_000
         return phase_compare(args, seconds, log, args.capture, cap, cap // 2, steps, timed, "random")
+    if name == "collapse":
+        steps, timed = (30, 10) if args.dry_run else (args.collapse_steps, 500)
+        cap = 3000 if args.dry_run else 1_000_000
+        return phase_compare(args, seconds, log, args.capture, cap, cap // 2, steps, timed, "auto",
+                             "--dead-every", "10" if args.dry_run else "1000")
     return phase_train(args, seconds, log)
 
 
@@ -282,7 +330,8 @@ def write_page(out: Path, records: list[dict]) -> str:
         elif r["phase"] == "tests":
             result = f"{r.get('summary')} (exit {r['exit_code']})"
         elif r["phase"] == "parity":
-            result = "; ".join(f"{d} " + ", ".join(f"{e['test_psnr']:.2f}" for e in r[f"on_{d}"]["evaluations"])
+            result = "; ".join(f"{d}{' (recorded)' if r[f'on_{d}'].get('recorded') else ''} "
+                               + ", ".join(f"{e['test_psnr']:.2f}" for e in r[f"on_{d}"]["evaluations"])
                                + " dB" for d in ("cuda", "cpu") if f"on_{d}" in r)
             if "psnr_cuda_minus_cpu" in r:
                 result += f"; CUDA - CPU {r['psnr_cuda_minus_cpu']:+.2f} dB"
@@ -293,12 +342,18 @@ def write_page(out: Path, records: list[dict]) -> str:
                 + "".join(f", {v} {k.get(v + '_composite_forward_ms')} / {k.get(v + '_composite_backward_ms')}"
                           for v in ("tile-all", "scalar") if v + "_composite_forward_ms" in k)
                 for k in r.get("records", []))
+        elif r["phase"] == "agreement":
+            result = "; ".join(f"{Path(x['run']).name} at step {x['step']}: worst relative gradient error "
+                               + ", ".join(f"{path} {error:.1e}" for path, error in x["worst_relative_error"].items())
+                               for x in r.get("summaries", [])) + f" (exit {r['exit_code']})"
         elif r["phase"] == "profile":
             result = ", ".join(f"{k} {r[k]}" for k in ("gaussians", "wall_ms_per_step", "gpu_busy_ms_per_step",
                                                         "host_op_ms_per_step", "kernel_launches_per_step") if k in r)
             result += f" (exit {r['exit_code']})"
-        elif r["phase"] in ("lego", "capture"):
+        elif r["phase"] in ("lego", "capture", "collapse"):
             arms = "; ".join(f"{a['arm']} {a['median_step_ms']:.2f} ms, {a['peak_gpu_mb']:.0f} MB, {a['psnr']:.2f} dB"
+                             + (", dead " + " ".join(f"{100 * v:.0f}%" for v in a["dead_share"].values())
+                                if r["phase"] == "collapse" else "")
                              for a in r.get("records", []))
             ratio = f"; step {r['step_ratio']}x, memory {r['memory_ratio']}x, PSNR {r['psnr_difference']:+.2f} dB" \
                 if "step_ratio" in r else ""
@@ -322,6 +377,11 @@ def main() -> None:
     parser.add_argument("--phases", nargs="+", default=list(PHASES), choices=PHASES)
     parser.add_argument("--lego-steps", type=int, default=3000)
     parser.add_argument("--capture-steps", type=int, default=3000)
+    parser.add_argument("--collapse-steps", type=int, default=14_000)
+    parser.add_argument("--parity-steps", type=int, default=30_000)
+    parser.add_argument("--parity-cpu", action="store_true", help="run the parity phase's CPU arm here too")
+    parser.add_argument("--parity-reference", type=Path, default=C.RESULTS / "gpu_session" / "cpu_reference",
+                        help="a recorded CPU run of the parity phase's command (its log.jsonl and metrics.json)")
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--runs", type=Path, default=None, help="where the training runs go (default: OUT/runs)")
     parser.add_argument("--dry-run", action="store_true",
@@ -336,7 +396,8 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     args.runs = args.runs or out / "runs"
     clock = Clock(args.minutes)
-    args.gsplat_build = None if args.dry_run else GsplatBuild(out)
+    # gsplat's build takes 12 cores for a minute or more: only for the phases that compare with it.
+    args.gsplat_build = None if args.dry_run or not {"lego", "capture", "collapse"} & set(args.phases) else GsplatBuild(out)
     info = C.machine("cpu" if args.dry_run else "cuda")
     print(C.machine_line(info), flush=True)
     records = []

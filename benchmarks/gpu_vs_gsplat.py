@@ -12,7 +12,8 @@ log-linear decay, 0.8 L1 + 0.2 D-SSIM (mcsplat.losses) plus the 0.01 opacity and
 
 Printed per arm: median ms per step (the device synchronised around each step) over the last --timed steps, peak GPU
 memory (torch.cuda.max_memory_allocated over the training), test PSNR / SSIM (each arm's own renderer, final SH
-degree), the Gaussian count. JSON lines and a table go to --out (default benchmarks/results/gpu_vs_gsplat).
+degree), the Gaussian count, and every 1,000 steps (--dead-every) the share of Gaussians at or below the dead opacity just before
+the refinement relocates them (dead_share: MCMC's health; a share that keeps rising ends with nearly all dead). JSON lines and a table go to --out (default benchmarks/results/gpu_vs_gsplat).
 gsplat JIT-compiles its CUDA extension at first use: it needs nvcc and ninja; TORCH_CUDA_ARCH_LIST limits the targets.
 """
 
@@ -82,6 +83,9 @@ class McsplatArm:
     def count(self) -> int:
         return self.model.num_gaussians
 
+    def opacities(self) -> torch.Tensor:
+        return self.model.opacities.detach()
+
     @torch.no_grad()
     def render(self, view, sh_degree: int) -> torch.Tensor:
         return render(self.model, view.camera.to(self.setup.device), self.setup.background, sh_degree).rgb
@@ -142,12 +146,15 @@ class GsplatArm:
     def count(self) -> int:
         return len(self.params["means"])
 
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.params["opacities"].detach())
+
     @torch.no_grad()
     def render(self, view, sh_degree: int) -> torch.Tensor:
         return self._rasterize(view.camera.to(self.setup.device), sh_degree)[0]
 
 
-def run_arm(arm_class, setup: Setup, timed: int) -> dict:
+def run_arm(arm_class, setup: Setup, timed: int, dead_every: int = 1000) -> dict:
     cuda = setup.device.type == "cuda"
     if cuda:
         torch.cuda.synchronize()
@@ -155,13 +162,16 @@ def run_arm(arm_class, setup: Setup, timed: int) -> dict:
         torch.cuda.reset_peak_memory_stats()
     arm = arm_class(setup)
     seconds = []
+    dead_share = {}
     started = time.perf_counter()
     for step, view in enumerate(setup.views()):
         tick = C.now(setup.device)
         arm.step(step, view)
         seconds.append(C.now(setup.device) - tick)
-        if (step + 1) % 1000 == 0:
-            print(f"  {arm.name}: step {step + 1:,}, {arm.count():,} Gaussians, "
+        if (step + 1) % dead_every == 0:  # the next step refines: these are the Gaussians it will relocate
+            dead = float((arm.opacities() <= setup.config.mcmc.min_opacity).float().mean())
+            dead_share[str(step + 1)] = round(dead, 4)
+            print(f"  {arm.name}: step {step + 1:,}, {arm.count():,} Gaussians ({100 * dead:.1f}% dead), "
                   f"{1000 * C.median(seconds[-200:]):.2f} ms/step lately", flush=True)
     total = time.perf_counter() - started
     peak = torch.cuda.max_memory_allocated() / 2**20 if cuda else C.peak_rss_mb()
@@ -175,20 +185,22 @@ def run_arm(arm_class, setup: Setup, timed: int) -> dict:
             "num_gaussians": arm.count(), "median_step_ms": 1000 * C.median(seconds[-timed:]),
             "timed_steps": min(timed, len(seconds)), "train_seconds": round(total, 2), "peak_gpu_mb": round(peak, 1),
             "psnr": sum(s[0] for s in scores) / len(scores), "ssim": sum(s[1] for s in scores) / len(scores),
-            "test_views": len(scores)}
+            "test_views": len(scores), "dead_share": dead_share}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", required=True, help="a Blender scene folder (lego 400 in the benchmarks' figures)")
     parser.add_argument("--cap", type=int, default=300_000)
-    parser.add_argument("--init", type=int, default=None, help="random initial points (default: cap / 2)")
+    parser.add_argument("--init", type=int, default=None, help="random initial points (default: cap / 2; with SfM "
+                                                                    "points these are used instead)")
     parser.add_argument("--init-method", default="auto", choices=["auto", "random"],
                         help="random: --init random points also for a capture with SfM points (to reach a large cap "
                              "within the run)")
     parser.add_argument("--steps", type=int, default=5000)
     parser.add_argument("--timed", type=int, default=1000, help="the median is taken over the last N steps")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--dead-every", type=int, default=1000, help="steps between two dead_share figures")
     parser.add_argument("--arms", nargs="+", default=["gsplat", "mcsplat"], choices=["gsplat", "mcsplat"])
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--device", default="cuda", choices=["cuda", "cpu"],
@@ -204,7 +216,7 @@ def main() -> None:
     records = []
     for name in args.arms:
         print(f"{name}: {args.steps:,} steps, cap {args.cap:,}, {args.init:,} initial points", flush=True)
-        record = run_arm({"gsplat": GsplatArm, "mcsplat": McsplatArm}[name], setup, args.timed)
+        record = run_arm({"gsplat": GsplatArm, "mcsplat": McsplatArm}[name], setup, args.timed, args.dead_every)
         record.update(info)
         C.emit(record)
         records.append(record)

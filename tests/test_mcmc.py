@@ -295,6 +295,30 @@ def test_all_dead_skips_relocation_with_a_warning():
         assert torch.equal(model.params[key].detach(), before[key])
 
 
+def test_a_relocation_at_the_cap_that_finds_most_dead_warns_once():
+    # 6 of 10 dead at the cap: the collapse the bird showed at 1M (the share then feeds itself).
+    model = make_model([0.5] * 4 + [0.001] * 6, seed=11)
+    optimizers = make_optimizers(model, OptimConfig(), RADIUS)
+    strategy = MCMCStrategy(MCMCConfig(cap_max=10), RADIUS, torch.Generator().manual_seed(0))
+    with pytest.warns(RuntimeWarning, match=r"60% of the 10 Gaussians were dead.*--cap-max"):
+        info = strategy.step_post_optimizer(600, model, optimizers, means_lr=1e-4)
+    assert info.relocated == 6
+    model.params["opacity_logits"].data[4:] = -10.0  # dead again: no second warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        strategy.step_post_optimizer(700, model, optimizers, means_lr=1e-4)
+
+
+@pytest.mark.parametrize("opacities, cap", [([0.5] * 6 + [0.001] * 4, 10),   # 40% dead: healthy enough
+                                             ([0.5] * 4 + [0.001] * 6, 1000)])  # below the cap: still growing
+def test_no_collapse_warning_below_half_dead_or_below_the_cap(opacities, cap):
+    model = make_model(opacities, seed=12)
+    strategy = MCMCStrategy(MCMCConfig(cap_max=cap), RADIUS, torch.Generator().manual_seed(0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        strategy.step_post_optimizer(600, model, make_optimizers(model, OptimConfig(), RADIUS), means_lr=1e-4)
+
+
 def test_nothing_dead_changes_nothing():
     model = make_model([0.5] * 10, seed=10)
     optimizers = adam_with_moments(model)

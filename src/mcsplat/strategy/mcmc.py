@@ -244,6 +244,22 @@ class MCMCReport(RefineReport):
     LEVELS: ClassVar[tuple[str, ...]] = ("demand",)
 
 
+# At the cap, a relocation that finds more than this share dead splits each live Gaussian among several copies that
+# start near the dead opacity: the share then feeds itself until nearly all are dead (benchmarks/README.md, "GPU:
+# the broken 1M run"). Healthy runs stay below a quarter.
+COLLAPSE_SHARE = 0.5
+
+
+def collapse_warning(step: int, dead: int, count: int, cap: int) -> str | None:
+    """The warning for a relocation at the cap that found more than COLLAPSE_SHARE of the Gaussians dead, or None.
+    (Below the cap a large share is normal early on: random points in empty space die at the first relocations.)"""
+    if count < cap or dead <= COLLAPSE_SHARE * count:
+        return None
+    return (f"MCMC step {step}: {dead / count:.0%} of the {count:,} Gaussians were dead at this relocation; past "
+            f"half, relocation cannot keep up and the scene fades. The cap is likely far above what this scene "
+            f"needs: lower --cap-max, or use --cap-max auto")
+
+
 class MCMCStrategy:
     """The paper's method behind the Strategy protocol (mcsplat.strategy.base)."""
 
@@ -262,6 +278,7 @@ class MCMCStrategy:
         self.gradients = ScreenGradients()  # kept only with auto_cap
         self.chosen_cap: int | None = None   # auto_cap: the count at which growth stopped
         self.image_pixels = image_pixels
+        self.collapse_warned = False
 
     def follow(self, schedule: MCMCSchedule) -> None:
         """Refine on `schedule` from the next step on (--budget plans the run again as it goes)."""
@@ -304,6 +321,10 @@ class MCMCStrategy:
                 cap, counts["demand"] = self._auto_cap(model) if c.auto_cap else (s.cap_max, None)
                 slots, _ = relocate_dead(model, optimizers, self.generator, min_opacity=c.min_opacity,
                                          max_copies=c.max_copies, agree=self.collective.agree)
+                warning = collapse_warning(step, int(slots.numel()), model.num_gaussians, cap)
+                if warning is not None and not self.collapse_warned:
+                    warnings.warn(warning, RuntimeWarning, stacklevel=2)
+                    self.collapse_warned = True
                 added = grow(model, optimizers, self.generator, cap_max=cap, grow_rate=s.grow_rate,
                              min_opacity=c.min_opacity, max_copies=c.max_copies, agree=self.collective.agree)
                 counts["relocated"], counts["added"] = int(slots.numel()), int(added.numel())
