@@ -1,0 +1,172 @@
+"""How far a trained scene's depth is from the dataset's own: lego's test-view depth renders, with and without
+`--surface`, for MCMC and ADC at the same steps and cap.
+
+    .venv/bin/python benchmarks/depth_accuracy.py                        # the four arms, 2,000 steps at 200x200
+    .venv/bin/python benchmarks/depth_accuracy.py --arms mcmc mcmc-surface --steps 2000
+    .venv/bin/python benchmarks/depth_accuracy.py --report               # rebuild results.md from results.jsonl
+
+Each arm trains lego at half size (200x200, `--downscale 2`) for --steps with cap 300k (the paper's cap for the
+synthetic scenes) from the default 100,000 random points, into results/depth_accuracy/runs/ (git-ignored). It is
+then scored at the full 400x400 on every test view: the dataset's depth (8-bit renders decoded as in
+shared/data/nerf_synthetic_lego_400/SOURCE.md: about 0.009 units of noise a pixel, one 8-bit step is 0.031) against
+the model's median depth (what the mesh export fuses), its alpha-weighted mean depth and the depth of its composited
+planes (render(planar_depth=True), what --surface's normal term differentiates), over the pixels where both
+see the object (the truth's depth above 0 and the model's alpha at least 0.5). Printed per arm: the median and 90th
+percentile of the absolute z error, the share of pixels within 0.02 units, the bias (the median of the signed error:
+positive where the model's surface lies behind the truth), the share of the truth's object pixels the model covers,
+and the run's test PSNR; a picture of one view's error maps goes to results/depth_accuracy/.
+"""
+
+from __future__ import annotations
+
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import _common as C
+
+ARMS = {"mcmc": [], "mcmc-surface": ["--surface"], "adc": ["--strategy", "adc"],
+        "adc-surface": ["--strategy", "adc", "--surface"],
+        # Not run by default: MCMC without its L1 terms on opacity and scale (is the depth bias theirs?).
+        "mcmc-no-reg": ["--mcmc.opacity-reg", "0", "--mcmc.scale-reg", "0"]}
+DEFAULT_ARMS = ("mcmc", "mcmc-surface", "adc", "adc-surface")
+CAP = 300_000
+WITHIN = 0.02        # units of the scene (lego is about 2.5 units across)
+ALPHA_SEEN = 0.5     # the model sees the object where its alpha reaches this
+PICTURE_VIEW = 0     # the test view whose error maps are drawn
+
+
+def train(arm: str, lego: Path, steps: int, runs: Path, script_root: Path) -> Path:
+    run = runs / f"{arm}-{steps}"
+    if (run / "metrics.json").exists():
+        print(f"{arm}: reusing {run}", flush=True)
+        return run
+    arguments = [str(lego), "--out", str(run), "--overwrite", "--downscale", "2", "--steps", str(steps),
+                 "--cap-max", str(CAP), "--quiet", "--save-every", "0", "--lpips-net", "alex", "--no-save-renders",
+                 *ARMS[arm]]
+    C.train_with_tree(script_root, arguments, runs / f"{arm}-{steps}.log", "depth_accuracy")
+    return run
+
+
+def scored_views(lego: Path):
+    """lego's test views at full size, each with the dataset's depth (z, in the scene's units)."""
+    from mcsplat.data import load_scene
+    from mcsplat.data.attachments import DepthOptions
+
+    scene = load_scene(lego, attachments=[DepthOptions(encoding="nerf-synthetic")])
+    return [view for view in scene.test if "depth" in view.attachments]
+
+
+@torch.no_grad()
+def score(run: Path, views) -> tuple[dict, dict]:
+    """The depth errors of one run over the views, and the error maps of the picture's view."""
+    from mcsplat.render import render
+    from mcsplat.run_dir import load
+
+    trained = load(run, torch.device("cpu"))
+    errors = {"median": [], "mean": [], "planar": []}
+    covered = seen = 0
+    maps = {}
+    for index, view in enumerate(views):
+        truth = view.attachment("depth")[..., 0]
+        out = render(trained.model, view.camera, None, trained.sh_degree, median_depth=True, planar_depth=True)
+        both = (truth > 0) & (out.alpha >= ALPHA_SEEN)
+        seen += int((truth > 0).sum())
+        covered += int(both.sum())
+        for name, depth in (("median", out.median_depth), ("mean", out.depth), ("planar", out.planar_depth)):
+            errors[name].append((depth - truth)[both].numpy())
+            if index == PICTURE_VIEW:
+                shown = torch.where(both, (depth - truth).abs(), torch.full_like(truth, float("nan")))
+                maps[name] = shown[_object_box(truth)].numpy()
+    record = {"views": len(views), "coverage": covered / max(seen, 1)}
+    for name, parts in errors.items():
+        signed = np.concatenate(parts)
+        values = np.abs(signed)
+        record[f"{name}_depth"] = {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)),
+                                   "within": float((values <= WITHIN).mean()), "bias": float(np.median(signed))}
+    metrics = json.loads((run / "metrics.json").read_text())
+    record.update(psnr=metrics["psnr"], num_gaussians=metrics["num_gaussians"])
+    return record, maps
+
+
+def _object_box(truth: torch.Tensor, margin: int = 4) -> tuple[slice, slice]:
+    """The rows and columns around the pixels where the truth has depth (the picture shows the object, not the page)."""
+    rows, columns = torch.nonzero(truth > 0, as_tuple=True)
+    height, width = truth.shape
+    return (slice(max(0, int(rows.min()) - margin), min(height, int(rows.max()) + margin + 1)),
+            slice(max(0, int(columns.min()) - margin), min(width, int(columns.max()) + margin + 1)))
+
+
+def picture(maps: dict[str, dict], path: Path) -> None:
+    plt = C.pyplot()
+    arms = list(maps)
+    figure, axes = plt.subplots(1, len(arms), figsize=(3.0 * len(arms) + 1.0, 4.2), squeeze=False)
+    for axis, arm in zip(axes[0], arms):
+        shown = axis.imshow(maps[arm]["median"], cmap="magma", vmin=0.0, vmax=0.1)
+        axis.set_title(f"{arm}\n|median depth - truth|", fontsize=9)
+        axis.axis("off")
+    figure.colorbar(shown, ax=axes[0].tolist(), shrink=0.8, label="units (lego is about 2.5 across)")
+    figure.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(figure)
+
+
+def report(records: list[dict]) -> str:
+    def depth(key: str, part: str, scale: float = 1.0, spec: str = ".4f"):
+        return lambda r: format(r[key][part] * scale, spec)
+
+    table = C.markdown_table(records, [
+        ("arm", "arm", ""), ("steps", "steps", ","), ("Gaussians", "num_gaussians", ","),
+        ("test PSNR", "psnr", ".2f"),
+        ("median depth: median error", "", depth("median_depth", "median")),
+        ("bias", "", depth("median_depth", "bias")),
+        ("p90", "", depth("median_depth", "p90")),
+        (f"within {WITHIN}", "", depth("median_depth", "within", 100, ".1f")),
+        ("mean depth: median error", "", depth("mean_depth", "median")),
+        ("p90 ", "", depth("mean_depth", "p90")),
+        (f"within {WITHIN} ", "", depth("mean_depth", "within", 100, ".1f")),
+        ("planar depth: median error", "", depth("planar_depth", "median")),
+        ("p90  ", "", depth("planar_depth", "p90")),
+        (f"within {WITHIN}  ", "", depth("planar_depth", "within", 100, ".1f")),
+        ("object covered %", "", lambda r: f"{100 * r['coverage']:.1f}")])
+    return table + ("\n\nErrors in lego's units (about 2.5 across), over the test views' pixels where the truth has "
+                    f"depth and the model's alpha is at least {ALPHA_SEEN}; \"within\" in % of those pixels.\n")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--arms", nargs="+", default=list(DEFAULT_ARMS), choices=list(ARMS))
+    parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--data-root", type=Path, default=C.DATA_ROOT)
+    parser.add_argument("--report", action="store_true", help="only rebuild results.md from results.jsonl")
+    args = parser.parse_args()
+    out = C.results_dir("depth_accuracy")
+    if args.report:
+        records = C.read_jsonl(out / "results.jsonl")
+    else:
+        lego = C.scene_path("lego", args.data_root)
+        views = scored_views(lego)
+        if not views:
+            sys.exit(f"{lego} has no test-view depth maps (r_N_depth_0001.png): see the shared data's SOURCE.md")
+        records, maps = [], {}
+        for arm in args.arms:
+            run = train(arm, lego, args.steps, out / "runs", C.REPO)
+            record, maps[arm] = score(run, views)
+            record = {"arm": arm, "steps": args.steps, **record, "commit": C.git_commit(), "date": C.timestamp()}
+            C.emit(record)
+            records.append(record)
+        C.append_jsonl(out / "results.jsonl", records)
+        name = "" if tuple(args.arms) == DEFAULT_ARMS else "-" + "-".join(args.arms)
+        picture(maps, out / f"depth-errors-{args.steps}{name}.png")
+    table = report(records)
+    print(table)
+    C.write_text(out / "results.md", table)
+
+
+if __name__ == "__main__":
+    main()
