@@ -33,8 +33,10 @@ import _common as C
 
 ARMS = {"mcmc": [], "mcmc-surface": ["--surface"], "adc": ["--strategy", "adc"],
         "adc-surface": ["--strategy", "adc", "--surface"],
-        # Not run by default: MCMC without its L1 terms on opacity and scale (is the depth bias theirs?).
-        "mcmc-no-reg": ["--mcmc.opacity-reg", "0", "--mcmc.scale-reg", "0"]}
+        # Not run by default: MCMC without its L1 terms on opacity and scale (is the depth bias theirs?) ...
+        "mcmc-no-reg": ["--mcmc.opacity-reg", "0", "--mcmc.scale-reg", "0"],
+        # ... and with Mip-Splatting's 2D filter, whose opacity compensation undoes the low-pass widening.
+        "mcmc-antialiased": ["--antialiased"], "mcmc-surface-antialiased": ["--surface", "--antialiased"]}
 DEFAULT_ARMS = ("mcmc", "mcmc-surface", "adc", "adc-surface")
 CAP = 300_000
 WITHIN = 0.02        # units of the scene (lego is about 2.5 units across)
