@@ -57,6 +57,9 @@ STRATEGY_OPTIONS = {
                      "--surface"],
     "adc": ["--strategy", "adc", "--adc.densify-start", "50", "--adc.densify-every", "10", "--adc.densify-stop",
             "1500", "--adc.reset-every", "300"]}
+# With Mip-Splatting's 2D filter, which removes the inward bias of 3DGS's low-pass widening (depth_accuracy.py).
+STRATEGY_OPTIONS["mcmc-antialiased"] = STRATEGY_OPTIONS["mcmc"] + ["--antialiased"]
+STRATEGY_OPTIONS["mcmc-surface-antialiased"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--antialiased"]
 NEAR_VOXELS = 3           # "on the surface": within this many voxels of the mesh
 COMPLETE = 0.01           # completeness threshold, in units of R
 AGREEMENT = 0.01          # depth agreement threshold, relative to the depth
