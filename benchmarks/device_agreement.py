@@ -19,7 +19,6 @@ One JSON line per (run, view, path) and a summary line per run; a run without CU
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
