@@ -290,9 +290,9 @@ def phase_agreement(args, seconds: float, log: Path) -> dict:
                "--views", "2" if args.dry_run else "3"]
     code, took = run_logged(command, log, seconds)
     records = [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
-    return {"exit_code": code, "seconds": round(took, 1), "runs": [str(r) for r in runs],
-            "summaries": [r for r in records if r.get("summary")], "records": [r for r in records
-                                                                             if not r.get("summary")]}
+    summaries = [r for r in records if r.get("summary")]
+    return {"exit_code": code, "seconds": round(took, 1), "runs": [str(r) for r in runs], "summaries": summaries,
+            "records": [r for r in records if not r.get("summary")]}
 
 
 def run_phase(name: str, args, seconds: float, log: Path) -> dict:
@@ -397,7 +397,8 @@ def main() -> None:
     args.runs = args.runs or out / "runs"
     clock = Clock(args.minutes)
     # gsplat's build takes 12 cores for a minute or more: only for the phases that compare with it.
-    args.gsplat_build = None if args.dry_run or not {"lego", "capture", "collapse"} & set(args.phases) else GsplatBuild(out)
+    compares = {"lego", "capture", "collapse"} & set(args.phases)
+    args.gsplat_build = GsplatBuild(out) if compares and not args.dry_run else None
     info = C.machine("cpu" if args.dry_run else "cuda")
     print(C.machine_line(info), flush=True)
     records = []

@@ -12,8 +12,9 @@ log-linear decay, 0.8 L1 + 0.2 D-SSIM (mcsplat.losses) plus the 0.01 opacity and
 
 Printed per arm: median ms per step (the device synchronised around each step) over the last --timed steps, peak GPU
 memory (torch.cuda.max_memory_allocated over the training), test PSNR / SSIM (each arm's own renderer, final SH
-degree), the Gaussian count, and every 1,000 steps (--dead-every) the share of Gaussians at or below the dead opacity just before
-the refinement relocates them (dead_share: MCMC's health; a share that keeps rising ends with nearly all dead). JSON lines and a table go to --out (default benchmarks/results/gpu_vs_gsplat).
+degree), the Gaussian count, and every 1,000 steps (--dead-every) the share of Gaussians at or below the dead
+opacity just before the refinement relocates them (dead_share: MCMC's health; a share that keeps rising ends with
+nearly all dead). JSON lines and a table go to --out (default benchmarks/results/gpu_vs_gsplat).
 gsplat JIT-compiles its CUDA extension at first use: it needs nvcc and ninja; TORCH_CUDA_ARCH_LIST limits the targets.
 """
 
