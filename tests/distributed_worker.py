@@ -113,3 +113,33 @@ def listening_addresses() -> list[str]:
             if fields[3] == "0A" and fields[9] in sockets:  # LISTEN
                 found.append(fields[1])
     return found
+
+
+def train_blocks_run(rank: int, world_size: int, init_file: str, results: str, folder: str) -> None:
+    """`mcsplat blocks train FOLDER` as one process of a torchrun group: trains its share of the blocks; rank 0
+    merges. Writes which block folders this process made the runs of, and the merged metrics (rank 0)."""
+    from mcsplat.blocks import train_blocks
+    from mcsplat.partition import BlocksFolder
+
+    os.environ["GLOO_SOCKET_IFNAME"] = "lo"
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world_size,
+                            timeout=timedelta(seconds=300))
+    import mcsplat.blocks.train as block_training
+
+    trained = []
+    original = block_training.train
+
+    def recording(config, *args, **kwargs):
+        trained.append(int(config.block.rpartition("#")[2]))
+        return original(config, *args, **kwargs)
+
+    block_training.train = recording
+    try:
+        merged = train_blocks(BlocksFolder(folder), threads=1, quiet=True)
+        outcome = {"trained": trained, "merged": merged}
+    except MCSplatError as error:
+        outcome = {"error": str(error)}
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
+    (Path(results) / f"rank{rank}.json").write_text(json.dumps(outcome))

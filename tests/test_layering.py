@@ -18,11 +18,11 @@ ARCHITECTURE = ROOT / "docs" / "architecture.md"
 # package, a subpackage or a top-level module ("" is the package's own __init__); inside a unit imports are free.
 LAYERS = [
     ("interface", ("__main__", "cli")),
-    ("session", ("train", "export")),
+    ("session", ("blocks", "train", "export")),
     ("consumers", ("viewer", "report")),
     ("loop", ("trainer", "stopping", "subscribers")),
     ("run", ("run_setup", "state", "run_dir", "events", "run_metrics", "evaluation")),
-    ("set-up", ("distributed", "initialization", "planning", "config", "config_types")),
+    ("set-up", ("distributed", "initialization", "partition", "planning", "config", "config_types")),
     ("method", ("surface", "loss_terms", "strategy", "mesh", "appearance", "pose_refinement", "visibility", "metrics", "optim")),
     ("building blocks", ("render", "losses", "ssim_cpu", "ssim_warp", "capture", "data", "io", "camera_path", "per_image")),
     ("model", ("gaussians",)),

@@ -166,6 +166,9 @@ class TrainConfig:
     dist_timeout: float = 600.0
     """Under torchrun: seconds a process waits for the others before it stops with an error (a process died or
     hangs)."""
+    block: Annotated[str | None, tyro.conf.Suppress] = None
+    """The block of a partitioned scene this run trains, as PLAN_FILE#INDEX with the plan's path from the run folder
+    (`mcsplat blocks train` sets it): the block's views and the points of its region only (partition/)."""
     model: ModelConfig = field(default_factory=ModelConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)

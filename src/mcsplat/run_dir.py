@@ -39,6 +39,7 @@ from .io.checkpoint import DamagedCheckpoint, load_checkpoint, save_checkpoint
 from .io.disk import writing_into
 from .io.lock import FolderLock
 from .io.ply import write_ply
+from .partition import block_scene
 from .planning import REPLANNED_KEYS, Plan, initial_plan, load_run_config, run_record, save_run_config
 
 CONFIG = "config.json"
@@ -139,6 +140,9 @@ class RunDir:
         """The checkpoint that `config` and `plan` (config.json) resume from; refused when config.json no longer says
         what the checkpoint was trained with (edited by hand: another strategy, another SH degree...)."""
         state = self.read_checkpoint()
+        if "optimizers" not in state:
+            raise MCSplatError(f"{self.checkpoint_file} holds a model only (a merge of blocks), not the state a run "
+                               f"continues from; it cannot be resumed")
         trained, now = flat_options(state.get("config") or {}), flat_options(run_record(config, plan))
         # --budget plans these as it goes and plans them again on resume: config.json may be a plan behind.
         planned = REPLANNED_KEYS if config.budget is not None else ()
@@ -377,10 +381,11 @@ def check_resumable(plan: Plan, world_size: int) -> None:
 
 # ------------------------------------------------------------------------------------------- the run's scene
 def scene_of(config: TrainConfig) -> Scene:
-    """The scene a run trains on, loaded as the run loads it."""
-    return load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
-                      background=None if config.background == "auto" else config.background,
-                      masks=MaskOptions(config.masks, config.invert_masks))
+    """The scene a run trains on, loaded as the run loads it (a block's run: the part of it its block trains on)."""
+    scene = load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
+                       background=None if config.background == "auto" else config.background,
+                       masks=MaskOptions(config.masks, config.invert_masks))
+    return scene if config.block is None else block_scene(scene, config.block, config.run_dir)
 
 
 def background_of(config: TrainConfig, scene: Scene) -> Background:
@@ -408,8 +413,9 @@ class TrainedRun:
 
     @functools.cached_property
     def scene(self) -> Scene:
-        """The run's scene, loaded on first use (MCSplatError when its folder is gone or changed)."""
-        return scene_of(self.config)
+        """The run's scene, loaded on first use (MCSplatError when its folder is gone or changed); a block's run
+        finds its plan from where its folder is now."""
+        return scene_of(dataclasses.replace(self.config, out=self.folder.path))
 
     @property
     def background(self) -> Background:

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from .config import TrainConfig
-from .distributed import join
+from .distributed import Team, join
 from .errors import MCSplatError
 from .events import Control, Listener
 from .run_dir import RunDir, folders_to_make, remove_if_empty, train_lock
@@ -30,16 +30,18 @@ def standard_subscribers(config: TrainConfig, run_dir: Path) -> list[Listener]:
     return subscribers
 
 
-def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Control | None = None
-          ) -> dict[str, Any]:
-    """Run the whole job with the standard consumers plus `subscribers`; returns the final metrics."""
+def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Control | None = None,
+          team: Team | None = None) -> dict[str, Any]:
+    """Run the whole job with the standard consumers plus `subscribers`; returns the final metrics. `team`: the
+    processes that train this one model (default: torchrun's, or this process alone; a block's run is alone even
+    under torchrun)."""
     if config.viewer:
         from .viewer import require_viser
         from .viewer.access import check_listen_address
 
         require_viser()  # before the run directory is made: a missing extra must not leave a half-started run
         check_listen_address(config.host, config.port)
-    team = join(config.device, config.dist_timeout)
+    team = team or join(config.device, config.dist_timeout)
     lock = train_lock(config)
     made = folders_to_make(config.run_dir) if team.is_main else []
     finished = False

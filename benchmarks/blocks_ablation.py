@@ -1,0 +1,69 @@
+"""What the choices of a block plan cost, on a small run: the share of outside points a block starts from
+(partition/scene.py OUTSIDE_SHARE), the margin, and the number of blocks, against one run at the same cap.
+
+    .venv/bin/python benchmarks/blocks_ablation.py              # the cup at a quarter size, 1,500 steps, cap 30k
+
+Each arm trains in this process, the blocks one after another (all the cores each), and is scored as merged on all
+the scene's test views. Columns: psnr (merged), gaussians (merged), own_psnr (each block's run on its own test
+views, with all its Gaussians), seconds. Writes results/blocks_ablation/results.{jsonl,md}.
+"""
+
+from __future__ import annotations
+
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import _common as C
+
+ARMS = [  # (blocks, margin, outside share); 1 block is the one run
+    (1, None, None), (2, 0.2, 0.1), (2, 0.2, 0.0), (2, 0.2, 1.0), (4, 0.2, 0.1), (4, 0.4, 0.1)]
+
+
+def main() -> None:
+    from mcsplat.blocks import plan_blocks, train_blocks
+    from mcsplat.config import TrainConfig
+    from mcsplat.partition import BlocksFolder
+    import mcsplat.partition.scene as block_scene
+    from mcsplat.train import train
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="cup")
+    parser.add_argument("--downscale", type=int, default=4)
+    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--cap", type=int, default=30_000)
+    args = parser.parse_args()
+    options = dict(data=C.scene_path(args.scene), downscale=args.downscale, steps=args.steps, cap_max=args.cap,
+                   quiet=True, lpips_net="alex", save_renders=False, save_every=0)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for number, (count, margin, outside) in enumerate(ARMS):
+            out, start = Path(tmp) / f"arm{number}", time.perf_counter()
+            if count == 1:
+                merged, own = train(TrainConfig(out=out, **options)), []
+            else:
+                block_scene.OUTSIDE_SHARE = outside
+                plan_blocks(TrainConfig(**options), out, count=count, margin=margin)
+                folder = BlocksFolder(out)
+                merged = train_blocks(folder, quiet=True)
+                own = [json.loads((folder.block_run(i) / "metrics.json").read_text())["psnr"] for i in range(count)]
+            rows.append({"scene": args.scene, "blocks": count, "margin": margin, "outside_share": outside,
+                         "psnr": merged["psnr"], "gaussians": merged["num_gaussians"],
+                         "own_psnr": " ".join(f"{value:.2f}" for value in own),
+                         "seconds": time.perf_counter() - start})
+            C.emit(rows[-1])
+    folder = C.results_dir("blocks_ablation")
+    C.write_text(folder / "results.jsonl", "".join(json.dumps(row) + "\n" for row in rows))
+    columns = [("blocks", "blocks", ""), ("margin", "margin", ""), ("outside share", "outside_share", ""),
+               ("test PSNR (merged)", "psnr", ".2f"), ("Gaussians (merged)", "gaussians", ","),
+               ("each block's own PSNR", "own_psnr", ""), ("s", "seconds", ".0f")]
+    C.write_results_page(folder, f"Block plans against one run ({args.scene}, downscale {args.downscale}, "
+                         f"{args.steps:,} steps, cap {args.cap:,})", "blocks_ablation.py", rows, columns)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,37 @@
+"""`mcsplat blocks plan`: the scene loaded as its runs will load it, cut into blocks, the plan written and shown."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from ..config import TrainConfig
+from ..errors import MCSplatError
+from ..io.disk import writing_into
+from ..partition import BlockPlan, BlocksFolder, make_plan
+from ..partition.make import plan_table
+from ..run_dir import refuse_scene_folder, scene_of
+
+
+def plan_blocks(training: TrainConfig, out: Path, count: int | None = None, memory: int | None = None,
+                margin: float = 0.2, min_view_share: float = 0.25, overwrite: bool = False) -> BlockPlan:
+    """Write OUT/blocks.json for `training` (the options every block trains with) and return the plan."""
+    folder = BlocksFolder(out)
+    refuse_scene_folder(folder.path, Path(training.data))
+    if folder.plan_file.exists():
+        if not overwrite:
+            raise MCSplatError(f"{folder.plan_file} exists; train its blocks with `mcsplat blocks train "
+                               f"{folder.path}`, or pass --overwrite to plan again")
+        if folder.block_runs():  # trained to the old plan: they would be taken for blocks of the new one
+            raise MCSplatError(f"{folder.path} holds block runs of its present plan ({folder.block_runs()[0].name}"
+                               f"...); plan again into another --out")
+    training = dataclasses.replace(training, out=None, resume=False, overwrite=False, block=None)
+    scene = scene_of(training)
+    plan = make_plan(scene, training, count=count, memory=memory, margin=margin, min_view_share=min_view_share)
+    with writing_into(folder.path.parent):
+        folder.path.mkdir(parents=True, exist_ok=True)
+    plan.write(folder.plan_file)
+    if not training.quiet:
+        print(plan_table(plan))
+        print(f"plan written to {folder.plan_file}; train with `mcsplat blocks train {folder.path}`")
+    return plan

@@ -1,0 +1,150 @@
+"""The plan made from a scene: cut its ground plane into cells of equal point counts, grow each into its region,
+give each block the views that see its region and a cap in proportion to the points it trains from."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from ..config import TrainConfig
+from ..data import Scene, View
+from ..errors import MCSplatError
+from .cells import bounds, split_cells
+from .ground import GroundFrame, ground_of
+from .memory import estimated_bytes, format_bytes, gaussians_that_fit
+from .plan import Block, BlockPlan
+
+MOST_BLOCKS = 256
+SAMPLED_POINTS = 50_000  # points projected into each view to tell which blocks it sees
+MIN_TRAIN_VIEWS = 10  # a block trains on at least the views that see most of it
+
+
+def make_plan(scene: Scene, training: TrainConfig, count: int | None = None, memory: int | None = None,
+              margin: float = 0.2, min_view_share: float = 0.25) -> BlockPlan:
+    """The plan of `scene` in `count` blocks, or in as few as let each block's run fit in `memory` bytes."""
+    total = total_cap(training)
+    if count is None and memory is None:
+        raise MCSplatError("give the number of blocks (--count) or the memory each block's run may hold (--memory)")
+    if count is not None and not 1 <= count <= MOST_BLOCKS:
+        raise MCSplatError(f"--count must be between 1 and {MOST_BLOCKS}")
+    if not margin >= 0 or not 0 <= min_view_share < 1:
+        raise MCSplatError("--margin must be 0 or more and --min-view-share within [0, 1)")
+    pixels = max(view.camera.width * view.camera.height for view in scene.train)
+    if memory is not None and gaussians_that_fit(memory, pixels) < 1:
+        raise MCSplatError(f"--memory {format_bytes(memory)} holds no run at all: one that trains on images of "
+                           f"{pixels / 1e6:.1f} MP needs {format_bytes(estimated_bytes(1, pixels))} before its first "
+                           f"Gaussian")
+    points = scene.points if scene.points is not None else _centres(scene.train)
+    ground = ground_of([view.camera for view in scene.train], points)
+    uv = ground.coordinates(points)
+    for tried in ([count] if count is not None else range(1, MOST_BLOCKS + 1)):
+        blocks = _blocks(scene, ground, uv, tried, total, margin, min_view_share)
+        plan = BlockPlan(scene=Path(scene.root), ground=ground, margin=margin, min_view_share=min_view_share,
+                         memory_limit=memory, total_cap=total, training=training, blocks=tuple(blocks))
+        if memory is None or all(block.memory <= memory for block in blocks):
+            return plan
+        if count is not None:
+            worst = max(blocks, key=lambda block: block.memory)
+            raise MCSplatError(f"block {worst.index} of {count} needs about {format_bytes(worst.memory)} (cap "
+                               f"{worst.cap:,}) but --memory is {format_bytes(memory)}; give more blocks, or leave "
+                               f"--count out to find how many fit")
+    raise MCSplatError(f"no cut into {MOST_BLOCKS} blocks or fewer fits each block in {format_bytes(memory)} (a run "
+                       f"with images of {pixels / 1e6:.1f} MP holds {gaussians_that_fit(memory, pixels):,} Gaussians "
+                       f"at most there); give more --memory or a lower --cap-max")
+
+
+def total_cap(training: TrainConfig) -> int:
+    """The Gaussians of the whole scene: the training options' cap (blocks share it)."""
+    if training.strategy == "mcmc":
+        if training.mcmc.auto_cap:
+            raise MCSplatError("--cap-max auto grows one run as its gradients ask; blocks need a number to share "
+                               "out: give --cap-max N for the whole scene")
+        return training.mcmc.cap_max
+    if training.adc.cap_max is None:
+        raise MCSplatError("blocks share out a cap: give ADC's --cap-max N for the whole scene")
+    return training.adc.cap_max
+
+
+def _blocks(scene: Scene, ground: GroundFrame, uv: torch.Tensor, count: int, total: int, margin: float,
+            min_view_share: float) -> list[Block]:
+    extent = bounds(uv)
+    cores = split_cells(uv, count)
+    # The margin is a share of the typical cell's size, the same for every cell: a large cell of sparse points at
+    # the edge would otherwise reach with its margin into the dense middle.
+    sizes = torch.tensor([core.size_within(extent) for core in cores], dtype=torch.float64)
+    pad = sizes.median(dim=0).values * margin
+    regions = [core.grown((float(pad[0]), float(pad[1]))) for core in cores]
+    in_region = [region.contains(uv) for region in regions]
+    train_sees = _shares(scene.train, scene, ground, regions)
+    test_sees = _shares(scene.test, scene, ground, regions)
+    blocks = []
+    for index, (core, region) in enumerate(zip(cores, regions)):
+        train = _seeing(scene.train, train_sees, index, min_view_share, MIN_TRAIN_VIEWS)
+        if not train:
+            raise MCSplatError(f"block {index} of {count} is seen by no training view; give fewer blocks")
+        test = _seeing(scene.test, test_sees, index, min_view_share, 1)
+        points = int(in_region[index].sum())
+        blocks.append(Block(index=index, core=core, region=region, cap=max(1, round(total * points / len(uv))),
+                            points=points, pixels=max(view.camera.width * view.camera.height for view in train),
+                            train_views=tuple(view.name for view in train),
+                            test_views=tuple(view.name for view in test)))
+    return blocks
+
+
+def _seeing(views: list[View], shares: list[list[float]], index: int, min_share: float, at_least: int
+            ) -> list[View]:
+    """The views that train (or test) block `index`: those of which at least `min_share` see its region, and at
+    least the `at_least` that see most of it (a block in the middle of many is never left with too few), in the
+    scene's order; never one that sees nothing of it."""
+    ranked = sorted(range(len(views)), key=lambda i: -shares[i][index])
+    chosen = {i for i in ranked if shares[i][index] >= min_share} | set(ranked[:at_least])
+    return [views[i] for i in sorted(chosen) if shares[i][index] > 0]
+
+
+def _shares(views: list[View], scene: Scene, ground: GroundFrame, regions) -> list[list[float]]:
+    """For each view, the share of what it sees that lies in each region: of the scene's points (a sample) that
+    project into its image; for a scene without points, 1 for the regions its camera stands in, else 0."""
+    if scene.points is None:
+        return [[float(region.contains(ground.coordinates(view.camera.center[None]))[0]) for region in regions]
+                for view in views]
+    step = max(1, scene.points.shape[0] // SAMPLED_POINTS)
+    points = scene.points[::step].to(torch.float64)
+    uv = ground.coordinates(points)
+    members = torch.stack([region.contains(uv) for region in regions], dim=1).to(torch.float64)  # [P, blocks]
+    shares = []
+    for view in views:
+        seen = _in_image(view, points)
+        count = float(seen.sum())
+        shares.append([0.0] * len(regions) if count == 0 else (members[seen].sum(dim=0) / count).tolist())
+    return shares
+
+
+def _in_image(view: View, points: torch.Tensor) -> torch.Tensor:
+    """[P] bool: the points in front of the view's camera that project inside its image."""
+    camera = view.camera
+    w2c = camera.world_to_camera.to(torch.float64)
+    local = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = local[:, 2]
+    front = z > 1e-6
+    depth = torch.where(front, z, torch.ones_like(z))
+    u = camera.fx * local[:, 0] / depth + camera.cx
+    v = camera.fy * local[:, 1] / depth + camera.cy
+    return front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+
+
+def _centres(views: list[View]) -> torch.Tensor:
+    return torch.stack([view.camera.center.to(torch.float64) for view in views])
+
+
+def plan_table(plan: BlockPlan) -> str:
+    """The plan as a few lines a user reads before training: each block's views, cap and memory."""
+    lines = [f"{len(plan.blocks)} blocks of {plan.scene} (margin {plan.margin:.0%}, cap {plan.total_cap:,} in all)",
+             "block  train views  test views   points        cap   memory (estimated)"]
+    for block in plan.blocks:
+        lines.append(f"{block.index:>5}  {len(block.train_views):>11}  {len(block.test_views):>10}  "
+                     f"{block.points:>7,}  {block.cap:>9,}   {format_bytes(block.memory)}")
+    if plan.memory_limit is not None:
+        lines.append(f"each block's run is given {format_bytes(plan.memory_limit)}")
+    return "\n".join(lines)
+

@@ -1,0 +1,62 @@
+"""The scene a block's run trains on: the views the plan gives the block, the scene's points in its region, and a
+thin sample of the points beyond it, so that what its views see outside the region (the other blocks' ground, far
+buildings) starts as Gaussians at about the right depth rather than as floaters inside the region. Those outside
+Gaussians are trained and then left out of the merge."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import torch
+
+from ..data import Scene
+from ..data.scene import camera_radius
+from ..errors import MCSplatError
+from .plan import read_plan
+
+OUTSIDE_SHARE = 0.1  # the points kept beyond the region, as a share of those inside it
+
+
+def parse_block(spec: str) -> tuple[Path, int]:
+    """'PLAN_FILE#INDEX' (how a run's configuration names its block) -> (plan file, index)."""
+    path, _, index = str(spec).rpartition("#")
+    if not path or not index.isdigit():
+        raise MCSplatError(f"block {spec!r} is not PLAN_FILE#INDEX")
+    return Path(path), int(index)
+
+
+def block_scene(scene: Scene, spec: str, run_folder: Path) -> Scene:
+    """`scene` cut to the block `spec` names ('PLAN_FILE#INDEX', the plan's path from `run_folder`, the run's)."""
+    path, index = parse_block(spec)
+    path = Path(os.path.normpath(run_folder / path))  # "block_03/../blocks.json", even before block_03 exists
+    plan = read_plan(path)
+    block = plan.block(index)
+    views = {view.name: view for view in scene.train + scene.test}
+    missing = [name for name in block.train_views + block.test_views if name not in views]
+    if missing:
+        raise MCSplatError(f"{path}: block {index} names the view {missing[0]!r}, which the scene {scene.root} does "
+                           f"not have (the scene changed since the plan was made?); make the plan again")
+    train = [views[name] for name in block.train_views]
+    test = [views[name] for name in block.test_views]
+    points, colors = scene.points, scene.point_colors
+    if points is not None:
+        inside = block.region.contains(plan.ground.coordinates(points))
+        keep = inside | _thin(~inside, int(inside.sum()))
+        points, colors = points[keep], colors[keep]
+    note = (f"block {index} of {len(plan.blocks)} ({path}): {len(train)} of {len(scene.train)} training views"
+            + ("" if points is None else f", {points.shape[0]:,} of {scene.points.shape[0]:,} points"))
+    return dataclasses.replace(scene, train=train, test=test, points=points, point_colors=colors,
+                               radius=camera_radius([view.camera for view in train]), notes=[*scene.notes, note])
+
+
+def _thin(outside: torch.Tensor, inside_count: int) -> torch.Tensor:
+    """[N] bool: an evenly spaced sample of the `outside` points, OUTSIDE_SHARE of `inside_count` of them at most."""
+    where = outside.nonzero().squeeze(1)
+    wanted = int(OUTSIDE_SHARE * inside_count)
+    chosen = torch.zeros_like(outside)
+    if wanted > 0 and where.numel():
+        step = max(1, where.numel() // wanted)
+        chosen[where[::step][:wanted]] = True
+    return chosen
