@@ -30,6 +30,28 @@ def test_fused_ssim_matches_torch_value_and_gradient(size):
     assert error < 1e-5, f"gradient differs by {error:.1e} of its largest magnitude"
 
 
+@pytest.mark.parametrize("size", [(37, 45), (150, 203)])
+def test_the_fused_photometric_loss_matches_torch_in_float64(size):
+    """L1 and SSIM from one fused pass (the training loss on the CPU) against the torch definitions in float64,
+    with the image cut into row ranges (two threads) whose borders the window crosses."""
+    image, target = pair(*size, seed=3)
+    image[:4, :6] = target[:4, :6]  # equal pixels: |x - y| has no slope there, in torch as here
+    fused = image.clone().requires_grad_()
+    reference = image.double().requires_grad_()
+    try:
+        set_cpu_threads(2)
+        loss = photometric_loss(fused, target, ssim_weight=0.2)
+        loss.backward()
+    finally:
+        set_cpu_threads(None)
+    expected = 0.8 * (reference - target.double()).abs().mean() + \
+        0.2 * (1.0 - ssim_map(reference, target.double()).mean())
+    expected.backward()
+    assert abs(loss.item() - expected.item()) < 2e-6
+    error = (fused.grad.double() - reference.grad).abs().max() / reference.grad.abs().max()
+    assert error < 1e-5, f"gradient differs by {error:.1e} of its largest magnitude"
+
+
 def test_fused_ssim_is_the_cpu_float32_path_and_does_not_depend_on_threads():
     image, target = pair(120, 90, seed=1)
     assert fused_ssim_applies(image, target)

@@ -10,7 +10,7 @@ import functools
 import torch
 import torch.nn.functional as F
 
-from .ssim_cpu import fused_ssim, fused_ssim_applies
+from .ssim_cpu import fused_ssim, fused_ssim_and_l1, fused_ssim_applies
 from .ssim_warp import KERNELS as WARP_SSIM_KERNELS
 from .ssim_warp import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW  # noqa: F401  (defined there, used as losses.SSIM_*)
 from .ssim_warp import fused_ssim_warp, fused_ssim_warp_applies, window_taps
@@ -62,7 +62,7 @@ def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -
         return []
     if device.type == "cpu":
         from . import ssim_cpu
-        return [ssim_cpu._pass1, ssim_cpu._pass2, ssim_cpu._pass3, ssim_cpu._pass4]
+        return list(ssim_cpu.KERNELS)
     if device.type == "cuda":
         return list(WARP_SSIM_KERNELS)
     return []
@@ -73,7 +73,10 @@ def l1(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def photometric_loss(image: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
-    """(1 - w) L1 + w (1 - SSIM), w = 0.2 as in 3DGS and the MCMC paper."""
+    """(1 - w) L1 + w (1 - SSIM), w = 0.2 as in 3DGS and the MCMC paper (on the CPU both terms from one fused pass)."""
+    if fused_ssim_applies(image, target):
+        similarity, difference = fused_ssim_and_l1(image, target)
+        return (1.0 - ssim_weight) * difference + ssim_weight * (1.0 - similarity)
     return (1.0 - ssim_weight) * l1(image, target) + ssim_weight * (1.0 - ssim(image, target))
 
 
