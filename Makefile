@@ -23,7 +23,7 @@ $(STAMP): $(PY) pyproject.toml constraints.txt
 
 install: $(STAMP)
 
-# The demo trains the bundled 200x200 lego on CPU in about 3 minutes (2 cores) with the paper's method: 3,500 steps
+# The demo trains the bundled 200x200 lego on CPU in about 2 minutes (2 cores) with the paper's method: 3,500 steps
 # instead of 30,000 (every step schedule follows, see README), 17.5k random points growing to a 35k cap. It prints
 # test PSNR/SSIM/LPIPS and writes runs/demo/ (replacing an earlier demo run).
 DEMO_OPTIONS := --steps 3500 --cap-max 35000 --model.num-init-points 17500
