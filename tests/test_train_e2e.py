@@ -155,9 +155,13 @@ def test_cli_train_eval_render_export(tmp_path):
     assert done.returncode == 0, done.stderr
     assert done.stderr == "" and [line.split()[0] for line in done.stdout.splitlines()] == ["test", "wrote", "wrote"], \
         "--quiet prints the result alone"
+    trained = json.loads((run / "metrics.json").read_text())
+    (run / "metrics.json").write_text(json.dumps({**trained, "per_view_psnr": {"stale": 1.0}}))
     done = subprocess.run(mcsplat + ["eval", str(run), "--lpips-net", "alex"], capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0 and "PSNR" in done.stdout, done.stderr
+    evaluated = json.loads((run / "metrics.json").read_text())
+    assert evaluated["per_view_psnr"] == trained["per_view_psnr"], "eval writes the views' PSNR it measured"
     done = subprocess.run(mcsplat + ["render", str(run), "--video", "--frames", "6", "--fps", "3"],
                           capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr

@@ -36,7 +36,7 @@ def metrics(evaluation: Evaluation | None, lpips_net: str, steps: int, num_gauss
               "num_gaussians": num_gaussians}
     if run is None:
         return {**record, "steps": steps, "test_views": scores["test_views"], **scores["masked"],
-                **scores["compensated"]}
+                **scores["compensated"], "per_view_psnr": scores["per_view_psnr"]}
     return {**record, "exported_gaussians": run.exported_gaussians, "steps": steps,
             "train_seconds": round(run.train_seconds, 2), "device": run.device, "strategy": run.strategy,
             "test_views": scores["test_views"], "sh_degree": run.sh_degree, "processes": run.processes,
