@@ -153,9 +153,9 @@ class GsplatBuild:
         if gsplat_available():
             env = {**os.environ, "TORCH_CUDA_ARCH_LIST": os.environ.get("TORCH_CUDA_ARCH_LIST", "9.0"),
                    "MAX_JOBS": os.environ.get("MAX_JOBS", "12")}
-            self.log = open(out / "gsplat_build.log", "w")
-            self.process = subprocess.Popen([sys.executable, "-c", "from gsplat.cuda._backend import _C"],
-                                            stdout=self.log, stderr=subprocess.STDOUT, env=env)
+            with open(out / "gsplat_build.log", "w") as log:  # the child writes through its own copy
+                self.process = subprocess.Popen([sys.executable, "-c", "from gsplat.cuda._backend import _C"],
+                                                stdout=log, stderr=subprocess.STDOUT, env=env)
 
     def wait(self, seconds: float) -> str:
         """'built', 'failed (exit N)', 'still building' after `seconds`, or 'not installed'."""
