@@ -193,3 +193,16 @@ def test_the_processes_of_a_torchrun_group_share_the_blocks_and_rank_0_merges(sh
     merged = rank0["merged"]
     assert merged["test_views"] == 10 and [entry["block"] for entry in merged["blocks"]] == [0, 1, 2]
     assert json.loads((folder.merged / "metrics.json").read_text()) == merged
+
+
+def test_a_synthetic_scene_without_points_is_cut_where_its_cameras_stand(mini_demo, tmp_path):
+    training = TrainConfig(data=mini_demo, steps=10, quiet=True, cap_max=1000)
+    plan = plan_blocks(training, tmp_path / "blocks", count=2)
+    scene = scene_of(training)
+    for block in plan.blocks:
+        standing = {view.name for view in scene.train
+                    if block.region.contains(plan.ground.coordinates(view.camera.center[None]))[0]}
+        assert set(block.train_views) == standing and len(standing) >= 1
+        assert block.points == len(standing) and block.cap == round(1000 * len(standing) / len(scene.train))
+    assert block_scene(scene, BlocksFolder(tmp_path / "blocks").block_spec(0),
+                       BlocksFolder(tmp_path / "blocks").block_run(0)).points is None, "random init, as its run"

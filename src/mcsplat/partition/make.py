@@ -3,6 +3,7 @@ give each block the views that see its region and a cap in proportion to the poi
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import torch
@@ -14,6 +15,7 @@ from .cells import bounds, split_cells
 from .ground import GroundFrame, ground_of
 from .memory import estimated_bytes, format_bytes, gaussians_that_fit
 from .plan import Block, BlockPlan
+from .scene import scene_points
 
 MOST_BLOCKS = 256
 SAMPLED_POINTS = 50_000  # points projected into each view to tell which blocks it sees
@@ -35,7 +37,9 @@ def make_plan(scene: Scene, training: TrainConfig, count: int | None = None, mem
         raise MCSplatError(f"--memory {format_bytes(memory)} holds no run at all: one that trains on images of "
                            f"{pixels / 1e6:.1f} MP needs {format_bytes(estimated_bytes(1, pixels))} before its first "
                            f"Gaussian")
-    points = scene.points if scene.points is not None else _centres(scene.train)
+    points = scene_points(scene)[0]
+    scene = dataclasses.replace(scene, points=points)  # the cut and the views' shares read them from here
+    points = points if points is not None else _centres(scene.train)
     ground = ground_of([view.camera for view in scene.train], points)
     uv = ground.coordinates(points)
     for tried in ([count] if count is not None else range(1, MOST_BLOCKS + 1)):

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import torch
 
+from ..capture.triangulate import triangulated_points
 from ..data import Scene
 from ..data.scene import camera_radius
 from ..errors import MCSplatError
@@ -40,15 +41,31 @@ def block_scene(scene: Scene, spec: str, run_folder: Path) -> Scene:
                            f"not have (the scene changed since the plan was made?); make the plan again")
     train = [views[name] for name in block.train_views]
     test = [views[name] for name in block.test_views]
-    points, colors = scene.points, scene.point_colors
+    points, colors = scene_points(scene)
+    whole = None if points is None else points.shape[0]
     if points is not None:
         inside = block.region.contains(plan.ground.coordinates(points))
         keep = inside | _thin(~inside, int(inside.sum()))
         points, colors = points[keep], colors[keep]
     note = (f"block {index} of {len(plan.blocks)} ({path}): {len(train)} of {len(scene.train)} training views"
-            + ("" if points is None else f", {points.shape[0]:,} of {scene.points.shape[0]:,} points"))
+            + ("" if points is None else f", {points.shape[0]:,} of {whole:,} points"))
     return dataclasses.replace(scene, train=train, test=test, points=points, point_colors=colors,
                                radius=camera_radius([view.camera for view in train]), notes=[*scene.notes, note])
+
+
+def scene_points(scene: Scene) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """(points [P, 3], colours [P, 3] in [0, 1]) the blocks are cut by and start from: the scene's SfM points, or for
+    a real capture without them the points triangulated from its known poses (cached; what `mcsplat train` would
+    start from); (None, None) for a synthetic scene (random points in a cube) or where triangulation fails."""
+    if scene.points is not None:
+        return scene.points, scene.point_colors
+    if scene.alpha or len(scene.train) < 2:
+        return None, None
+    try:
+        found = triangulated_points(scene.train, progress=False)
+    except MCSplatError:
+        return None, None
+    return torch.from_numpy(found.xyz).float(), torch.from_numpy(found.rgb).float() / 255.0
 
 
 def _thin(outside: torch.Tensor, inside_count: int) -> torch.Tensor:
