@@ -79,9 +79,10 @@ _FORWARD = _HELPERS + f"""
     double* sums = (double*)row_sums.data;
     double* l1 = (double*)l1_sums.data;
     const int stride = w + 2 * half;
-    float* ring = (float*)__builtin_alloca(sizeof(float) * window * 5 * w);
-    float* padded = (float*)__builtin_alloca(sizeof(float) * 5 * stride);
-    float* stat = (float*)__builtin_alloca(sizeof(float) * 5 * w);
+    // On the heap: the ring of a 4K image's rows (845 KB) is more than some platforms give a thread's stack.
+    float* ring = (float*)malloc(sizeof(float) * (window * 5 * w + 5 * stride + 5 * w));
+    float* padded = ring + window * 5 * w;
+    float* stat = padded + 5 * stride;
     for (int s = 0; s < 5; ++s)
         for (int j = 0; j < half; ++j) padded[s * stride + j] = padded[s * stride + half + w + j] = 0.0f;
     for (int row = first; row < last; ++row) {{
@@ -129,6 +130,7 @@ _FORWARD = _HELPERS + f"""
             sums[row] += total;
         }}
     }}
+    free(ring);
 """
 
 _BACKWARD = _HELPERS + """
@@ -137,9 +139,9 @@ _BACKWARD = _HELPERS + """
     const float* y = (const float*)target.data;
     float* grad = (float*)grad_image.data;
     const int stride = w + 2 * half;
-    float* ring = (float*)__builtin_alloca(sizeof(float) * window * 3 * w);
-    float* padded = (float*)__builtin_alloca(sizeof(float) * stride);
-    float* b = (float*)__builtin_alloca(sizeof(float) * 3 * w);
+    float* ring = (float*)malloc(sizeof(float) * (window * 3 * w + stride + 3 * w));
+    float* padded = ring + window * 3 * w;
+    float* b = padded + stride;
     for (int j = 0; j < half; ++j) padded[j] = padded[half + w + j] = 0.0f;
     for (int c = 0; c < 3; ++c) {
         int next = first - half < 0 ? 0 : first - half;
@@ -164,6 +166,7 @@ _BACKWARD = _HELPERS + """
             }
         }
     }
+    free(ring);
 """
 
 # Fused multiply-add in the blur loops (Warp's default keeps a * b + c as two roundings).
