@@ -119,18 +119,16 @@ def picture(root: Path, args, path: Path) -> None:
     panels = [uint8_pixels(view.image_float())]
     for name in ["one", *(f"blocks{count}/merged" for count in args.blocks)]:
         run = load(root / name, device)
-        image = uint8_pixels(render(run.model, view.camera, run.background, sh_degree=run.sh_degree).rgb)
+        result = render(run.model, view.camera, run.background, sh_degree=run.sh_degree)
+        image = uint8_pixels(result.rgb)
         if name != "one":
-            image = with_borders(image, read_plan(root / name.split("/")[0] / "blocks.json"), run, view)
+            image = with_borders(image, read_plan(root / name.split("/")[0] / "blocks.json"), result, view)
         panels.append(image)
     save_pixels(path, np.concatenate(panels, axis=1))
 
 
-def with_borders(image: np.ndarray, plan, run, view) -> np.ndarray:
-    """The image with each pixel whose ray meets the scene (the merged model's depth) on a cell border in red."""
-    from mcsplat.render import render
-
-    result = render(run.model, view.camera, run.background, sh_degree=run.sh_degree)
+def with_borders(image: np.ndarray, plan, result, view) -> np.ndarray:
+    """The image with each pixel whose ray meets the scene (the render `result`'s depth) on a cell border in red."""
     depth, alpha = result.depth, result.alpha
     camera = view.camera
     height, width = depth.shape

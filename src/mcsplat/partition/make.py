@@ -4,6 +4,7 @@ give each block the views that see its region and a cap in proportion to the poi
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -11,7 +12,7 @@ import torch
 from ..config import TrainConfig
 from ..data import Scene, View
 from ..errors import MCSplatError
-from .cells import bounds, split_cells
+from .cells import Cell, bounds, split_cells
 from .ground import GroundFrame, ground_of
 from .memory import estimated_bytes, format_bytes, gaussians_that_fit
 from .plan import Block, BlockPlan
@@ -42,8 +43,10 @@ def make_plan(scene: Scene, training: TrainConfig, count: int | None = None, mem
     points = points if points is not None else _centres(scene.train)
     ground = ground_of([view.camera for view in scene.train], points)
     uv = ground.coordinates(points)
+    # What each view sees does not depend on the cut: found once, whatever number of blocks is tried.
+    seen = (_sightings(scene.train, scene, ground), _sightings(scene.test, scene, ground))
     for tried in ([count] if count is not None else range(1, MOST_BLOCKS + 1)):
-        blocks = _blocks(scene, ground, uv, tried, total, margin, min_view_share)
+        blocks = _blocks(scene, uv, seen, tried, total, margin, min_view_share)
         plan = BlockPlan(scene=Path(scene.root), ground=ground, margin=margin, min_view_share=min_view_share,
                          memory_limit=memory, total_cap=total, training=training, blocks=tuple(blocks))
         if memory is None or all(block.memory <= memory for block in blocks):
@@ -70,8 +73,8 @@ def total_cap(training: TrainConfig) -> int:
     return training.adc.cap_max
 
 
-def _blocks(scene: Scene, ground: GroundFrame, uv: torch.Tensor, count: int, total: int, margin: float,
-            min_view_share: float) -> list[Block]:
+def _blocks(scene: Scene, uv: torch.Tensor, seen: tuple[Sightings, Sightings], count: int, total: int,
+            margin: float, min_view_share: float) -> list[Block]:
     extent = bounds(uv)
     cores = split_cells(uv, count)
     # The margin is a share of the typical cell's size, the same for every cell: a large cell of sparse points at
@@ -80,8 +83,7 @@ def _blocks(scene: Scene, ground: GroundFrame, uv: torch.Tensor, count: int, tot
     pad = sizes.median(dim=0).values * margin
     regions = [core.grown((float(pad[0]), float(pad[1]))) for core in cores]
     in_region = [region.contains(uv) for region in regions]
-    train_sees = _shares(scene.train, scene, ground, regions)
-    test_sees = _shares(scene.test, scene, ground, regions)
+    train_sees, test_sees = (sightings.shares(regions) for sightings in seen)
     blocks = []
     for index, (core, region) in enumerate(zip(cores, regions)):
         train = _seeing(scene.train, train_sees, index, min_view_share, MIN_TRAIN_VIEWS)
@@ -106,22 +108,28 @@ def _seeing(views: list[View], shares: list[list[float]], index: int, min_share:
     return [views[i] for i in sorted(chosen) if shares[i][index] > 0]
 
 
-def _shares(views: list[View], scene: Scene, ground: GroundFrame, regions) -> list[list[float]]:
-    """For each view, the share of what it sees that lies in each region: of the scene's points (a sample) that
-    project into its image; for a scene without points, 1 for the regions its camera stands in, else 0."""
+@dataclass(frozen=True)
+class Sightings:
+    """What a list of views sees: where a sample of the scene's points stands on the ground, and for each view the
+    sample's points that project into its image. For a scene without points, each view sees its camera's centre."""
+
+    uv: torch.Tensor                 # [S, 2]
+    seen: list[torch.Tensor]         # per view, indices into the sample
+
+    def shares(self, regions: list[Cell]) -> list[list[float]]:
+        """For each view, the share of what it sees that lies in each region."""
+        members = torch.stack([region.contains(self.uv) for region in regions], dim=1).to(torch.float64)
+        return [[0.0] * len(regions) if not len(indices) else (members[indices].sum(dim=0) / len(indices)).tolist()
+                for indices in self.seen]
+
+
+def _sightings(views: list[View], scene: Scene, ground: GroundFrame) -> Sightings:
     if scene.points is None:
-        return [[float(region.contains(ground.coordinates(view.camera.center[None]))[0]) for region in regions]
-                for view in views]
+        centres = _centres(views) if views else torch.zeros(0, 3, dtype=torch.float64)
+        return Sightings(ground.coordinates(centres), [torch.tensor([i]) for i in range(len(views))])
     step = max(1, scene.points.shape[0] // SAMPLED_POINTS)
     points = scene.points[::step].to(torch.float64)
-    uv = ground.coordinates(points)
-    members = torch.stack([region.contains(uv) for region in regions], dim=1).to(torch.float64)  # [P, blocks]
-    shares = []
-    for view in views:
-        seen = _in_image(view, points)
-        count = float(seen.sum())
-        shares.append([0.0] * len(regions) if count == 0 else (members[seen].sum(dim=0) / count).tolist())
-    return shares
+    return Sightings(ground.coordinates(points), [_in_image(view, points).nonzero().squeeze(1) for view in views])
 
 
 def _in_image(view: View, points: torch.Tensor) -> torch.Tensor:
