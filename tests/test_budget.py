@@ -118,6 +118,44 @@ def test_a_run_ahead_of_its_plan_plans_again_to_end_on_time():
     assert not planner.due(planner.plan.steps, (1 - END_SLACK / 2) * 120.0), "the time is nearly up: the run ends"
 
 
+def _planned(pixels_ms: float, per_100k_ms: float, cap: int = 100_000, **options) -> BudgetPlanner:
+    """A 120 s budget planned from known costs: 5 ms + pixels_ms s^2 + per_100k_ms per 100k Gaussians at s^2."""
+    config = TrainConfig(data=DEMO, budget="120s", model=ModelConfig(num_init_points=1000), **options)
+    planner = BudgetPlanner(config, ceiling=cap)
+    for n, s in ((1000, 1.0), (1000, 0.25), (cap, 1.0), (cap, 0.25)):
+        planner.calibrate(0.005 + (pixels_ms + per_100k_ms * n / 1e5) * s * s / 1000, n, s)
+    planner.start(0, 0.0, 1000)
+    return planner
+
+
+def test_the_coarse_phase_lasts_longer_where_pixels_take_more_of_a_step():
+    """Full size comes at 40% of the run where a full-size step is mostly overhead (pixels a sixth of it), at the
+    end where its pixels take 90% of it, at 55% where they take half; --resolution-full-at is kept as given; once
+    full size is reached the length is kept, and a resumed run goes on choosing it."""
+    cheap = _planned(pixels_ms=5, per_100k_ms=0)  # 10 ms a full-size step, half of it pixels
+    assert cheap.pixel_share(100_000) == pytest.approx(5 / 10, rel=0.02)
+    assert cheap.plan.resolution_full_at == pytest.approx(0.55, abs=0.02)
+    assert _planned(pixels_ms=1, per_100k_ms=0).plan.resolution_full_at == pytest.approx(0.4)  # pixels 1/6
+    dear = _planned(pixels_ms=45, per_100k_ms=0)  # pixels 90% of a step
+    assert dear.plan.resolution_full_at == pytest.approx(1.0)
+    scales = [dear.plan.resolution_at(k) for k in range(dear.plan.steps)]
+    assert scales[0] == pytest.approx(0.25) and scales[-2] < 1.0 and dear.plan.steps > 1000
+    assert _planned(pixels_ms=45, per_100k_ms=0, resolution_full_at=0.5).plan.resolution_full_at == 0.5
+
+    # Past full size the length stays, whatever the costs say from then on.
+    cheap.replan(round(0.6 * cheap.plan.steps), 60.0, 1000)
+    kept = cheap.plan.resolution_full_at
+    for _ in range(20):
+        cheap.observe(0.050, 1000, 1.0)  # pixels now look dear
+    cheap.replan(round(0.6 * cheap.plan.steps), 61.0, 1000)
+    assert cheap.plan.resolution_full_at == kept
+
+    # A resumed run reads the choice back from its plan's record (config.json holds the number in the option's place).
+    resumed = BudgetPlanner(TrainConfig(data=DEMO, budget="120s", resolution_full_at=dear.plan.resolution_full_at),
+                            ceiling=100_000, plan=dear.plan)
+    assert resumed.full_size_chosen and dear.plan.budget["full_size_chosen"]
+
+
 def test_the_step_cost_model_recovers_known_costs():
     """Calibrated at two sizes and two counts, then measured along a run that grows and sharpens as runs do."""
     def seconds(n, s):

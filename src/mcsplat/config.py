@@ -73,8 +73,9 @@ class TrainConfig:
     resolution_start: float | None = None
     """Coarse to fine: the share of the full image size the first step trains at, rising to full size at
     --resolution-full-at of the run (default: 0.25 with --budget, else 1, full size throughout)."""
-    resolution_full_at: float = 0.4
-    """The share of the run by which training reaches the full image size."""
+    resolution_full_at: float | None = None
+    """The share of the run by which training reaches the full image size (default: with --budget, chosen from the
+    share of a step its pixels take, 0.4 to 1; else 0.4)."""
     downscale: int = 1
     """Image downscale factor (uses images_N/ when the scene has it)."""
     test_every: int = 8
@@ -206,7 +207,8 @@ class TrainConfig:
                    "--pose-opt-lr must be positive, --pose-opt-reg 0 or more"),
                   (self.resolution_start is None or 0.0 < self.resolution_start <= 1.0,
                    "--resolution-start must be in (0, 1] (1: full size from the first step)"),
-                  (0.0 < self.resolution_full_at <= 1.0, "--resolution-full-at must be in (0, 1]"),
+                  (self.resolution_full_at is None or 0.0 < self.resolution_full_at <= 1.0,
+                   "--resolution-full-at must be in (0, 1]"),
                   (0 <= self.model.sh_degree <= 3, "--model.sh-degree must be 0..3"),
                   (self.model.num_init_points >= 1, "--model.num-init-points must be at least 1"),
                   (0.0 < self.model.init_opacity < 1.0, "--model.init-opacity must be in (0, 1)"),
@@ -249,6 +251,7 @@ def process_options(config: TrainConfig) -> dict[str, Any]:
 # (init scale, init opacity) per strategy: the MCMC paper's code, and 3DGS's for its ADC.
 INITIAL_GAUSSIANS = {"mcmc": (0.1, 0.5), "adc": (1.0, 0.1)}
 BUDGET_RESOLUTION_START = 0.25  # --budget trains coarse to fine from a quarter of the image size
+RESOLUTION_FULL_AT = 0.4  # ... reaching full size at 40% of the steps, unless --budget chooses
 _UNITS = {"s": 1.0, "m": 60.0, "min": 60.0, "h": 3600.0}
 
 

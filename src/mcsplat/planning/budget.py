@@ -17,6 +17,14 @@ number of steps. What the budget decides is that number and the cap, from the ti
   time). Twice: on the demo scene at 95 s, 1x gave 12k Gaussians and 29.7 dB, 2x 32k and 30.5 dB, 3x 81k and
   30.2 dB. The automatic cap's ceiling of 3 Gaussians per pixel and --cap-max bound it, and it stays small enough to
   leave at least 1,000 steps.
+- How long the coarse phase lasts follows the same costs (unless --resolution-full-at is given): a step at a
+  quarter of the size saves most of the share of a full-size step its pixels take (b + d n over the whole, at the
+  planned cap), so the larger that share, the later full size comes: at 40% of the steps where pixels take 40% or
+  less of a step, at the end where they take 80% or more, in proportion between. At 5 minutes on the shared
+  captures (2 cores, one run each) the best length followed that share: the bird (pixels 75-80% of a step) gained
+  1.7 dB at 1.0 over 0.4, the cup (about 0.6 on that machine) 0.3 at 0.7-1.0, DTU and fern (0.45-0.65) peaked at
+  0.4-0.7, and the demo scene (0.3-0.4) lost 1.1 dB at 0.7. It is chosen again at every plan until full size is
+  reached, then kept.
 - The steps are those whose predicted times, with the count growing to the cap and the resolution rising as
   planned, fill the time left. The plan is made again every 2% of the budget (more often near its end) as the
   measured times come in, and the schedules are fitted again to the new number of steps. The SH schedule is kept
@@ -58,6 +66,7 @@ WARM_UP_STEPS = 3                 # the run's first steps (one-time costs) are l
 HALF_LIFE_STEPS = 300             # older measurements weigh half every 300 steps
 PREDICTION_POINTS = 400           # the future steps are integrated on this many points
 MIN_START_GAUSSIANS = 1000        # the first plan cuts a large initialisation to no fewer than this
+PIXEL_SHARES, FULL_SIZE_AT = (0.4, 0.8), (0.4, 1.0)  # full size at 0.4 of the run at a pixel share of 0.4 ...
 
 
 @dataclass
@@ -127,6 +136,8 @@ class BudgetPlanner:
         self.cost = StepCost()
         self.last_plan_at = -math.inf
         self.sh_fixed = bool(record.get("sh_fixed", False))
+        # The coarse phase's length is chosen from the costs unless given (kept across a resume by the record).
+        self.full_size_chosen = bool(record.get("full_size_chosen", config.resolution_full_at is None))
 
     # --------------------------------------------------------------------------------------------- the run
     def begin(self, state: RunState, scene: Scene, background: Background, device: torch.device,
@@ -184,6 +195,9 @@ class BudgetPlanner:
     def replan(self, step: int, wall_seconds: float, gaussians: int) -> None:
         """A new plan from the costs measured so far."""
         self.cost.fit()
+        if self.full_size_chosen and step < self.plan.resolution_full_at * self.plan.steps:
+            cap = min(max(self.ceiling, 1), max(gaussians, self.balanced_cap()))
+            self.plan = replace(self.plan, resolution_full_at=self.full_size_at(cap))
         self._apply(self._choose(step, wall_seconds, gaussians), step)
         self.last_plan_at = wall_seconds
         self.history.append({"at_seconds": round(wall_seconds, 1), "step": step, "steps": self.plan.steps,
@@ -198,7 +212,7 @@ class BudgetPlanner:
         """What config.json (budget_plan) and the report keep of the planning."""
         return {"budget_seconds": self.budget_seconds, "steps": plan.steps, "cap": plan.mcmc.cap_max,
                 "resolution_start": plan.resolution_start, "resolution_full_at": plan.resolution_full_at,
-                "growth_share": self.config.mcmc.growth_share,
+                "full_size_chosen": self.full_size_chosen, "growth_share": self.config.mcmc.growth_share,
                 "cost_model_ms": [round(1000 * float(c), 4) for c in self.cost.coefficients], "base": dict(self.base),
                 "sh_fixed": self.sh_fixed, "history": list(self.history)}
 
@@ -235,6 +249,18 @@ class BudgetPlanner:
         if per_gaussian <= 0:
             return max(self.ceiling, 1)
         return int(BALANCE * (a + b) / per_gaussian * math.sqrt(self.budget_seconds / 600.0))
+
+    def pixel_share(self, gaussians: int) -> float:
+        """The share of a full-size step of `gaussians` that its pixels take (b + d n over the whole); 0 before
+        anything is measured."""
+        a, b, c, d = self.cost.coefficients
+        n = gaussians / 1e5
+        whole = a + b + (c + d) * n
+        return float((b + d * n) / whole) if whole > 0 else 0.0
+
+    def full_size_at(self, cap: int) -> float:
+        """The share of the run by which it reaches full size, from the pixel share of a step at `cap`."""
+        return float(np.interp(self.pixel_share(cap), PIXEL_SHARES, FULL_SIZE_AT))
 
     def _steps_for(self, step: int, left: float, gaussians: int, cap: int) -> int:
         """The number of steps (in all) whose predicted times fill `left` seconds from `step` on."""

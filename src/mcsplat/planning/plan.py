@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any, Mapping
 
-from ..config import TrainConfig
+from ..config import RESOLUTION_FULL_AT, TrainConfig
 from ..optim import OptimConfig
 from ..strategy import ADCSchedule, MCMCSchedule
 
@@ -22,7 +22,7 @@ SCHEDULE_KEYS = ("sh_increase_every", "mcmc.refine_start", "mcmc.refine_stop", "
                  "adc.densify_start", "adc.densify_stop", "adc.densify_every", "adc.reset_every", "mcmc.grow_rate",
                  "mcmc.param_noise_decay")
 # What a --budget run plans again as it goes: config.json may hold another plan than the one its checkpoint took.
-REPLANNED_KEYS = frozenset(("steps", "mcmc.cap_max", "adc.cap_max") + SCHEDULE_KEYS)
+REPLANNED_KEYS = frozenset(("steps", "mcmc.cap_max", "adc.cap_max", "resolution_full_at") + SCHEDULE_KEYS)
 
 
 @dataclass(frozen=True)
@@ -42,8 +42,9 @@ class Plan:
     def literal(cls, config: TrainConfig, world_size: int = 1, budget: dict[str, Any] | None = None) -> Plan:
         """The configuration's values taken as they are: a run's saved configuration (its values are the plan's),
         or the options before anything is fitted."""
+        full_at = RESOLUTION_FULL_AT if config.resolution_full_at is None else config.resolution_full_at
         return cls(steps=config.steps, sh_increase_every=config.sh_increase_every, sh_degree=config.model.sh_degree,
-                   resolution_start=config.resolution_start, resolution_full_at=config.resolution_full_at,
+                   resolution_start=config.resolution_start, resolution_full_at=full_at,
                    mcmc=MCMCSchedule.of(config.mcmc), adc=ADCSchedule.of(config.adc), optim=config.optim,
                    world_size=world_size, budget=budget)
 
