@@ -58,6 +58,7 @@ from mcsplat.render.paths import TORCH_BASELINE_PATH, RenderPath, current_render
 from mcsplat.strategy.adc import ADCConfig, ADCStrategy
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
 from mcsplat.planning import Plan
+from mcsplat.run_dir import RunDir
 from mcsplat.trainer import train_step
 
 PHASES = ("projection", "binning", "composite_forward", "loss", "backward_loss", "backward_composite",
@@ -300,7 +301,10 @@ def run_one(cfg: dict) -> dict:
     scene = C.load(cfg["data"], cfg.get("downscale", 1))
     cameras, images = training_views(scene)
     baseline_rss = C.current_rss_mb()  # imports and the scene's images, before any Gaussian exists
-    if cfg["scene_model"] == "sfm":  # the scene's own SfM points, as `mcsplat train` initialises a capture
+    if cfg.get("model_from"):  # a trained run's model: the step a real capture has late in its run
+        state = RunDir(cfg["model_from"]).read_checkpoint()["model"]
+        model = GaussianModel.from_state_dict(state)
+    elif cfg["scene_model"] == "sfm":  # the scene's own SfM points, as `mcsplat train` initialises a capture
         if scene.points is None:
             sys.exit(f"train_speed: {cfg['data']} has no SfM points for --scene-model sfm")
         model = GaussianModel.from_points(scene.points, scene.point_colors)
@@ -350,7 +354,8 @@ def run_one(cfg: dict) -> dict:
     record = {
         "benchmark": "train_speed", "device": device if device != "cpu" else f"cpu ({C.cpu_name()})",
         "gaussians": b.model.num_gaussians, "image": f"{b.camera(0).width}x{b.camera(0).height}",
-        "threads": cfg["threads"] if device == "cpu" else None, "scene_model": cfg["scene_model"],
+        "threads": cfg["threads"] if device == "cpu" else None,
+        "scene_model": f"run {cfg['model_from']}" if cfg.get("model_from") else cfg["scene_model"],
         "strategy": cfg["strategy"],
         "step_ms": round(C.median(plain) * 1000.0 + refine_extra_ms / REFINE_EVERY, 1) if plain else None,
         "instrumented_step_ms": round(ms["total"] + refine_extra_ms / REFINE_EVERY, 1),
@@ -449,6 +454,8 @@ def main() -> None:
                         help="realistic: calibrated stand-in for a trained model; init: the MCMC random init; "
                              "sfm: the scene's SfM points (--sizes is then ignored)")
     parser.add_argument("--downscale", type=int, default=1, help="image downscale factor of the scene")
+    parser.add_argument("--model-from", default=None,
+                        help="a trained run folder of --scene: time the steps of its model (--sizes is then ignored)")
     parser.add_argument("--strategy", choices=("mcmc", "adc"), default="mcmc")
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=10, help="instrumented steps (medians)")
@@ -470,13 +477,13 @@ def main() -> None:
     load = C.warn_if_busy()
     threads = sorted(set(args.threads)) if args.device == "cpu" else [None]
     records = []
-    sizes = [0] if args.scene_model == "sfm" else args.sizes  # the SfM points fix the count
+    sizes = [0] if args.scene_model == "sfm" or args.model_from else args.sizes  # the points or the run fix it
     for n in sizes:
         for t in threads:
             cfg = {"gaussians": n, "threads": t, "device": args.device, "scene_model": args.scene_model,
                    "strategy": args.strategy, "warmup": args.warmup, "repeats": args.repeats, "plain": args.plain,
                    "refines": args.refines, "seed": args.seed, "baseline": args.baseline,
-                   "downscale": args.downscale,
+                   "downscale": args.downscale, "model_from": args.model_from,
                    "data": str(C.scene_path(args.scene, args.data_root))}
             started = time.perf_counter()
             record = run_in_subprocess(cfg)

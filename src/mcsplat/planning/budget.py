@@ -202,6 +202,7 @@ class BudgetPlanner:
         self.last_plan_at = wall_seconds
         self.history.append({"at_seconds": round(wall_seconds, 1), "step": step, "steps": self.plan.steps,
                              "cap": self.plan.mcmc.cap_max, "gaussians": gaussians,
+                             "full_size_at": round(self.plan.resolution_full_at, 3),
                              "step_ms": round(1000 * float(self.cost.predict(gaussians, 1.0)), 1)})
         self._publish(self.plan)
 

@@ -1,13 +1,17 @@
-"""Per-tile lists of Gaussians, sorted front to back: one stable radix sort on a (tile, depth) key.
+"""Per-tile lists of Gaussians, sorted front to back: a stable sort by depth, then a stable sort by tile.
 
 Each (tile, Gaussian) pair also carries a 16-bit mask of the 4x4-pixel blocks of the tile where the Gaussian can pass
 the alpha >= 1/255 test; pixels skip pairs whose bit is clear, and pairs with an empty mask are dropped. The image is
 unchanged (those pixels would fail the test anyway) but small splats no longer cost every pixel of their tiles.
 
-Two Warp kernels walk each visible Gaussian's tile rectangle: the first counts its non-empty pairs, the second (after
-a prefix sum gives every Gaussian its slot) writes them in Gaussian order with the key (tile << 32) | depth key. A
-stable radix sort of the keys (only the bits in use) then orders each tile front to back, equal depths by
-Gaussian index.
+The Gaussians are sorted by depth first (a radix sort of N keys; equal depths by Gaussian index). The non-empty pairs
+of a Gaussian are the tiles of its rectangle that its alpha span reaches, a rectangle of tiles too, so a first kernel
+counts them without walking them; a prefix sum in depth order gives every Gaussian its slots, and a second kernel
+writes its pairs there front to back, keyed by their tile. A stable radix sort of the tile keys (one pass of 16 bits
+up to 65,536 tiles) then groups the pairs by tile, each tile front to back. One sort of the pairs by (tile, depth)
+gives the same lists but needs three 16-bit passes over pairs that outnumber the Gaussians ten to one, and walking
+every tile of the rectangle twice cost as much again: on the cup's trained model (72k Gaussians, 819k pairs) the
+binning took 2.4x as long that way.
 """
 
 from __future__ import annotations
@@ -66,12 +70,25 @@ def _block_mask(first_x: int, last_x: int, first_y: int, last_y: int, tile_x: in
 
 
 @wp.func
-def _spans(means2d: wp.array2d(dtype=float), alpha_extent: wp.array2d(dtype=float), i: int, use_masks: int):
+def _tiles_touched(first: int, last: int, tile_min: int, tile_max: int):
+    """The tiles [a, b) of the rectangle [tile_min, tile_max) that hold a pixel of the span [first, last]: exactly
+    those where _block_mask is not 0."""
+    if last < first or last < 0:
+        return tile_min, tile_min
+    return wp.max(tile_min, wp.max(first, 0) / TILE_SIZE), wp.min(tile_max, last / TILE_SIZE + 1)
+
+
+@wp.func
+def _pair_tiles(tile_min: wp.array2d(dtype=wp.int32), tile_max: wp.array2d(dtype=wp.int32),
+                means2d: wp.array2d(dtype=float), alpha_extent: wp.array2d(dtype=float), i: int, use_masks: int):
+    """The tiles of Gaussian i's non-empty pairs, [x0, x1) x [y0, y1), and its pixel span."""
     if use_masks == 0:
-        return 0, 0, 0, 0
+        return tile_min[i, 0], tile_max[i, 0], tile_min[i, 1], tile_max[i, 1], 0, 0, 0, 0
     first_x, last_x = _pixel_span(means2d[i, 0], alpha_extent[i, 0])
     first_y, last_y = _pixel_span(means2d[i, 1], alpha_extent[i, 1])
-    return first_x, last_x, first_y, last_y
+    x0, x1 = _tiles_touched(first_x, last_x, tile_min[i, 0], tile_max[i, 0])
+    y0, y1 = _tiles_touched(first_y, last_y, tile_min[i, 1], tile_max[i, 1])
+    return x0, x1, y0, y1, first_x, last_x, first_y, last_y
 
 
 @wp.kernel
@@ -79,45 +96,47 @@ def _count_pairs(offset: int, tile_min: wp.array2d(dtype=wp.int32), tile_max: wp
                  means2d: wp.array2d(dtype=float), alpha_extent: wp.array2d(dtype=float), use_masks: int,
                  counts: wp.array(dtype=wp.int32)):
     i = offset + wp.tid()
-    first_x, last_x, first_y, last_y = _spans(means2d, alpha_extent, i, use_masks)
-    count = int(0)
-    for ty in range(tile_min[i, 1], tile_max[i, 1]):
-        for tx in range(tile_min[i, 0], tile_max[i, 0]):
-            if use_masks == 0 or _block_mask(first_x, last_x, first_y, last_y, tx, ty) != 0:
-                count += 1
-    counts[i] = count
+    x0, x1, y0, y1, first_x, last_x, first_y, last_y = _pair_tiles(tile_min, tile_max, means2d, alpha_extent, i,
+                                                                   use_masks)
+    counts[i] = wp.max(x1 - x0, 0) * wp.max(y1 - y0, 0)
 
 
 @wp.kernel
 def _write_pairs(offset: int, tile_min: wp.array2d(dtype=wp.int32), tile_max: wp.array2d(dtype=wp.int32),
                  means2d: wp.array2d(dtype=float), alpha_extent: wp.array2d(dtype=float), use_masks: int,
-                 depth_keys: wp.array(dtype=wp.int64), tiles_x: int, offsets: wp.array(dtype=wp.int32),
-                 keys: wp.array(dtype=wp.int64), gaussian_ids: wp.array(dtype=wp.int32),
-                 masks: wp.array(dtype=wp.int32)):
+                 tiles_x: int, offsets: wp.array(dtype=wp.int32), tiles: wp.array(dtype=wp.int32),
+                 pairs: wp.array(dtype=wp.int64)):
+    """Each pair as its tile (the sort key) and its Gaussian with its block mask in the high 32 bits (the value)."""
     i = offset + wp.tid()
-    first_x, last_x, first_y, last_y = _spans(means2d, alpha_extent, i, use_masks)
+    x0, x1, y0, y1, first_x, last_x, first_y, last_y = _pair_tiles(tile_min, tile_max, means2d, alpha_extent, i,
+                                                                   use_masks)
     slot = offsets[i]
-    for ty in range(tile_min[i, 1], tile_max[i, 1]):
-        for tx in range(tile_min[i, 0], tile_max[i, 0]):
+    for ty in range(y0, y1):
+        for tx in range(x0, x1):
             mask = int(ALL_BLOCKS)
             if use_masks != 0:
                 mask = _block_mask(first_x, last_x, first_y, last_y, tx, ty)
-            if mask != 0:
-                keys[slot] = (wp.int64(ty * tiles_x + tx) << wp.int64(32)) | depth_keys[i]
-                gaussian_ids[slot] = i
-                masks[slot] = mask
-                slot += 1
+            tiles[slot] = ty * tiles_x + tx
+            pairs[slot] = (wp.int64(mask) << wp.int64(32)) | wp.int64(i)
+            slot += 1
 
 
-def _depth_keys(depths: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
-    """int64 [N] in [0, 2^31), ordered like the depths of the visible Gaussians (any value for the others)."""
+def _depth_order(depths: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
+    """int32 [N]: the Gaussians front to back (the visible ones; the others anywhere), equal depths by index."""
+    n, device = depths.shape[0], depths.device
     if depths.dtype == torch.float32:
         # Visible Gaussians lie in front of the near plane: positive floats order like their bit patterns.
-        return torch.where(visible, depths.detach(), torch.zeros_like(depths)).view(torch.int32).to(torch.int64)
-    order = torch.argsort(depths.detach(), stable=True)  # float64: ranks keep every distinction of the depths
-    ranks = torch.empty_like(order)
-    ranks[order] = torch.arange(order.numel(), device=depths.device)
-    return ranks
+        keys = torch.where(visible, depths.detach(), torch.zeros_like(depths)).view(torch.int32)
+    else:  # float64: ranks keep every distinction of the depths
+        order = torch.argsort(depths.detach(), stable=True)
+        keys = torch.empty(n, dtype=torch.int32, device=device)
+        keys[order] = torch.arange(n, dtype=torch.int32, device=device)
+    sort_keys = torch.empty(2 * n, dtype=torch.int32, device=device)  # the radix sort's room for twice the items
+    order = torch.empty(2 * n, dtype=torch.int32, device=device)
+    sort_keys[:n] = keys
+    torch.arange(n, dtype=torch.int32, device=device, out=order[:n])
+    wp.utils.radix_sort_pairs(wp.from_torch(sort_keys), wp.from_torch(order), n, end_bit=31)
+    return order[:n]
 
 
 def bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.Tensor, radii: torch.Tensor,
@@ -140,23 +159,21 @@ def bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.
     rectangles += [warp_view(t) for t in spans] + [int(use_masks)]
     counts = torch.zeros(n, dtype=torch.int32, device=device)
     run_ranges(_count_pairs, n, device, rectangles + [warp_view(counts)])
-    ends = torch.cumsum(counts, 0, dtype=torch.int64)
+    order = _depth_order(depths, radii > 0).long() if n else torch.zeros(0, dtype=torch.int64, device=device)
+    ends = torch.cumsum(counts[order], 0, dtype=torch.int64)  # slots front to back
     total = int(ends[-1]) if n else 0
-    # The radix sort needs room for twice the pairs; the pair's slot rides along as the value.
-    keys = torch.empty(2 * total, dtype=torch.int64, device=device)
-    slots = torch.empty(2 * total, dtype=torch.int32, device=device)
-    ids = torch.empty(total, dtype=torch.int32, device=device)
-    masks = torch.empty(total, dtype=torch.int32, device=device)
+    # The radix sort needs room for twice the pairs.
+    tiles = torch.empty(2 * total, dtype=torch.int32, device=device)
+    pairs = torch.empty(2 * total, dtype=torch.int64, device=device)
     if total:
-        offsets = (ends - counts).to(torch.int32)
-        run_ranges(_write_pairs, n, device, rectangles + [
-            warp_view(_depth_keys(depths, radii > 0)), tiles_x, warp_view(offsets), warp_view(keys),
-            warp_view(ids), warp_view(masks)])
-        torch.arange(total, dtype=torch.int32, device=device, out=slots[:total])
-        wp.utils.radix_sort_pairs(wp.from_torch(keys), wp.from_torch(slots), total,
-                                  end_bit=32 + max(1, (num_tiles - 1).bit_length()))
-    keys, order = keys[:total], slots[:total].long()
-    per_tile = torch.bincount(keys >> 32, minlength=num_tiles)
+        offsets = torch.empty(n, dtype=torch.int32, device=device)
+        offsets[order] = (ends - counts[order]).to(torch.int32)
+        run_ranges(_write_pairs, n, device, rectangles + [tiles_x, warp_view(offsets), warp_view(tiles),
+                                                          warp_view(pairs)])
+        wp.utils.radix_sort_pairs(wp.from_torch(tiles), wp.from_torch(pairs), total,
+                                  end_bit=max(1, (num_tiles - 1).bit_length()))
+    tiles, pairs = tiles[:total], pairs[:total]
+    per_tile = torch.bincount(tiles, minlength=num_tiles)
     tile_ends = torch.cumsum(per_tile, 0)
     tile_ranges = torch.stack([tile_ends - per_tile, tile_ends], dim=-1).to(torch.int32)
-    return TileBins(ids[order], tile_ranges, masks[order], tiles_x, tiles_y)
+    return TileBins((pairs & 0xFFFFFFFF).to(torch.int32), tile_ranges, (pairs >> 32).to(torch.int32), tiles_x, tiles_y)
