@@ -22,9 +22,9 @@ number of steps. What the budget decides is that number and the cap, from the ti
   planned cap), so the larger that share, the later full size comes: at 40% of the steps where pixels take 40% or
   less of a step, at the end where they take 80% or more, in proportion between. At 5 minutes on the shared
   captures (2 cores, one run each) the best length followed that share: the bird (pixels 75-80% of a step) gained
-  1.7 dB at 1.0 over 0.4, the cup (about 0.6 on that machine) 0.3 at 0.7-1.0, DTU and fern (0.45-0.65) peaked at
-  0.4-0.7, and the demo scene (0.3-0.4) lost 1.1 dB at 0.7. It is chosen again at every plan until full size is
-  reached, then kept.
+  1.7-2.2 dB at 1.0 over 0.4, the cup (about 0.6 on that machine) 0.3 at 0.7-1.0, DTU and fern (0.45-0.65) peaked at
+  0.4-0.7, and the demo scene (0.3-0.4) lost 1.1 dB at 0.7. Chosen this way the cup's 10 minutes gained 0.56 dB
+  over 0.4 (docs/quality.md). It is chosen again at every plan until full size is reached, then kept.
 - The steps are those whose predicted times, with the count growing to the cap and the resolution rising as
   planned, fill the time left. The plan is made again every 2% of the budget (more often near its end) as the
   measured times come in, and the schedules are fitted again to the new number of steps. The SH schedule is kept

@@ -11,7 +11,7 @@ writes its pairs there front to back, keyed by their tile. A stable radix sort o
 up to 65,536 tiles) then groups the pairs by tile, each tile front to back. One sort of the pairs by (tile, depth)
 gives the same lists but needs three 16-bit passes over pairs that outnumber the Gaussians ten to one, and walking
 every tile of the rectangle twice cost as much again: on the cup's trained model (72k Gaussians, 819k pairs) the
-binning took 2.4x as long that way.
+binning took twice as long that way (27.4 against 13.4 ms in a training step).
 """
 
 from __future__ import annotations
