@@ -12,6 +12,9 @@ up to 65,536 tiles) then groups the pairs by tile, each tile front to back. One 
 gives the same lists but needs three 16-bit passes over pairs that outnumber the Gaussians ten to one, and walking
 every tile of the rectangle twice cost as much again: on the cup's trained model (72k Gaussians, 819k pairs) the
 binning took twice as long that way (27.4 against 13.4 ms in a training step).
+
+CUDA runs the same kernels and Warp's CUB radix sort; this shape has been checked on the CPU only (the tests compare
+the lists with the torch binning's) until a GPU run is recorded in benchmarks/README.md ("GPU").
 """
 
 from __future__ import annotations
@@ -160,14 +163,15 @@ def bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.
     counts = torch.zeros(n, dtype=torch.int32, device=device)
     run_ranges(_count_pairs, n, device, rectangles + [warp_view(counts)])
     order = _depth_order(depths, radii > 0).long() if n else torch.zeros(0, dtype=torch.int64, device=device)
-    ends = torch.cumsum(counts[order], 0, dtype=torch.int64)  # slots front to back
+    counts_front_to_back = counts[order]
+    ends = torch.cumsum(counts_front_to_back, 0, dtype=torch.int64)  # each Gaussian's slots, front to back
     total = int(ends[-1]) if n else 0
     # The radix sort needs room for twice the pairs.
     tiles = torch.empty(2 * total, dtype=torch.int32, device=device)
     pairs = torch.empty(2 * total, dtype=torch.int64, device=device)
     if total:
         offsets = torch.empty(n, dtype=torch.int32, device=device)
-        offsets[order] = (ends - counts[order]).to(torch.int32)
+        offsets[order] = (ends - counts_front_to_back).to(torch.int32)
         run_ranges(_write_pairs, n, device, rectangles + [tiles_x, warp_view(offsets), warp_view(tiles),
                                                           warp_view(pairs)])
         wp.utils.radix_sort_pairs(wp.from_torch(tiles), wp.from_torch(pairs), total,
