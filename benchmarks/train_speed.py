@@ -403,7 +403,8 @@ def markdown(records: list[dict], info: dict, args) -> str:
     cols += [("peak MB", mem, ".0f"), ("composited/px", "composited_per_pixel", ".1f")]
     lines = [f"# Training speed ({records[0]['device'] if records else args.device})", "",
              f"Machine: {C.machine_line(info)}. Commit {C.git_commit()}, {C.timestamp()}.", "",
-             f"lego {records[0]['image'] if records else ''}, scene model `{args.scene_model}`, strategy "
+             f"{Path(args.scene).name} {records[0]['image'] if records else ''}, scene model "
+             f"`{records[0]['scene_model'] if records else args.scene_model}`, strategy "
              f"`{args.strategy}`; medians of {args.repeats} instrumented steps after {args.warmup} warm-up steps; "
              f"'step ms' is the median of {args.plain} un-instrumented trainer steps; the strategy column includes "
              f"one refine step per {REFINE_EVERY} steps. Phase ms (share of the phase sum).", "",

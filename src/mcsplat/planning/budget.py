@@ -196,8 +196,7 @@ class BudgetPlanner:
         """A new plan from the costs measured so far."""
         self.cost.fit()
         if self.full_size_chosen and step < self.plan.resolution_full_at * self.plan.steps:
-            cap = min(max(self.ceiling, 1), max(gaussians, self.balanced_cap()))
-            self.plan = replace(self.plan, resolution_full_at=self.full_size_at(cap))
+            self.plan = replace(self.plan, resolution_full_at=self.full_size_at(self._balanced_from(gaussians)))
         self._apply(self._choose(step, wall_seconds, gaussians), step)
         self.last_plan_at = wall_seconds
         self.history.append({"at_seconds": round(wall_seconds, 1), "step": step, "steps": self.plan.steps,
@@ -235,7 +234,7 @@ class BudgetPlanner:
         if step >= min(self.config.mcmc.growth_share * self.plan.steps, self.plan.mcmc.refine_stop):
             return Choice(self._steps_for(step, left, current, current), current, self.base["mcmc.grow_rate"])
         lowest = min(top, max(MIN_START_GAUSSIANS, current // 10) if step == 0 else current)
-        cap = min(top, max(lowest, self.balanced_cap()))
+        cap = self._balanced_from(lowest)
         steps = self._steps_for(step, left, current, cap)
         while steps < MIN_STEPS and cap > lowest:
             cap = max(lowest, int(cap * 0.8))
@@ -250,6 +249,10 @@ class BudgetPlanner:
         if per_gaussian <= 0:
             return max(self.ceiling, 1)
         return int(BALANCE * (a + b) / per_gaussian * math.sqrt(self.budget_seconds / 600.0))
+
+    def _balanced_from(self, lowest: int) -> int:
+        """The balanced cap, at least `lowest` and at most the ceiling."""
+        return min(max(self.ceiling, 1), max(lowest, self.balanced_cap()))
 
     def pixel_share(self, gaussians: int) -> float:
         """The share of a full-size step of `gaussians` that its pixels take (b + d n over the whole); 0 before
