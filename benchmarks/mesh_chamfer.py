@@ -3,6 +3,8 @@ against the true mesh (exact_mesh_scene.py, chamfer.py), plain MCMC against MCMC
 
     .venv/bin/python benchmarks/mesh_chamfer.py                                   # both arms, 3,000 steps
     .venv/bin/python benchmarks/mesh_chamfer.py --arms mcmc-surface --steps 2000
+    .venv/bin/python benchmarks/mesh_chamfer.py --arms mcmc-surface --depth planar   # fuse the planar depth
+    .venv/bin/python benchmarks/mesh_chamfer.py --arms mcmc --truncation 24         # a wider band
     .venv/bin/python benchmarks/mesh_chamfer.py --report                          # rebuild results.md
 
 The scene is written once into results/mesh_chamfer/scene/ (80 training and 20 test views of 200x200 around a
@@ -12,7 +14,10 @@ refinement from step 50 every 10 steps to 2,500, SH degree +1 every 100 steps, f
 random points. Each run's mesh is exported in a fresh process by `mcsplat export RUN --format mesh` with its defaults
 into RUN/chamfer_mesh.ply (not the run's own mesh.ply, whose writing also makes the run's report again, inside the
 timing); the arms after the first fuse in the first one's voxel size (`--voxel-size`), so that the arms are meshed
-alike. Then, in % of the true mesh's bounding-box diagonal (chamfer.py's docstring has the definitions):
+alike. With `--depth planar` the export fuses the planar depth instead of the median depth, with
+`--truncation N` in a band of N voxels (into RUN/chamfer_mesh-planar.ply, -t24.ply, ...; the arm is recorded as
+`<arm>-planar`, `<arm>-t24`). Then, in % of the true mesh's bounding-box
+diagonal (chamfer.py's docstring has the definitions):
 
     accuracy       exported surface -> true surface: median, mean, and the share within 1% (precision)
     completeness   true surface -> exported surface: median, mean, and the share within 1% (recall)
@@ -41,6 +46,7 @@ import torch
 import trimesh
 
 import _common as C
+from mcsplat.mesh.grid import TRUNCATION_VOXELS
 import chamfer
 import exact_mesh_scene as exact
 from mesh_quality import STRATEGY_OPTIONS, TRAIN_OPTIONS
@@ -83,11 +89,14 @@ def train(arm: str, steps: int, threads: int) -> Path:
     return run
 
 
-def export(run: Path, voxel_size: float | None) -> dict:
-    """`mcsplat export RUN --format mesh` in a fresh process, timed; the mesh goes to RUN/chamfer_mesh.ply."""
-    out = run / "chamfer_mesh.ply"
+def export(run: Path, voxel_size: float | None, depth: str = "median", truncation: float = TRUNCATION_VOXELS
+           ) -> dict:
+    """`mcsplat export RUN --format mesh` in a fresh process, timed; the mesh goes to RUN/chamfer_mesh<suffix>.ply
+    (suffix(): none with the export's defaults)."""
+    out = run / f"chamfer_mesh{suffix(depth, truncation)}.ply"
     size = [] if voxel_size is None else ["--voxel-size", repr(voxel_size), "--voxel-budget", str(1 << 26)]
-    command = [sys.executable, "-m", "mcsplat", "export", str(run), "--format", "mesh", "--out", str(out), *size]
+    command = [sys.executable, "-m", "mcsplat", "export", str(run), "--format", "mesh", "--out", str(out), *size,
+               "--depth", depth, "--truncation", repr(truncation)]
     started = time.perf_counter()
     done = subprocess.run(command, capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(C.REPO / "src")))
     seconds = time.perf_counter() - started
@@ -95,6 +104,11 @@ def export(run: Path, voxel_size: float | None) -> dict:
         sys.exit(f"mesh_chamfer.py: export of {run} failed: {done.stderr.strip().splitlines()[-1:]}")
     said = re.search(r"voxels of ([0-9.e+-]+)", done.stdout)
     return {"mesh_file": out, "export_seconds": round(seconds, 1), "voxel_size": float(said.group(1)) if said else None}
+
+
+def suffix(depth: str, truncation: float) -> str:
+    """-planar for the planar depth, -t<N> for a band of N voxels other than the default, both, or none."""
+    return ("" if depth == "median" else f"-{depth}") + ("" if truncation == TRUNCATION_VOXELS else f"-t{truncation:g}")
 
 
 # ------------------------------------------------------------------------------------------------ measures
@@ -196,6 +210,10 @@ def main() -> None:
                         help="default: %(default)s")
     parser.add_argument("--steps", type=int, default=3000, help="training steps (default %(default)s)")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--depth", choices=["median", "planar"], default="median",
+                        help="the depth the export fuses (default %(default)s)")
+    parser.add_argument("--truncation", type=float, default=TRUNCATION_VOXELS,
+                        help="the export's band, in voxels (default %(default)s)")
     parser.add_argument("--report", action="store_true", help="only rebuild results.md from results.jsonl")
     args = parser.parse_args()
     results = OUT / "results.jsonl"
@@ -207,9 +225,10 @@ def main() -> None:
         voxel_size = None
         for arm in args.arms:  # one arm at a time: training, export, scoring
             run = train(arm, args.steps, args.threads)
-            exported = export(run, voxel_size)
+            exported = export(run, voxel_size, args.depth, args.truncation)
             voxel_size = voxel_size or exported["voxel_size"]
-            record = {**measure(arm, run, exported, truth, loaded), "machine": C.machine(), "commit": C.git_commit(),
+            name = arm + suffix(args.depth, args.truncation)
+            record = {**measure(name, run, exported, truth, loaded), "machine": C.machine(), "commit": C.git_commit(),
                       "date": C.timestamp(), "benchmark": "mesh_chamfer"}
             C.emit(record)
             C.append_jsonl(results, [record])

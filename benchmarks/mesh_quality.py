@@ -5,6 +5,7 @@ whether MCMC puts its Gaussians on the surface more than ADC does, at the same c
     .venv/bin/python benchmarks/mesh_quality.py --scenes cup --strategies mcmc adc
     .venv/bin/python benchmarks/mesh_quality.py --runs RUN [RUN ...]   # runs trained elsewhere (no SfM: no distances)
     .venv/bin/python benchmarks/mesh_quality.py --report               # rebuild results.md from results.jsonl
+    .venv/bin/python benchmarks/mesh_quality.py --scenes bird --strategies mcmc --truncation 24   # a wider band
 
 Each scene trains (or a finished run is reused) with the squeezed schedule of the other benchmarks: 3,000 steps, cap
 100k, refinement from step 50 every 10 steps to 2,500 (MCMC) or densification to 1,500 with an opacity reset every
@@ -44,6 +45,7 @@ import torch
 from scipy.spatial import cKDTree
 
 import _common as C
+from mcsplat.mesh.grid import TRUNCATION_VOXELS
 
 # name -> (folder under the shared data, downscale, options of its own)
 SCENES = {"cup": ("colmap_cup", 2, []), "bird": ("colmap_bird", 2, []),
@@ -60,6 +62,7 @@ STRATEGY_OPTIONS = {
 # With Mip-Splatting's 2D filter, which removes the inward bias of 3DGS's low-pass widening (depth_accuracy.py).
 STRATEGY_OPTIONS["mcmc-antialiased"] = STRATEGY_OPTIONS["mcmc"] + ["--antialiased"]
 STRATEGY_OPTIONS["mcmc-surface-antialiased"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--antialiased"]
+STRATEGY_OPTIONS["adc-surface"] = STRATEGY_OPTIONS["adc"] + ["--surface"]
 NEAR_VOXELS = 3           # "on the surface": within this many voxels of the mesh
 COMPLETE = 0.01           # completeness threshold, in units of R
 AGREEMENT = 0.01          # depth agreement threshold, relative to the depth
@@ -84,7 +87,7 @@ def train(scene: str, strategy: str, data_root: Path, threads: int) -> Path:
 
 
 # ------------------------------------------------------------------------------------------------ export
-def export_worker(run: str, voxel_size: float | None) -> None:
+def export_worker(run: str, voxel_size: float | None, truncation: float) -> None:
     """In a fresh process: what `mcsplat export RUN --format mesh [--voxel-size S]` does, timed; prints one JSON
     line."""
     from mcsplat import run_dir
@@ -93,8 +96,8 @@ def export_worker(run: str, voxel_size: float | None) -> None:
     started = time.perf_counter()
     trained = run_dir.load(run, torch.device("cpu"))
     # A given voxel size may need more voxels than the default budget when this model's box is larger.
-    options = MeshOptions() if voxel_size is None else MeshOptions(voxel_size=voxel_size,
-                                                                   voxel_budget=4 * DEFAULT_VOXEL_BUDGET)
+    options = MeshOptions(truncation=truncation) if voxel_size is None else \
+        MeshOptions(voxel_size=voxel_size, voxel_budget=4 * DEFAULT_VOXEL_BUDGET, truncation=truncation)
     mesh = extract(trained.model, trained.scene.train, options, sh_degree=trained.sh_degree)
     write_mesh(trained.folder.mesh_file, mesh)
     made = mesh.metadata["mcsplat"]
@@ -105,10 +108,16 @@ def export_worker(run: str, voxel_size: float | None) -> None:
                       "views": made["views"], "vertices": len(mesh.vertices), "faces": len(mesh.faces)}))
 
 
-def export(run: Path, voxel_size: float | None = None) -> dict:
+def export(run: Path, voxel_size: float | None = None, truncation: float = TRUNCATION_VOXELS) -> dict:
+    """The export worker's figures for `run`, fused in `voxel_size` where that fits 4x the default voxel budget, else
+    (a model whose box is much larger: ADC's floaters) in the finest size its own box allows, as the voxel column
+    then shows."""
     size = [] if voxel_size is None else ["--voxel-size", repr(voxel_size)]
-    done = subprocess.run([sys.executable, __file__, "--export-worker", str(run), *size], capture_output=True,
-                          text=True)
+    done = subprocess.run([sys.executable, __file__, "--export-worker", str(run), *size, "--truncation",
+                           repr(truncation)], capture_output=True, text=True)
+    if done.returncode != 0 and voxel_size is not None and "over the budget" in done.stderr:
+        print(f"{run.name}: the shared voxel size does not fit its box; fused in its own", file=sys.stderr)
+        return export(run, None, truncation)
     if done.returncode != 0:
         sys.exit(f"export of {run} failed: {done.stderr.strip()}")
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -157,7 +166,7 @@ def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
 
 
 # ------------------------------------------------------------------------------------------------ measures
-def measure(run: Path, exported: dict) -> dict:
+def measure(run: Path, exported: dict, name: str) -> dict:
     from mcsplat import run_dir
     from mcsplat.gaussians import DEAD_OPACITY
     from mcsplat.mesh import read_mesh
@@ -167,7 +176,7 @@ def measure(run: Path, exported: dict) -> dict:
     vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     scene, radius = trained.scene, trained.scene.radius
     metrics = json.loads((run / "metrics.json").read_text())
-    record = {"run": run.name, "scene": trained.config.data.name, "strategy": trained.config.strategy,
+    record = {"run": name, "scene": trained.config.data.name, "strategy": trained.config.strategy,
               "psnr": round(metrics["psnr"], 2), "num_gaussians": trained.model.num_gaussians, "radius": radius,
               **exported, "voxel_size_r": exported["voxel_size"] / radius}
     if scene.points is not None:
@@ -186,7 +195,7 @@ def measure(run: Path, exported: dict) -> dict:
     record.update(gaussians_on_surface=float(near.mean()),
                   gaussians_on_surface_weighted=float((near * opacities[alive]).sum() / opacities[alive].sum()))
     record.update(depth_agreement(trained, vertices, faces))
-    picture(trained, vertices, faces, np.asarray(mesh.visual.vertex_colors)[:, :3], OUT / f"{run.name}.png")
+    picture(trained, vertices, faces, np.asarray(mesh.visual.vertex_colors)[:, :3], OUT / f"{name}.png")
     return record
 
 
@@ -235,9 +244,13 @@ def percent(key: str):
 
 
 def report(records: list[dict]) -> str:
+    scenes, arms = list(dict.fromkeys(r["scene"] for r in records)), list(STRATEGY_OPTIONS)
+    records = sorted(records, key=lambda r: (scenes.index(r["scene"]), arms.index(r["run"].split("-", 1)[1])
+                                             if r["run"].split("-", 1)[1] in arms else len(arms)))
     table = C.markdown_table(records, [
         ("run", "run", ""), ("PSNR", "psnr", ".2f"), ("Gaussians", "num_gaussians", ","), ("faces", "faces", ","),
         ("voxel %R", "voxel_size_r", percent("voxel_size_r")),
+        ("band (voxels)", "", lambda r: f"{r.get('truncation_voxels', TRUNCATION_VOXELS):g}"),
         ("SfM->mesh median %R", "", percent("points_to_mesh_median")),
         ("SfM->mesh p90 %R", "", percent("points_to_mesh_p90")),
         ("complete (1% R)", "", percent("completeness")),
@@ -249,15 +262,18 @@ def report(records: list[dict]) -> str:
         ("export s", "export_seconds", ".0f"), ("peak RSS MB", "peak_rss_mb", ",")])
     lines = []
     for scene in dict.fromkeys(r["scene"] for r in records):
-        by = {r["strategy"]: r for r in records if r["scene"] == scene and "points_to_mesh_median" in r}
-        if {"mcmc", "adc"} <= set(by):
-            m, a = by["mcmc"], by["adc"]
-            closer = "MCMC" if m["points_to_mesh_median"] < a["points_to_mesh_median"] else "ADC"
-            lines.append(f"- {scene}: {closer}'s mesh is closer to the SfM points (median "
-                         f"{100 * m['points_to_mesh_median']:.2f}% R for MCMC, {100 * a['points_to_mesh_median']:.2f}% "
-                         f"R for ADC; completeness {100 * m['completeness']:.1f}% vs {100 * a['completeness']:.1f}%); "
-                         f"{100 * m['gaussians_on_surface']:.1f}% of MCMC's Gaussians lie within {NEAR_VOXELS} voxels "
-                         f"of the surface, {100 * a['gaussians_on_surface']:.1f}% of ADC's")
+        # The arm is the run's name after the scene's (mcmc, mcmc-surface, adc, ...).
+        by = {r["run"].split("-", 1)[1]: r for r in records if r["scene"] == scene and "points_to_mesh_median" in r}
+        for mcmc, adc in (("mcmc", "adc"), ("mcmc-surface", "adc-surface")):
+            if {mcmc, adc} <= set(by):
+                m, a = by[mcmc], by[adc]
+                closer = mcmc if m["points_to_mesh_median"] < a["points_to_mesh_median"] else adc
+                lines.append(f"- {scene}: {closer}'s mesh is closer to the SfM points (median "
+                             f"{100 * m['points_to_mesh_median']:.2f}% R for {mcmc}, "
+                             f"{100 * a['points_to_mesh_median']:.2f}% R for {adc}; completeness "
+                             f"{100 * m['completeness']:.1f}% vs {100 * a['completeness']:.1f}%); "
+                             f"{100 * m['gaussians_on_surface']:.1f}% of {mcmc}'s Gaussians lie within {NEAR_VOXELS} "
+                             f"voxels of the surface, {100 * a['gaussians_on_surface']:.1f}% of {adc}'s")
     text = (f"# Meshes of trained scenes\n\n{table}\n\n" + "\n".join(lines) + ("\n" if lines else "") +
             f"\nDistances in % of the scene radius R; \"on surface\": the centre within {NEAR_VOXELS} voxels of the "
             f"mesh. Export: `mcsplat export RUN --format mesh` with its defaults, in a fresh process on the CPU.\n")
@@ -273,11 +289,14 @@ def main() -> None:
     parser.add_argument("--data-root", type=Path, default=C.DATA_ROOT)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--report", action="store_true", help="only rebuild results.md from results.jsonl")
+    parser.add_argument("--truncation", type=float, default=TRUNCATION_VOXELS,
+                        help="the export's --truncation, in voxels (default %(default)s); the runs' records and "
+                             "pictures are then named <run>-t<N>")
     parser.add_argument("--export-worker", help=argparse.SUPPRESS)
     parser.add_argument("--voxel-size", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.export_worker:
-        export_worker(args.export_worker, args.voxel_size)
+        export_worker(args.export_worker, args.voxel_size, args.truncation)
         return
     results = OUT / "results.jsonl"
     if not args.report:
@@ -292,11 +311,12 @@ def main() -> None:
             runs = [train(scene, strategy, args.data_root, args.threads) for scene, strategy in jobs]
         voxel_sizes: dict[str, float] = {}  # per scene: the first run's, so that MCMC and ADC fuse in equal voxels
         for run in runs:
-            scene = run.name.rsplit("-", 1)[0]
-            exported = export(run, voxel_sizes.get(scene))
+            scene = run.name.split("-", 1)[0]  # scene names have no dash; strategies may
+            exported = export(run, voxel_sizes.get(scene), args.truncation)
             voxel_sizes.setdefault(scene, exported["voxel_size"])
-            record = {**measure(run, exported), "machine": C.machine(), "commit": C.git_commit(),
-                      "date": C.timestamp(), "benchmark": "mesh_quality"}
+            name = run.name if args.truncation == TRUNCATION_VOXELS else f"{run.name}-t{args.truncation:g}"
+            record = {**measure(run, exported, name), "truncation_voxels": args.truncation, "machine": C.machine(),
+                      "commit": C.git_commit(), "date": C.timestamp(), "benchmark": "mesh_quality"}
             C.emit(record)
             C.append_jsonl(results, [record])
     latest = {r["run"]: r for r in C.read_jsonl(results)}  # the last record of each run

@@ -118,6 +118,19 @@ def test_box_of_gaussians_gives_a_closed_mesh_on_the_box():
     assert mesh.volume == pytest.approx(1.6 ** 3, rel=0.03)
 
 
+def test_the_planar_depth_fuses_the_box_as_closely_as_the_median_depth():
+    """The box's faces are planes of flat Gaussians: where each ray meets their composited plane is the face, so the
+    mesh of the planar depth lies on the faces as the median depth's does (1% of the half side)."""
+    mesh = extract(box_of_gaussians(), all_around(), MeshOptions(voxel_budget=1_000_000, depth="planar"))
+    outside = np.abs(mesh.vertices) - 0.8
+    distance = np.abs(np.linalg.norm(np.maximum(outside, 0), axis=1) + np.minimum(outside.max(axis=1), 0)) / 0.8
+    on_faces = np.sort(np.abs(mesh.vertices), axis=1)[:, 1] < 0.7
+    assert on_faces.mean() > 0.7 and distance[on_faces].max() < 0.01, distance[on_faces].max()
+    assert mesh.is_watertight and mesh.volume == pytest.approx(1.6 ** 3, rel=0.03)
+    with pytest.raises(MCSplatError, match="--depth must be one of median, planar"):
+        MeshOptions(depth="mean")
+
+
 def test_surfaces_end_where_the_views_stop_seeing():
     """A plane seen from one side only: the mesh is the plane, with no wall where the observed part of the volume
     meets the part no view reached (which holds the initial +1 everywhere)."""
@@ -129,6 +142,22 @@ def test_surfaces_end_where_the_views_stop_seeing():
     vertices, faces, colors = zero_surface(volume)
     assert len(faces) > 100 and np.abs(vertices[:, 2]).max() < 1e-3
     assert (colors == 128).all()
+
+
+def test_a_band_narrower_than_the_views_disagreement_moves_the_surface_inward():
+    """21 views of the plane z = 0 from above whose depths disagree evenly by up to 0.1 either way: with a band of 4
+    voxels of 0.01 the fusion skips the grid points that the nearer depths put behind the band, so the surface sinks
+    below the plane; with a band of 24 voxels, wider than the disagreement, it stays on it."""
+    camera = look_at(torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), 64)
+    heights = {}
+    for band in (4, 24):
+        grid = VoxelGrid(origin=(-0.2, -0.2, -0.3), voxel_size=0.01, shape=(41, 41, 61), truncation_voxels=band)
+        volume = TSDFVolume(grid, torch.device("cpu"))
+        for error in torch.linspace(-0.1, 0.1, 21):
+            volume.integrate(camera, torch.full((64, 64), 3.0 + float(error)), torch.full((64, 64, 3), 0.5))
+        vertices = zero_surface(volume)[0]
+        heights[band] = float(np.median(vertices[:, 2]))
+    assert heights[4] < -0.02 and abs(heights[24]) < 0.003, heights
 
 
 def test_the_volume_holds_what_most_views_see():
@@ -240,6 +269,7 @@ def test_bad_input_gets_one_line_errors(tiny_run, tmp_path, capsys):
         (["export", str(tiny_run), "--format", "mesh", "--voxel-budget", str(10 ** 13)], "lower --voxel-budget"),
         (["export", str(tiny_run), "--format", "mesh", "--out", str(tmp_path / "mesh.stl")], "by the file's ending"),
         (["export", str(tiny_run), "--format", "mesh", "--alpha-min", "0"], "--alpha-min must be in (0, 1]"),
+        (["export", str(tiny_run), "--format", "mesh", "--truncation", "0.5"], "--truncation must be at least 1"),
     ]
     for argv, message in cases:
         assert main(argv) == 2, argv

@@ -16,7 +16,7 @@ from mcsplat.optim import OptimConfig, make_optimizers
 from mcsplat.render import render
 from mcsplat.run_dir import load
 from mcsplat.strategy.mcmc import MCMCConfig, inject_noise, relocate_dead
-from mcsplat.surface import DepthNormal, Flatten, edge_weight, surface_terms
+from mcsplat.surface import DISTORTION_FROM, DepthNormal, Distortion, Flatten, edge_weight, surface_terms
 from mcsplat.train import train
 
 from test_render import make_camera
@@ -83,6 +83,22 @@ def test_the_depth_normal_term_is_zero_on_a_plane_and_positive_on_a_bumpy_scene(
     assert flat.item() < 1e-6 < 0.05 < bumpy.item()
     bumpy.backward()
     assert bumpy_model.params["quats"].grad.abs().max() > 0 and bumpy_model.params["means"].grad.abs().max() > 0
+
+
+def test_the_distortion_term_starts_at_a_tenth_of_the_run_and_is_the_mean_map_in_scene_radii():
+    term = Distortion(10.0, scene_radius=2.0)
+    assert DISTORTION_FROM == 0.1 and render_outputs([term], step=9, steps=100) == {}
+    assert render_outputs([term], step=10, steps=100) == {"distortion": True}
+    assert render_outputs([Distortion(0.0, scene_radius=2.0)], step=50, steps=100) == {}
+    model, camera = flat_model(60, seed=2, opacity=0.6), make_camera(45, 37)
+    model.params["means"].data *= 0.5
+    out = render(model, camera, distortion=True)
+    value = term(context(out, model, camera, out.rgb.detach(), step=10, steps=100))
+    assert value.item() > 0
+    torch.testing.assert_close(value, 10.0 * 4.0 * out.distortion.mean())
+    value.backward()
+    assert model.params["means"].grad.abs().max() > 0 and model.params["opacity_logits"].grad.abs().max() > 0
+    assert term(context(out, model, camera, out.rgb.detach(), step=9, steps=100)) is None
 
 
 def test_the_edge_weight_is_one_on_flat_photo_and_zero_at_its_strongest_edge():

@@ -214,6 +214,13 @@ class Export:
     """mesh: pixels whose accumulated alpha stays below this show no surface and fuse nothing."""
     min_component: float = 0.02
     """mesh: drop connected pieces of fewer faces than this share of the largest piece's (0 keeps all)."""
+    depth: Literal["median", "planar"] = "median"
+    """mesh: the depth each view fuses: median (where the ray meets the Gaussian at which alpha reaches 0.5) or
+    planar (where it meets the composited plane of flat Gaussians; for runs trained with --surface)."""
+    truncation: float = 4.0
+    """mesh: half-width of the signed distance band, in voxels. 16-24 suits a clean object (synthetic, or masked):
+    the views' depths of a surface disagree a little, and a narrow band leaves the mesh slightly inside it; on a
+    capture with floaters a wide band lets them pull the mesh outward (docs/outputs.md)."""
     device: Device = "auto"
 
     def run_command(self) -> int:

@@ -140,13 +140,16 @@ class TrainConfig:
     surface: bool = False
     """Train for a surface a mesh can be made of (PGSR's single-view terms): Gaussians flattened toward surface
     elements, and from --surface-from on, the rendered normals held to the normals of the rendered (planar) depth.
-    Costs two more compositing passes a step while the second term is on."""
+    Costs one more compositing pass a step while the second term is on."""
     surface_flatten: float = 100.0
     """Weight of the mean smallest scale of the Gaussians a step sees, in scene radii (PGSR's 100)."""
     surface_normal: float = 0.015
     """Weight of the depth-normal consistency term (PGSR's 0.015), weighted per pixel by (1 - image gradient)^2."""
     surface_from: float = 0.23
     """The share of the steps after which the depth-normal term starts (PGSR: step 7,000 of 30,000)."""
+    surface_distortion: float = 0.0
+    """Weight of 2DGS's depth distortion (a pixel's Gaussians pulled together in inverse depth, in scene radii),
+    from a tenth of the run on; 0: off. Costs one more compositing pass a step while it is on."""
     antialiased: bool = False
     """Mip-Splatting's 2D filter: a splat's opacity shrinks as the 0.3 px screen-space blur widens it, so fine
     detail keeps its weight when the scene is seen from farther away or at a lower resolution than it was trained
@@ -201,8 +204,10 @@ class TrainConfig:
                    "--appearance-grid-tv 0 or more"),
                   (min(self.appearance_grid_shape) >= 2,
                    "--appearance-grid-shape needs at least 2 cells along each of its three axes"),
-                  (self.surface_flatten >= 0 and self.surface_normal >= 0 and 0 <= self.surface_from <= 1,
-                   "--surface-flatten and --surface-normal must be >= 0 and --surface-from within [0, 1]"),
+                  (self.surface_flatten >= 0 and self.surface_normal >= 0 and self.surface_distortion >= 0
+                   and 0 <= self.surface_from <= 1,
+                   "--surface-flatten, --surface-normal and --surface-distortion must be >= 0 and --surface-from "
+                   "within [0, 1]"),
                   (self.pose_opt_lr > 0 and self.pose_opt_reg >= 0,
                    "--pose-opt-lr must be positive, --pose-opt-reg 0 or more"),
                   (self.resolution_start is None or 0.0 < self.resolution_start <= 1.0,

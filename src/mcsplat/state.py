@@ -124,7 +124,8 @@ def start(config: TrainConfig, plan: Plan, scene: Scene, device: torch.device, t
             module.load_state_dict(checkpoint.get(module.key))  # refuses a checkpoint trained without it
     state.loss_terms = standard_terms(config.ssim_weight, strategy, state.modules)
     if config.surface:
-        state.loss_terms += surface_terms(config.surface_flatten, config.surface_normal, config.surface_from, radius)
+        state.loss_terms += surface_terms(config.surface_flatten, config.surface_normal, config.surface_from, radius,
+                                          config.surface_distortion)
     strategy.collective = team.collective
     return state, note
 

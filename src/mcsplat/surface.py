@@ -6,8 +6,11 @@
                      (1 - |image gradient|)^2 * |N(planar depth) - rendered normal|_1: the normal map
                      (render/normals.py) held to the normal of the depth of its own planes
                      (geometry/depth_normals.py), less at the photo's edges, where depth may jump
+    distortion       from DISTORTION_FROM of the run on, surface_distortion * mean over the pixels of 2DGS's depth
+                     distortion (render/distortion.py) times the scene radius squared: each pixel's Gaussians
+                     pulled together in (inverse) depth, so that its weight sits on one surface, not in layers
 
-Both are loss terms (loss_terms.py) and work with either strategy. For MCMC nothing else changes: its position noise
+All are loss terms (loss_terms.py) and work with either strategy. For MCMC nothing else changes: its position noise
 is shaped by each Gaussian's covariance, so a flat Gaussian moves within its plane and hardly across it, and Eq. 9's
 relocation scales all three axes by one factor, so a copy stays as flat as its source (tests/test_surface.py).
 """
@@ -20,6 +23,7 @@ from .geometry.depth_normals import normals_from_depth
 from .loss_terms import StepContext
 
 NORMAL_EPS = 1e-6  # a rendered normal shorter than this (no Gaussian there) is left out
+DISTORTION_FROM = 0.1  # 2DGS starts its distortion term at step 3,000 of 30,000, before the normal term
 
 
 class Flatten:
@@ -73,6 +77,25 @@ class DepthNormal:
         return self.weight * (weight * difference).mean()
 
 
-def surface_terms(flatten: float, normal: float, start_share: float, scene_radius: float) -> list:
+class Distortion:
+    """2DGS's depth distortion, in the scene's radius (unitless), from a share of the run on."""
+
+    def __init__(self, weight: float, scene_radius: float, start_share: float = DISTORTION_FROM):
+        self.weight, self.scene_radius, self.start_share = weight, scene_radius, start_share
+
+    def active(self, step: int, steps: int) -> bool:
+        return self.weight > 0 and step >= self.start_share * steps
+
+    def render_outputs(self, step: int, steps: int) -> frozenset[str]:
+        return frozenset({"distortion"}) if self.active(step, steps) else frozenset()
+
+    def __call__(self, ctx: StepContext) -> torch.Tensor | None:
+        if not self.active(ctx.step, ctx.steps):
+            return None
+        return self.weight * self.scene_radius ** 2 * ctx.result.distortion.mean()
+
+
+def surface_terms(flatten: float, normal: float, start_share: float, scene_radius: float,
+                  distortion: float = 0.0) -> list:
     """The --surface terms, in the order they are added after the standard ones."""
-    return [Flatten(flatten, scene_radius), DepthNormal(normal, start_share)]
+    return [Flatten(flatten, scene_radius), DepthNormal(normal, start_share), Distortion(distortion, scene_radius)]

@@ -25,7 +25,8 @@ def export_mesh(job: ExportJob) -> None:
 
     run, options, path = job.run, job.options, job.path
     mesh_options = MeshOptions(voxel_size=options.voxel_size, voxel_budget=options.voxel_budget,
-                               alpha_min=options.alpha_min, min_component=options.min_component)
+                               alpha_min=options.alpha_min, min_component=options.min_component,
+                               depth=options.depth, truncation=options.truncation)
     started = time.perf_counter()
     mesh = extract(run.model, run.scene.train, mesh_options, sh_degree=run.sh_degree, progress=True)
     with job.writing():

@@ -27,4 +27,6 @@ class ExportOptions:
     voxel_budget: int = 1 << 24
     alpha_min: float = 0.5
     min_component: float = 0.02
+    depth: str = "median"             # "median" or "planar"
+    truncation: float = 4.0           # voxels
     device: str = "auto"              # "auto", "cpu" or "cuda"

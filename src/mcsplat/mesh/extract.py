@@ -1,7 +1,7 @@
 """`extract(model, views)`: a trained model's surface as a coloured triangle mesh.
 
-    render every view's median depth, alpha and colour  ->  fuse them into a truncated signed distance volume
-    ->  marching cubes  ->  drop the small pieces
+    render every view's median (or planar) depth, alpha and colour  ->  fuse them into a truncated signed
+    distance volume  ->  marching cubes  ->  drop the small pieces
 
 Pixels whose accumulated alpha stays below `alpha_min` fuse nothing (they show no surface), and their colour is the
 foreground's own (the background taken out and divided by alpha). Everything but marching cubes runs on the model's
@@ -23,10 +23,15 @@ from ..errors import MCSplatError
 from ..render import GaussiansLike, render
 from .clean import drop_small_pieces
 from .fusion import TSDFVolume
-from .grid import check_memory, choose_grid, object_box
+from .grid import TRUNCATION_VOXELS, check_memory, choose_grid, object_box
 from .surface import zero_surface
 
 DEFAULT_VOXEL_BUDGET = 1 << 24  # 256^3
+# The depth of a view that is fused. median: where the ray meets the density peak of the Gaussian at which the
+# accumulated alpha reaches 0.5 (2DGS, GOF, RaDe-GS). planar: where it meets the composited plane of the Gaussians
+# (PGSR's unbiased depth), which follows a flat Gaussian's slant across all its pixels; meant for --surface runs,
+# whose Gaussians are flat (on round ones the normal, and so the plane, is a guess).
+SURFACE_DEPTHS = ("median", "planar")
 
 
 @dataclass(frozen=True)
@@ -35,10 +40,16 @@ class MeshOptions:
     voxel_budget: int = DEFAULT_VOXEL_BUDGET  # voxels of the fusion volume at most
     alpha_min: float = 0.5                    # pixels less opaque than this fuse nothing
     min_component: float = 0.02               # drop pieces of fewer faces than this share of the largest's
+    depth: str = "median"                     # which depth is fused: SURFACE_DEPTHS
+    truncation: float = TRUNCATION_VOXELS     # half-width of the signed distance band, in voxels
 
     def __post_init__(self) -> None:
         if not 0.0 < self.alpha_min <= 1.0:
             raise MCSplatError(f"--alpha-min must be in (0, 1], got {self.alpha_min}")
+        if not self.truncation >= 1:
+            raise MCSplatError(f"--truncation must be at least 1 (voxels), got {self.truncation}")
+        if self.depth not in SURFACE_DEPTHS:
+            raise MCSplatError(f"--depth must be one of {', '.join(SURFACE_DEPTHS)}, got {self.depth!r}")
         if not 0.0 <= self.min_component <= 1.0:
             raise MCSplatError(f"--min-component must be in [0, 1] (a share of the largest piece's faces), got "
                                f"{self.min_component}")
@@ -54,14 +65,14 @@ def extract(model: GaussiansLike, views: Sequence, options: MeshOptions = MeshOp
         raise MCSplatError("no views to fuse: the run's scene has no training views")
     device = model.means.device
     grid = choose_grid(*object_box(model.means, model.opacities, cameras), options.voxel_size,
-                       options.voxel_budget)
+                       options.voxel_budget, options.truncation)
     check_memory(grid, device)
     seconds = {}
     started = time.perf_counter()
     volume = TSDFVolume(grid, device)
     surface_pixels = 0
     for camera in tqdm(cameras, desc="fusing views", unit="view", disable=not progress, leave=False):
-        depth, rgb = surface_of_view(model, camera.to(device), options.alpha_min, sh_degree)
+        depth, rgb = surface_of_view(model, camera.to(device), options.alpha_min, sh_degree, options.depth)
         surface_pixels += int(torch.isfinite(depth).sum())
         volume.integrate(camera, depth, rgb)
     if surface_pixels == 0:
@@ -82,11 +93,15 @@ def extract(model: GaussiansLike, views: Sequence, options: MeshOptions = MeshOp
     return mesh
 
 
-def surface_of_view(model: GaussiansLike, camera: Camera, alpha_min: float, sh_degree: int | None
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(median depth [H, W], -inf where alpha < alpha_min; foreground colour [H, W, 3]) of one view."""
-    out = render(model, camera, None, sh_degree, median_depth=True)  # black background: rgb is the foreground
-    depth = torch.where(out.alpha >= alpha_min, out.median_depth, torch.full_like(out.median_depth, -float("inf")))
+def surface_of_view(model: GaussiansLike, camera: Camera, alpha_min: float, sh_degree: int | None,
+                    which: str = "median") -> tuple[torch.Tensor, torch.Tensor]:
+    """(the `which` depth [H, W], -inf where alpha < alpha_min or there is none; foreground colour [H, W, 3]) of one
+    view."""
+    planar = which == "planar"
+    # Black background: rgb is the foreground.
+    out = render(model, camera, None, sh_degree, median_depth=not planar, planar_depth=planar)
+    surface = out.planar_depth if planar else out.median_depth
+    depth = torch.where((out.alpha >= alpha_min) & (surface > 0), surface, torch.full_like(surface, -float("inf")))
     rgb = out.rgb / out.alpha.clamp(min=1e-6)[..., None]
     return depth, rgb
 

@@ -23,7 +23,7 @@ from ..render.constants import NEAR_PLANE
 OPAQUE = 0.1           # Gaussians at least this opaque decide the box
 IN_VIEW_SHARE = 0.5    # ... when at least this share of the views has them in its field of view
 BOX_QUANTILE = 0.01    # ... the box holds all but this share of them on each side, along each axis
-TRUNCATION_VOXELS = 4  # half-width of the signed distance band, in voxels
+TRUNCATION_VOXELS = 4  # half-width of the signed distance band, in voxels (the default; see docs/outputs.md)
 # Per voxel: signed distance and weight (float32), colour (3 x float16), two masks when meshing (bool).
 BYTES_PER_VOXEL = 4 + 4 + 3 * 2 + 2
 MEMORY_SHARE = 0.8     # of the free memory the volume may take (the rest: renders, marching cubes, the mesh)
@@ -35,6 +35,7 @@ class VoxelGrid:
     origin: tuple[float, float, float]  # world position of grid point (0, 0, 0)
     voxel_size: float
     shape: tuple[int, int, int]
+    truncation_voxels: float = TRUNCATION_VOXELS  # half-width of the signed distance band
 
     @property
     def num_voxels(self) -> int:
@@ -43,7 +44,7 @@ class VoxelGrid:
     @property
     def truncation(self) -> float:
         """Half-width of the signed distance band, in world units."""
-        return TRUNCATION_VOXELS * self.voxel_size
+        return self.truncation_voxels * self.voxel_size
 
     def to_world(self, points: torch.Tensor) -> torch.Tensor:
         """[..., 3] grid coordinates (voxel units, fractional) -> world coordinates."""
@@ -82,9 +83,11 @@ def _in_field_of_view(points: torch.Tensor, camera: Camera) -> torch.Tensor:
     return (local[:, 2] > NEAR_PLANE) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
 
 
-def choose_grid(low: torch.Tensor, high: torch.Tensor, voxel_size: float | None, voxel_budget: int) -> VoxelGrid:
-    """The grid over the box [low, high] widened by the truncation band: voxels of `voxel_size`, or the finest that
-    keeps to `voxel_budget` voxels."""
+def choose_grid(low: torch.Tensor, high: torch.Tensor, voxel_size: float | None, voxel_budget: int,
+                truncation_voxels: float = TRUNCATION_VOXELS) -> VoxelGrid:
+    """The grid over the box [low, high] widened by TRUNCATION_VOXELS + 1 voxels: voxels of `voxel_size`, or the
+    finest that keeps to `voxel_budget` voxels, with a band of `truncation_voxels` (one wider than the margin is
+    cut off at the grid's edge, so that the grid does not depend on it)."""
     if voxel_budget < MIN_VOXELS_PER_SIDE ** 3:
         raise MCSplatError(f"--voxel-budget {voxel_budget:,} is too small; give at least {MIN_VOXELS_PER_SIDE ** 3:,}")
     if voxel_size is not None and not voxel_size > 0:
@@ -93,7 +96,7 @@ def choose_grid(low: torch.Tensor, high: torch.Tensor, voxel_size: float | None,
     size = voxel_size if voxel_size is not None else _finest_size(extent, voxel_budget)
     margin = (TRUNCATION_VOXELS + 1) * size
     grid = VoxelGrid(origin=tuple(float(v) - margin for v in low.tolist()), voxel_size=float(size),  # type: ignore
-                     shape=_shape(extent, size))
+                     shape=_shape(extent, size), truncation_voxels=truncation_voxels)
     if grid.num_voxels > voxel_budget:
         raise MCSplatError(f"--voxel-size {size:.4g} needs {grid.describe()} = {grid.num_voxels:,} voxels, over the "
                            f"budget of {voxel_budget:,}; raise --voxel-size or --voxel-budget")

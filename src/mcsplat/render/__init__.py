@@ -19,6 +19,7 @@ from ..compute.runtime import cpu_threads, ensure_warp, set_cpu_threads
 from ..geometry.sh import degree_from_bases
 from .binning import TileBins
 from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
+from .distortion import distortion_from_sums, inverse_depths
 from .median import median_depth as _median_depth
 from .normals import depth_from_planes, gaussian_normals, plane_distances
 from .paths import RenderPath, current_render_path
@@ -71,8 +72,12 @@ class RenderResult:
     # without it costs nothing more. See normals.py.
     normal: torch.Tensor | None = None
     # [H, W] with render(planar_depth=True), else None: where each pixel's ray meets the plane of its composited normal
-    # and plane distance (PGSR's unbiased depth), with gradients; 0 where none. A third compositing pass.
+    # and plane distance (PGSR's unbiased depth), with gradients; 0 where none. The plane distances ride in the
+    # normal map's pass.
     planar_depth: torch.Tensor | None = None
+    # [H, W] with render(distortion=True), else None: 2DGS's depth distortion, sum over the pixel's pairs of
+    # Gaussians of w_i w_j (1/z_i - 1/z_j)^2 (units^-2), with gradients. A compositing pass of its own. distortion.py.
+    distortion: torch.Tensor | None = None
 
     @property
     def visible(self) -> torch.Tensor:
@@ -84,13 +89,14 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
            sh_degree: int | None = None, *, near: float = NEAR_PLANE, far: float = FAR_PLANE,
            eps2d: float = LOW_PASS, opacity_aware_radius: bool = False, path: RenderPath | None = None,
            median_depth: bool = False, antialiased: bool | None = None, normals: bool = False,
-           planar_depth: bool = False) -> RenderResult:
+           planar_depth: bool = False, distortion: bool = False) -> RenderResult:
     """Render one view. `sh_degree` None uses every SH coefficient given; `background` defaults to black; `path`
     the stages to run (default: current_render_path(), the kernels unless a caller chose otherwise); `median_depth`
     also gives the median depth (forward kernels of their own, so that a render without it costs nothing more);
     `antialiased` draws with Mip-Splatting's 2D filter (None: as the Gaussians' own `antialiased` flag says);
     `normals` also gives the normal map (a second compositing pass, differentiable), `planar_depth` the depth of the
-    composited planes (the normal map and a third pass; normals.py)."""
+    composited planes (in the same pass; normals.py), `distortion` 2DGS's depth distortion (a pass of its own;
+    distortion.py)."""
     stages = path or current_render_path()
     means, quats, scales, opacities = gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities
     sh, sh_rest = _sh_arrays(gaussians)
@@ -122,22 +128,28 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
         **({"median_gaussian": True} if median_depth else {}))
     depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))
     median = _median_depth(median_ids[0], means, quats, scales, camera) if median_depth else None
-    normal = planes = None
-    if normals or planar_depth:
-        def composited(values: torch.Tensor) -> torch.Tensor:  # with the colour's weights, over zero
-            return stages.composite(means2d, projection.conics, opacities, values, projection.depths,
-                                    torch.zeros_like(bg), bins, camera.width, camera.height)[0]
 
+    def composited(values: torch.Tensor, scalars: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(sum w_i values_i [H, W, 3], alpha, sum w_i scalars_i) with the colour's weights, over zero."""
+        return stages.composite(means2d, projection.conics, opacities, values, scalars, torch.zeros_like(bg), bins,
+                                camera.width, camera.height)[:3]
+
+    normal = planes = spread = None
+    if normals or planar_depth:
         each = gaussian_normals(means, quats, scales, camera)
-        normal = composited(each)
+        distances = plane_distances(each, means, camera) if planar_depth else torch.zeros_like(opacities)
+        normal, _, distance_map = composited(each, distances)
         if planar_depth:
-            distances = plane_distances(each, means, camera)
-            distance_map = composited(torch.stack([distances, torch.zeros_like(distances),
-                                                   torch.zeros_like(distances)], dim=-1))[..., 0]
             planes = depth_from_planes(normal, distance_map, camera)
+    if distortion:
+        inverse = inverse_depths(means, camera, near)
+        sums, weight, _ = composited(torch.stack([inverse, inverse * inverse, torch.zeros_like(inverse)], dim=-1),
+                                     torch.zeros_like(inverse))
+        spread = distortion_from_sums(weight, sums[..., 0], sums[..., 1])
     return RenderResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=projection.radii,
                         depths=projection.depths, contributed=contributed, num_pairs=bins.num_pairs,
-                        median_depth=median, normal=normal if normals else None, planar_depth=planes)
+                        median_depth=median, normal=normal if normals else None, planar_depth=planes,
+                        distortion=spread)
 
 
 def _sh_arrays(gaussians: GaussiansLike) -> tuple[torch.Tensor, torch.Tensor | None]:

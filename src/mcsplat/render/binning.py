@@ -30,7 +30,7 @@ from .constants import ALL_BLOCKS, BLOCK_SIZE, TILE_SIZE
 
 @dataclass
 class TileBins:
-    gaussian_ids: torch.Tensor  # [P] int32: Gaussian index of each (tile, Gaussian) pair, grouped by tile, front to back
+    gaussian_ids: torch.Tensor  # [P] int32: the Gaussian of each (tile, Gaussian) pair, grouped by tile, front to back
     tile_ranges: torch.Tensor   # [tiles_y * tiles_x, 2] int32: [start, end) into gaussian_ids for each tile
     pair_masks: torch.Tensor    # [P] int32: bit (by * 4 + bx) set when the Gaussian may reach 4x4 block (bx, by)
     tiles_x: int

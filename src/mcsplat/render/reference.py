@@ -180,6 +180,22 @@ def reference_composite(means2d, conics, opacities, colors, depths, radii, tile_
     return rgb.reshape(height, width, 3), (1.0 - t_final).reshape(height, width), depth.reshape(height, width)
 
 
+def reference_distortion(means2d, conics, opacities, inverse_depths, depths, radii, tile_min, tile_max, width: int,
+                         height: int):
+    """[H, W] 2DGS's depth distortion as its definition reads, every ordered pair of a pixel's Gaussians:
+    sum_{j<i} w_i w_j (m_i - m_j)^2 with m the given inverse depths (an [H W, N, N] tensor: keep scenes tiny)."""
+    if not (radii > 0).any():
+        return torch.zeros(height, width, dtype=means2d.dtype, device=means2d.device) + 0 * means2d.sum()
+    keep, alpha, included, t_before = _front_to_back(means2d, conics, opacities, depths, radii, tile_min, tile_max,
+                                                     width, height)
+    weights = torch.where(included, alpha * t_before, torch.zeros_like(alpha))
+    m = inverse_depths[keep]
+    gaps = (m[:, None] - m[None, :]) ** 2                      # [N', N'], (i, j)
+    in_front = torch.ones_like(gaps, dtype=torch.bool).tril(diagonal=-1)  # j < i
+    pairs = weights[:, :, None] * weights[:, None, :] * torch.where(in_front, gaps, torch.zeros_like(gaps))[None]
+    return pairs.sum(dim=(1, 2)).reshape(height, width)
+
+
 @torch.no_grad()
 def reference_median_gaussian(means2d, conics, opacities, depths, radii, tile_min, tile_max, width: int, height: int):
     """[H, W] int64: the last Gaussian a pixel composites while its transmittance is still above 0.5 (where the
