@@ -243,10 +243,15 @@ def percent(key: str):
     return lambda r: "-" if r.get(key) is None else f"{100 * r[key]:.2f}"
 
 
+def arm_of(record: dict) -> str:
+    """The record's arm: its run's name after the scene's (mcmc, mcmc-surface, adc, mcmc-t24, ...)."""
+    return record["run"].split("-", 1)[1]
+
+
 def report(records: list[dict]) -> str:
     scenes, arms = list(dict.fromkeys(r["scene"] for r in records)), list(STRATEGY_OPTIONS)
-    records = sorted(records, key=lambda r: (scenes.index(r["scene"]), arms.index(r["run"].split("-", 1)[1])
-                                             if r["run"].split("-", 1)[1] in arms else len(arms)))
+    records = sorted(records, key=lambda r: (scenes.index(r["scene"]),
+                                             arms.index(arm_of(r)) if arm_of(r) in arms else len(arms)))
     table = C.markdown_table(records, [
         ("run", "run", ""), ("PSNR", "psnr", ".2f"), ("Gaussians", "num_gaussians", ","), ("faces", "faces", ","),
         ("voxel %R", "voxel_size_r", percent("voxel_size_r")),
@@ -262,8 +267,7 @@ def report(records: list[dict]) -> str:
         ("export s", "export_seconds", ".0f"), ("peak RSS MB", "peak_rss_mb", ",")])
     lines = []
     for scene in dict.fromkeys(r["scene"] for r in records):
-        # The arm is the run's name after the scene's (mcmc, mcmc-surface, adc, ...).
-        by = {r["run"].split("-", 1)[1]: r for r in records if r["scene"] == scene and "points_to_mesh_median" in r}
+        by = {arm_of(r): r for r in records if r["scene"] == scene and "points_to_mesh_median" in r}
         for mcmc, adc in (("mcmc", "adc"), ("mcmc-surface", "adc-surface")):
             if {mcmc, adc} <= set(by):
                 m, a = by[mcmc], by[adc]

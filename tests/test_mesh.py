@@ -18,7 +18,7 @@ from mcsplat.cli import Export, main
 from mcsplat.errors import MCSplatError
 from mcsplat.mesh import DEFAULT_VOXEL_BUDGET, MeshOptions, extract, holds_mesh, read_mesh, write_mesh
 from mcsplat.mesh.fusion import TSDFVolume
-from mcsplat.mesh.grid import VoxelGrid, choose_grid, object_box
+from mcsplat.mesh.grid import TRUNCATION_VOXELS, VoxelGrid, choose_grid, object_box
 from mcsplat.mesh.raster import picture, rasterize
 from mcsplat.mesh.surface import zero_surface
 from mcsplat.render import Splats, render
@@ -277,6 +277,7 @@ def test_bad_input_gets_one_line_errors(tiny_run, tmp_path, capsys):
         assert error.startswith("mcsplat: error:") and message in error and "\n" not in error, error
     assert not (tmp_path / "mesh.stl").exists() and not (tiny_run / "mesh.ply").exists()
     assert Export.__dataclass_fields__["voxel_budget"].default == DEFAULT_VOXEL_BUDGET
+    assert Export.__dataclass_fields__["truncation"].default == MeshOptions().truncation == TRUNCATION_VOXELS
 
 
 def test_a_gaussian_ply_is_no_mesh(tiny_run):
