@@ -49,7 +49,7 @@ import _common as C
 from mcsplat.mesh.grid import TRUNCATION_VOXELS
 import chamfer
 import exact_mesh_scene as exact
-from mesh_quality import STRATEGY_OPTIONS, TRAIN_OPTIONS
+from mesh_quality import STRATEGY_OPTIONS, TRAIN_OPTIONS, reusable
 
 OUT = C.results_dir("mesh_chamfer")
 SCENE = OUT / "scene"
@@ -81,7 +81,7 @@ def options(arm: str, steps: int) -> list[str]:
 def train(arm: str, steps: int, threads: int) -> Path:
     """The arm's run folder, trained first unless a finished run is there."""
     run = OUT / "runs" / arm
-    if (run / "metrics.json").is_file():
+    if reusable(run):
         return run
     args = [str(scene()), "--out", str(run), "--overwrite", "--threads", str(threads), "--quiet", *options(arm, steps)]
     print("mcsplat train " + " ".join(args), file=sys.stderr, flush=True)

@@ -221,6 +221,9 @@ class Export:
     """mesh: half-width of the signed distance band, in voxels. 16-24 suits a clean object (synthetic, or masked):
     the views' depths of a surface disagree a little, and a narrow band leaves the mesh slightly inside it; on a
     capture with floaters a wide band lets them pull the mesh outward (docs/outputs.md)."""
+    consistent_views: int = 4
+    """mesh: fuse a pixel's depth only where at least this many of the 6 nearest training views see the same
+    surface there (within 1% of its depth): floaters and stray depths are left out. 0 fuses every pixel."""
     device: Device = "auto"
 
     def run_command(self) -> int:

@@ -26,14 +26,16 @@ def export_mesh(job: ExportJob) -> None:
     run, options, path = job.run, job.options, job.path
     mesh_options = MeshOptions(voxel_size=options.voxel_size, voxel_budget=options.voxel_budget,
                                alpha_min=options.alpha_min, min_component=options.min_component,
-                               depth=options.depth, truncation=options.truncation)
+                               depth=options.depth, truncation=options.truncation,
+                               consistent_views=options.consistent_views)
     started = time.perf_counter()
     mesh = extract(run.model, run.scene.train, mesh_options, sh_degree=run.sh_degree, progress=True)
     with job.writing():
         write_mesh(path, mesh)
     made = mesh.metadata["mcsplat"]
     print(f"wrote {path} ({len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces; {made['views']} views fused "
-          f"in {made['grid'].describe()}, {time.perf_counter() - started:.0f} s)")
+          f"in {made['grid'].describe()}, {made['fused_share']:.0%} of their surface pixels confirmed by their "
+          f"neighbours, {time.perf_counter() - started:.0f} s)")
     folder = run.folder
     if path == folder.mesh_file and folder.report_file.is_file():
         _remake_report(folder, options.device)

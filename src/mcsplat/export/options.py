@@ -29,4 +29,5 @@ class ExportOptions:
     min_component: float = 0.02
     depth: str = "median"             # "median" or "planar"
     truncation: float = 4.0           # voxels
+    consistent_views: int = 4         # of the 6 nearest views, how many must confirm a pixel's depth
     device: str = "auto"              # "auto", "cpu" or "cuda"

@@ -1,14 +1,16 @@
-"""Meshes from trained Gaussians: `extract(model, views)` fuses the median depth of every view into a truncated
-signed distance volume and returns its zero level set as a coloured trimesh.Trimesh; `write_mesh` writes it as .ply,
-.glb or .obj. `mcsplat export RUN --format mesh` is the command (docs/outputs.md, "A mesh of the scene").
+"""Meshes from trained Gaussians: `extract(model, views)` fuses the median depth of every view, where its nearest
+views confirm it, into a truncated signed distance volume and returns its zero level set as a coloured
+trimesh.Trimesh; `write_mesh` writes it as .ply, .glb or .obj. `mcsplat export RUN --format mesh` is the command
+(docs/outputs.md, "A mesh of the scene").
 
-    grid.py     where the volume lies, its voxel size, whether it fits in memory
-    fusion.py   the signed distance volume and the fusion of one view
-    surface.py  marching cubes (scikit-image) and vertex colours
-    clean.py    dropping small pieces
-    extract.py  the pipeline
-    files.py    mesh files
-    raster.py   a depth-buffer rasterizer for pictures and checks of a mesh
+    grid.py         where the volume lies, its voxel size, whether it fits in memory
+    consistency.py  which pixels' depths the nearest other views confirm
+    fusion.py       the signed distance volume, the fusion of one view, the closing of narrow gaps
+    surface.py      marching cubes (scikit-image) and vertex colours
+    clean.py        dropping small pieces
+    extract.py      the pipeline
+    files.py        mesh files
+    raster.py       a depth-buffer rasterizer for pictures and checks of a mesh
 """
 
 from .extract import DEFAULT_VOXEL_BUDGET, MeshOptions, extract

@@ -1,7 +1,8 @@
 """`extract(model, views)`: a trained model's surface as a coloured triangle mesh.
 
-    render every view's median (or planar) depth, alpha and colour  ->  fuse them into a truncated signed
-    distance volume  ->  marching cubes  ->  drop the small pieces
+    render every view's median (or planar) depth  ->  render each view again, keep the pixels whose depth enough
+    of its nearest views confirm, fuse them with the colour into a truncated signed distance volume  ->  marching
+    cubes  ->  drop the small pieces
 
 Pixels whose accumulated alpha stays below `alpha_min` fuse nothing (they show no surface), and their colour is the
 foreground's own (the background taken out and divided by alpha). Everything but marching cubes runs on the model's
@@ -22,6 +23,7 @@ from ..camera import Camera
 from ..errors import MCSplatError
 from ..render import GaussiansLike, render
 from .clean import drop_small_pieces
+from .consistency import NEIGHBOURS, KeptDepth, consistent_depth, nearest_views
 from .fusion import TSDFVolume
 from .grid import TRUNCATION_VOXELS, check_memory, choose_grid, object_box
 from .surface import zero_surface
@@ -32,6 +34,10 @@ DEFAULT_VOXEL_BUDGET = 1 << 24  # 256^3
 # (PGSR's unbiased depth), which follows a flat Gaussian's slant across all its pixels; meant for --surface runs,
 # whose Gaussians are flat (on round ones the normal, and so the plane, is a guess).
 SURFACE_DEPTHS = ("median", "planar")
+# A pixel's depth is fused when at least this many of its NEIGHBOURS nearest views see the same surface there
+# (consistency.py); 0 fuses every pixel. 4 of 6 was the best of 2..5 on the generated scene and the cup
+# (docs/outputs.md, "Consistent depths").
+CONSISTENT_VIEWS = 4
 
 
 @dataclass(frozen=True)
@@ -42,6 +48,7 @@ class MeshOptions:
     min_component: float = 0.02               # drop pieces of fewer faces than this share of the largest's
     depth: str = "median"                     # which depth is fused: SURFACE_DEPTHS
     truncation: float = TRUNCATION_VOXELS     # half-width of the signed distance band, in voxels
+    consistent_views: int = CONSISTENT_VIEWS  # of the NEIGHBOURS nearest views, how many must confirm a depth
 
     def __post_init__(self) -> None:
         if not 0.0 < self.alpha_min <= 1.0:
@@ -50,6 +57,9 @@ class MeshOptions:
             raise MCSplatError(f"--truncation must be at least 1 (voxels), got {self.truncation}")
         if self.depth not in SURFACE_DEPTHS:
             raise MCSplatError(f"--depth must be one of {', '.join(SURFACE_DEPTHS)}, got {self.depth!r}")
+        if not 0 <= self.consistent_views <= NEIGHBOURS:
+            raise MCSplatError(f"--consistent-views must be between 0 (fuse every pixel) and {NEIGHBOURS} (the "
+                               f"nearest views a depth is checked against), got {self.consistent_views}")
         if not 0.0 <= self.min_component <= 1.0:
             raise MCSplatError(f"--min-component must be in [0, 1] (a share of the largest piece's faces), got "
                                f"{self.min_component}")
@@ -69,14 +79,33 @@ def extract(model: GaussiansLike, views: Sequence, options: MeshOptions = MeshOp
     check_memory(grid, device)
     seconds = {}
     started = time.perf_counter()
+    checking = options.consistent_views > 0 and len(cameras) > 1
+    kept = []
+    for camera in tqdm(cameras if checking else [], desc="rendering depths", unit="view", disable=not progress,
+                       leave=False):
+        camera = camera.to(device)
+        kept.append(KeptDepth(camera, surface_of_view(model, camera, options.alpha_min, sh_degree, options.depth)[0]))
+    neighbours = nearest_views(cameras) if checking else [[] for _ in cameras]
+    seconds["depths"] = time.perf_counter() - started
+    started = time.perf_counter()
     volume = TSDFVolume(grid, device)
-    surface_pixels = 0
-    for camera in tqdm(cameras, desc="fusing views", unit="view", disable=not progress, leave=False):
-        depth, rgb = surface_of_view(model, camera.to(device), options.alpha_min, sh_degree, options.depth)
+    surface_pixels = fused_pixels = 0
+    for index, camera in enumerate(tqdm(cameras, desc="fusing views", unit="view", disable=not progress,
+                                        leave=False)):
+        on_device = camera.to(device)
+        depth, rgb = surface_of_view(model, on_device, options.alpha_min, sh_degree, options.depth)
         surface_pixels += int(torch.isfinite(depth).sum())
-        volume.integrate(camera, depth, rgb)
+        need = min(options.consistent_views, len(neighbours[index]))
+        confirmed = consistent_depth(depth, on_device, [kept[j] for j in neighbours[index]], need)
+        fused_pixels += int(torch.isfinite(confirmed).sum())
+        volume.integrate(camera, confirmed, rgb)
+    del kept
     if surface_pixels == 0:
         raise MCSplatError(f"no pixel of any view reaches --alpha-min {options.alpha_min}: nothing to fuse; lower it")
+    if fused_pixels == 0:
+        raise MCSplatError(f"no pixel's depth is confirmed by {options.consistent_views} of its nearest views: "
+                           f"nothing to fuse; lower --consistent-views (0 fuses every pixel)")
+    volume.fill_gaps()
     seconds["fusion"] = time.perf_counter() - started
     started = time.perf_counter()
     vertices, faces, colors = zero_surface(volume, progress)
@@ -89,7 +118,8 @@ def extract(model: GaussiansLike, views: Sequence, options: MeshOptions = MeshOp
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=colors)  # merges the blocks' seams
     mesh = drop_small_pieces(mesh, options.min_component)
     seconds["cleaning"] = time.perf_counter() - started
-    mesh.metadata["mcsplat"] = {"grid": grid, "seconds": seconds, "views": len(cameras)}
+    mesh.metadata["mcsplat"] = {"grid": grid, "seconds": seconds, "views": len(cameras),
+                                "fused_share": fused_pixels / surface_pixels}
     return mesh
 
 

@@ -16,6 +16,9 @@ from ..render.constants import NEAR_PLANE
 from .grid import VoxelGrid
 
 SLAB_VOXELS = 1 << 20  # grid points per slab
+GAP_PASSES = 2         # fill_gaps: gaps up to about twice this many voxels wide close
+GAP_NEIGHBOURS = 2     # fill_gaps: observed face neighbours an unobserved point needs
+GAP_WEIGHT = 1e-3      # fill_gaps: the weight a filled point gets (observed, but by no view)
 
 
 class TSDFVolume:
@@ -74,6 +77,39 @@ class TSDFVolume:
             old = color[in_volume].float()
             color[in_volume] = (old + (framed_rgb[pixel.reshape(-1)[ids]] - old) / new_weight[:, None]).half()
 
+    @torch.no_grad()
+    def fill_gaps(self, passes: int = GAP_PASSES, least_neighbours: int = GAP_NEIGHBOURS) -> int:
+        """Give each unobserved grid point with at least `least_neighbours` observed ones among its 6 the mean of
+        their values and colours, `passes` times; the number of points filled. Closes the narrow gaps the views
+        leave where none confirms a depth (the pixels along a sharp edge), without growing a surface's open rim (a
+        point beside a flat rim has one observed neighbour)."""
+        shape = self.grid.shape
+        strides = (shape[1] * shape[2], shape[2], 1)
+        tsdf, weight, color = self.tsdf.view(-1), self.weight.view(-1), self.color.view(-1, 3)
+        filled = 0
+        for _ in range(passes):
+            seen = (self.weight > 0).to(torch.uint8)
+            todo = ((seen == 0) & (_neighbour_count(seen) >= least_neighbours)).view(-1).nonzero().squeeze(1)
+            if todo.numel() == 0:
+                break
+            position = [(todo // strides[axis]) % shape[axis] for axis in range(3)]
+            total = torch.zeros_like(todo, dtype=torch.float32)
+            colors = torch.zeros((todo.numel(), 3), dtype=torch.float32, device=todo.device)
+            count = torch.zeros_like(total)
+            for axis in range(3):
+                for step in (-1, 1):
+                    inside = (position[axis] + step >= 0) & (position[axis] + step < shape[axis])
+                    neighbour = torch.where(inside, todo + step * strides[axis], todo)
+                    observed = (inside & (weight[neighbour] > 0)).float()
+                    total += tsdf[neighbour] * observed
+                    colors += color[neighbour].float() * observed[:, None]
+                    count += observed
+            tsdf[todo] = total / count
+            color[todo] = (colors / count[:, None]).half()
+            weight[todo] = GAP_WEIGHT
+            filled += todo.numel()
+        return filled
+
     def _slab_in_view(self, base, steps, x0: int, x1: int, camera: Camera) -> bool:
         """False when the slab's box lies wholly behind the camera or wholly beside the image (a safe shortcut)."""
         ny, nz = self.grid.shape[1:]
@@ -88,3 +124,13 @@ class TSDFVolume:
         u = points[:, 0] / z * camera.fx + camera.cx
         v = points[:, 1] / z * camera.fy + camera.cy
         return bool(u.max() >= 0 and u.min() < camera.width and v.max() >= 0 and v.min() < camera.height)
+
+
+def _neighbour_count(seen: torch.Tensor) -> torch.Tensor:
+    """[nx, ny, nz] uint8: how many of each grid point's 6 face neighbours are set in `seen` (uint8 0 or 1)."""
+    total = torch.zeros_like(seen)
+    for axis in range(3):
+        size = seen.shape[axis]
+        total.narrow(axis, 1, size - 1).add_(seen.narrow(axis, 0, size - 1))
+        total.narrow(axis, 0, size - 1).add_(seen.narrow(axis, 1, size - 1))
+    return total
