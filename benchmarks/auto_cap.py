@@ -66,6 +66,7 @@ def train_one(job: dict) -> dict:
             data=Path(job["data_root"]) / folder, out=run_dir, cap_max=cap, steps=job["steps"], downscale=downscale,
             threads=job["threads"], seed=0, quiet=True, lpips_net="alex", save_renders=False,
             save_every=max(1, job["steps"] // 5), resume=RunDir(run_dir).checkpoint_file.is_file(),
+            scale_schedule=False,  # the schedules below are already multiplied by --schedule-scale
             sh_increase_every=sched["sh_increase_every"],
             model=ModelConfig(init=init, num_init_points=points or 100_000),
             mcmc=MCMCConfig(refine_start=sched["refine_start"], refine_stop=sched["refine_stop"],

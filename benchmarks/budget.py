@@ -114,6 +114,7 @@ def make_config(job: Job, args, run_dir: Path, resume: bool, overwrite: bool) ->
         data=job.path, out=run_dir, strategy=job.strategy, cap_max=job.cap, steps=args.steps, downscale=job.downscale,
         device=args.device, seed=args.seed, threads=args.threads, quiet=True, lpips_net="vgg", save_renders=False,
         save_every=max(1, args.steps // 10), resume=resume, overwrite=overwrite,
+        scale_schedule=False,  # the schedules below are already multiplied by --schedule-scale
         sh_increase_every=sched["sh_increase_every"],
         model=ModelConfig(init=job.init, num_init_points=init_points(job.cap, args.init_points)),
         mcmc=MCMCConfig(refine_start=sched["refine_start"], refine_stop=sched["refine_stop"],

@@ -156,6 +156,28 @@ def test_the_coarse_phase_lasts_longer_where_pixels_take_more_of_a_step():
     assert resumed.full_size_chosen and dear.plan.budget["full_size_chosen"]
 
 
+def test_a_new_plan_goes_on_from_the_size_the_run_trains_at():
+    """Costs that swing make the coarse phase's length move back and forth from plan to plan; each new plan's curve
+    passes through the size of the step it is made at, so the size the run trains at never falls back, nor jumps
+    up before full size is due."""
+    planner = _planned(pixels_ms=20, per_100k_ms=0)
+    step, lengths, sizes = 0, [], []
+    for i in range(10):
+        step += planner.plan.steps // 30
+        before = planner.plan.resolution_at(step)
+        for _ in range(30):  # pixels alternately dear and cheap: the chosen length swings
+            size = planner.plan.resolution_at(step)
+            planner.observe(0.005 + (0.060 if i % 2 == 0 else 0.001) * size * size, 1000, size)
+        planner.replan(step, 1.0 + i, 1000)
+        lengths.append(planner.plan.resolution_full_at)
+        sizes.append(planner.plan.resolution_at(step))
+        assert sizes[-1] == pytest.approx(before) or sizes[-1] == 1.0, f"plan {i}: {before:.3f} -> {sizes[-1]:.3f}"
+        assert planner.plan.resolution_at(step + 1) >= sizes[-1]
+    moves = np.diff(lengths)
+    assert moves.max() > 0.03 and moves.min() < -0.03, f"the length should swing both ways: {lengths}"
+    assert all(b >= a for a, b in zip(sizes, sizes[1:])), sizes
+
+
 def test_the_step_cost_model_recovers_known_costs():
     """Calibrated at two sizes and two counts, then measured along a run that grows and sharpens as runs do."""
     def seconds(n, s):
@@ -181,7 +203,11 @@ def test_a_budget_run_stops_on_time_and_records_its_plan(tmp_path, mini_demo):
     assert plan["history"][-1]["at_seconds"] > 0.8 * 8.0, "planned again until near the end"
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert log[-1]["resolution"] == 1.0, "full size at the end"
-    assert "planned as it ran" in (tmp_path / "run" / "report.html").read_text(), "the report shows the plan"
+    sizes = [record["resolution"] for record in log if "resolution" in record]
+    assert all(b >= a for a, b in zip(sizes, sizes[1:])), f"the size never steps back: {sizes}"
+    report = (tmp_path / "run" / "report.html").read_text()
+    assert "planned as it ran" in report and "from 0.25 of the image size" in report, "the report shows the plan"
+    assert plan["resolution_first"] == 0.25
 
 
 def test_budget_errors_are_one_line(tmp_path):

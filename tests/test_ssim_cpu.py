@@ -30,10 +30,11 @@ def test_fused_ssim_matches_torch_value_and_gradient(size):
     assert error < 1e-5, f"gradient differs by {error:.1e} of its largest magnitude"
 
 
-@pytest.mark.parametrize("size", [(37, 45), (150, 203)])
+@pytest.mark.parametrize("size", [(37, 45), (150, 203), (70, 3840)])
 def test_the_fused_photometric_loss_matches_torch_in_float64(size):
     """L1 and SSIM from one fused pass (the training loss on the CPU) against the torch definitions in float64,
-    with the image cut into row ranges (two threads) whose borders the window crosses."""
+    with the image cut into row ranges (two threads) whose borders the window crosses; 3840 wide: each range's room
+    for its rows (ssim_cpu's scratch) at the width of a 4K photo."""
     image, target = pair(*size, seed=3)
     image[:4, :6] = target[:4, :6]  # equal pixels: |x - y| has no slope there, in torch as here
     fused = image.clone().requires_grad_()

@@ -25,6 +25,11 @@ number of steps. What the budget decides is that number and the cap, from the ti
   1.7-2.2 dB at 1.0 over 0.4, the cup (about 0.6 on that machine) 0.3 at 0.7-1.0, DTU and fern (0.45-0.65) peaked at
   0.4-0.7, and the demo scene (0.3-0.4) lost 1.1 dB at 0.7. Chosen this way the cup's 10 minutes gained 0.56 dB
   over 0.4 (docs/quality.md). It is chosen again at every plan until full size is reached, then kept.
+- Each new plan's resolution rises from the size the run trains at when it is made: the geometric curve is bent to
+  pass through it (`continuing_resolution`), so a plan that moves full size later, or asks more steps, never takes
+  the size back down, and one that moves it earlier never jumps it up (unless full size is due at once). Without
+  this, the size went up and down with the noisy choice: in fern's 10 minutes it fell from 99% to 59% of the full
+  size at one plan (step 6,819), in DTU's from 97% to 56%, and each rose again at the next.
 - The steps are those whose predicted times, with the count growing to the cap and the resolution rising as
   planned, fill the time left. The plan is made again every 2% of the budget (more often near its end) as the
   measured times come in, and the schedules are fitted again to the new number of steps. The SH schedule is kept
@@ -100,6 +105,16 @@ class StepCost:
         return self.features(gaussians, scale) @ self.coefficients
 
 
+def continuing_resolution(plan: Plan, step: int, scale: float) -> Plan:
+    """`plan` with its coarse-to-fine curve passing through `scale` at `step` (the size the run trains at there):
+    resolution_start becomes the start of the geometric rise through that point to full size at the plan's
+    resolution_full_at. Where full size is due at or before `step`, the plan is kept (full size from there on)."""
+    end = plan.resolution_full_at * plan.steps
+    if scale >= 1.0 or step >= end:
+        return plan
+    return replace(plan, resolution_start=scale ** (end / (end - step)))
+
+
 @dataclass
 class Choice:
     """What each plan chooses; the schedules follow from its steps."""
@@ -138,6 +153,9 @@ class BudgetPlanner:
         self.sh_fixed = bool(record.get("sh_fixed", False))
         # The coarse phase's length is chosen from the costs unless given (kept across a resume by the record).
         self.full_size_chosen = bool(record.get("full_size_chosen", config.resolution_full_at is None))
+        self.scale_now = self.plan.resolution_start  # the size the run trains at when a plan is made
+        # The size of the run's first step (resolution_start moves with each plan: continuing_resolution).
+        self.first_size = float(record.get("resolution_first", self.plan.resolution_start))
 
     # --------------------------------------------------------------------------------------------- the run
     def begin(self, state: RunState, scene: Scene, background: Background, device: torch.device,
@@ -145,7 +163,7 @@ class BudgetPlanner:
         """Before the clock starts: time a few steps, make the first plan, and cut an initialisation larger than
         it affords."""
         for seconds, gaussians, scale in timed_steps(self.config, self.plan, state.model, scene, background, device,
-                                                     step_function):
+                                                     step_function, start=self.plan.resolution_at(state.step)):
             self.calibrate(seconds, gaussians, scale)
         self.start(state.step, state.wall_seconds, state.model.num_gaussians)
         if self.config.strategy == "mcmc" and state.step == 0:
@@ -177,6 +195,7 @@ class BudgetPlanner:
     def start(self, step: int, wall_seconds: float, gaussians: int) -> None:
         """The plan the run starts (or resumes) with: from the calibration's costs when there are any, else
         MIN_STEPS at the current count until the first plan from measured steps."""
+        self.scale_now = self.plan.resolution_at(step)
         if self.cost.samples:
             self.replan(step, wall_seconds, gaussians)
             self.last_plan_at = -math.inf  # the first plan from measured steps still comes at FIRST_PLAN_STEP
@@ -195,13 +214,14 @@ class BudgetPlanner:
     def replan(self, step: int, wall_seconds: float, gaussians: int) -> None:
         """A new plan from the costs measured so far."""
         self.cost.fit()
+        self.scale_now = self.plan.resolution_at(step)  # before anything moves: the new plan rises from here
         if self.full_size_chosen and step < self.plan.resolution_full_at * self.plan.steps:
             self.plan = replace(self.plan, resolution_full_at=self.full_size_at(self._balanced_from(gaussians)))
         self._apply(self._choose(step, wall_seconds, gaussians), step)
         self.last_plan_at = wall_seconds
         self.history.append({"at_seconds": round(wall_seconds, 1), "step": step, "steps": self.plan.steps,
                              "cap": self.plan.mcmc.cap_max, "gaussians": gaussians,
-                             "full_size_at": round(self.plan.resolution_full_at, 3),
+                             "full_size_at": round(self.plan.resolution_full_at, 3), "size": round(self.scale_now, 3),
                              "step_ms": round(1000 * float(self.cost.predict(gaussians, 1.0)), 1)})
         self._publish(self.plan)
 
@@ -211,7 +231,8 @@ class BudgetPlanner:
     def _record(self, plan: Plan) -> dict:
         """What config.json (budget_plan) and the report keep of the planning."""
         return {"budget_seconds": self.budget_seconds, "steps": plan.steps, "cap": plan.mcmc.cap_max,
-                "resolution_start": plan.resolution_start, "resolution_full_at": plan.resolution_full_at,
+                "resolution_start": plan.resolution_start, "resolution_first": self.first_size,
+                "resolution_full_at": plan.resolution_full_at,
                 "full_size_chosen": self.full_size_chosen, "growth_share": self.config.mcmc.growth_share,
                 "cost_model_ms": [round(1000 * float(c), 4) for c in self.cost.coefficients], "base": dict(self.base),
                 "sh_fixed": self.sh_fixed, "history": list(self.history)}
@@ -284,7 +305,7 @@ class BudgetPlanner:
         if steps <= step:
             return 0.0
         ks = np.unique(np.linspace(step, steps - 1, min(PREDICTION_POINTS, steps - step)).round())
-        trial = self._fitted(steps)
+        trial = continuing_resolution(self._fitted(steps), step, self.scale_now)
         end = trial.resolution_full_at * steps
         scales = np.where(ks < end, trial.resolution_start ** (1.0 - ks / end), 1.0)
         per_step = self.cost.predict(self._counts(trial, step, ks, gaussians, cap), scales)
@@ -318,6 +339,6 @@ class BudgetPlanner:
     def _apply(self, choice: Choice, step: int) -> None:
         if not self.sh_fixed and step >= self.plan.sh_increase_every:
             self.sh_fixed = True  # the degree has risen once: keep its schedule so it never steps back
-        fitted = self._fitted(choice.steps)
+        fitted = continuing_resolution(self._fitted(choice.steps), step, self.scale_now)
         self._publish(replace(fitted, mcmc=replace(fitted.mcmc, cap_max=choice.cap, grow_rate=choice.grow_rate),
                               adc=replace(fitted.adc, cap_max=choice.cap)))

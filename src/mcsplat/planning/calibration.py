@@ -21,12 +21,12 @@ CALIBRATION_SMALL, CALIBRATION_LARGE = 2000, 3  # models of 2,000 and of 3x the 
 
 
 def timed_steps(config: TrainConfig, plan: Plan, model: GaussianModel, scene: Scene, background: Background,
-                device: torch.device, step_function: StepFunction) -> Iterator[tuple[float, int, float]]:
-    """(seconds, Gaussians, share of the image size) of each timed step; the first step of each size is a warm-up
-    and not counted. The run's own model and state are left as they are."""
+                device: torch.device, step_function: StepFunction, start: float) -> Iterator[tuple[float, int, float]]:
+    """(seconds, Gaussians, share of the image size) of each timed step, at full size and at `start` (the size the
+    run trains at first: at its current step when it resumes); the first step of each size is a warm-up and not
+    counted. The run's own model and state are left as they are."""
     count = model.num_gaussians
     small, large = min(count, CALIBRATION_SMALL), CALIBRATION_LARGE * count
-    start = plan.resolution_start
     for gaussians, scale in ((small, 1.0), (small, start), (count, 1.0), (large, 1.0), (large, start)):
         probe = replace(plan, resolution_start=scale, resolution_full_at=1.0, steps=10**9)
         copy = resized(model, gaussians)

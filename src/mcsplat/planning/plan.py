@@ -22,7 +22,8 @@ SCHEDULE_KEYS = ("sh_increase_every", "mcmc.refine_start", "mcmc.refine_stop", "
                  "adc.densify_start", "adc.densify_stop", "adc.densify_every", "adc.reset_every", "mcmc.grow_rate",
                  "mcmc.param_noise_decay")
 # What a --budget run plans again as it goes: config.json may hold another plan than the one its checkpoint took.
-REPLANNED_KEYS = frozenset(("steps", "mcmc.cap_max", "adc.cap_max", "resolution_full_at") + SCHEDULE_KEYS)
+REPLANNED_KEYS = frozenset(("steps", "mcmc.cap_max", "adc.cap_max", "resolution_start", "resolution_full_at")
+                           + SCHEDULE_KEYS)
 
 
 @dataclass(frozen=True)
@@ -30,8 +31,11 @@ class Plan:
     steps: int
     sh_increase_every: int  # the SH degree rises by one every this many steps ...
     sh_degree: int  # ... up to the model's
-    resolution_start: float  # coarse to fine: the share of the image size of the first step ...
-    resolution_full_at: float  # ... rising to full size at this share of the steps
+    # Coarse to fine: the share of the image size of the first step, rising geometrically to full size at
+    # resolution_full_at of the steps (--budget bends the curve at each new plan to go on from the size the run
+    # trains at then, through a start of its own: budget.continuing_resolution).
+    resolution_start: float
+    resolution_full_at: float
     mcmc: MCMCSchedule
     adc: ADCSchedule
     optim: OptimConfig  # the learning rates, scaled for the processes

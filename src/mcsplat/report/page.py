@@ -46,7 +46,8 @@ def _budget_plan(run: RunRecord) -> str:
     rows = "".join(f"<tr><td>{h['at_seconds']:.0f} s</td><td>{h['step']:,}</td><td>{h['steps']:,}</td>"
                    f"<td>{h['cap']:,}</td><td>{h['gaussians']:,}</td><td>{h['step_ms']:.1f}</td></tr>"
                    for h in (history[i] for i in shown))
-    start, full_at = plan.get("resolution_start", 1.0), plan.get("resolution_full_at", 1.0)
+    start = plan.get("resolution_first", plan.get("resolution_start", 1.0))  # the first step's size
+    full_at = plan.get("resolution_full_at", 1.0)
     return (f"<p><b>{html.escape(run.name)}</b>: a {plan['budget_seconds']:.0f} s budget planned as it ran: "
             f"{plan['steps']:,} steps, cap {plan['cap']:,}, coarse to fine from {start:g} of the image size to full "
             f"size at {full_at:.0%} of the steps.</p>"
