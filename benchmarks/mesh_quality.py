@@ -76,9 +76,12 @@ OUT = C.results_dir("mesh_quality")
 
 # ------------------------------------------------------------------------------------------------ training
 def reusable(run: Path) -> bool:
-    """A finished run trained on the schedules as written (not one fitted to --steps a second time)."""
-    config = run / "config.json"
-    return (run / "metrics.json").is_file() and json.loads(config.read_text()).get("scale_schedule") is False
+    """A finished run trained on the schedules as written (not one fitted to --steps a second time). A run started
+    again writes its config.json at once and its metrics.json only when it finishes, so a metrics.json older than
+    the config.json is an earlier run's, left by one that was stopped."""
+    config, metrics = run / "config.json", run / "metrics.json"
+    return (metrics.is_file() and config.is_file() and metrics.stat().st_mtime >= config.stat().st_mtime
+            and json.loads(config.read_text()).get("scale_schedule") is False)
 
 
 def train(scene: str, strategy: str, data_root: Path, threads: int) -> Path:

@@ -1,0 +1,105 @@
+"""The splats' own depth at the SfM points: before any mesh, how far each run's median depth lies from the points
+COLMAP triangulated, in the training views that see them. It tells a mesh that is far from the points because its
+depth maps are (the model's doing) from one the fusion moved (the mesh export's doing).
+
+    .venv/bin/python benchmarks/sfm_depth.py                              # mesh_quality.py's cup and bird runs
+    .venv/bin/python benchmarks/sfm_depth.py --runs RUN [RUN ...]         # other runs of a COLMAP scene
+    .venv/bin/python benchmarks/sfm_depth.py --report                     # rebuild results from the records
+
+For every 4th training view, each SfM point in front of the camera and inside the image is projected to its pixel;
+where the splats cover the pixel (alpha >= 0.5) the signed difference between the rendered median depth and the
+point's depth is kept, positive where the splats' surface lies behind the point. Differences beyond 5% of R are left
+out: a point hidden behind the surface in that view (the other side of the cup, the table under it) is not an error
+of the depth. Recorded in % of the scene radius R: the median absolute difference, its 90th percentile, the median
+signed difference, and the share within 1% of R. Records: results/mesh_quality/sfm_depth.jsonl, table:
+results/mesh_quality/sfm_depth.md.
+"""
+
+from __future__ import annotations
+
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import _common as C
+
+OUT = C.RESULTS / "mesh_quality"
+RUNS = OUT / "runs"
+DEFAULT_RUNS = [f"{scene}-{arm}" for scene in ("cup", "bird") for arm in ("mcmc", "mcmc-surface", "adc", "adc-surface")]
+VIEW_STRIDE = 4          # every 4th training view
+ALPHA_MIN = 0.5          # the pixel must be covered, as the mesh export asks
+HIDDEN = 0.05            # differences beyond this share of R: the point is hidden in that view
+
+
+@torch.no_grad()
+def signed_differences(run: Path) -> tuple[np.ndarray, float]:
+    """(median depth - point depth at the point's pixel over the kept pairs, scene radius)."""
+    from mcsplat import run_dir
+    from mcsplat.render import render
+
+    trained = run_dir.load(run, torch.device("cpu"))
+    scene, radius = trained.scene, trained.scene.radius
+    if scene.points is None:
+        raise SystemExit(f"{run}: its scene has no SfM points")
+    points = scene.points.float()
+    kept = []
+    for view in scene.train[::VIEW_STRIDE]:
+        camera = view.camera
+        out = render(trained.model, camera, median_depth=True)
+        w2c = camera.world_to_camera.float()
+        p = points @ w2c[:3, :3].T + w2c[:3, 3]
+        z = p[:, 2]
+        u = camera.fx * p[:, 0] / z + camera.cx
+        v = camera.fy * p[:, 1] / z + camera.cy
+        inside = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        col, row = u[inside].long(), v[inside].long()
+        covered = out.alpha.reshape(camera.height, camera.width)[row, col] >= ALPHA_MIN
+        difference = out.median_depth.reshape(camera.height, camera.width)[row, col] - z[inside]
+        difference = difference[covered]
+        kept.append(difference[difference.abs() < HIDDEN * radius].numpy())
+    return np.concatenate(kept), radius
+
+
+def measure(run: Path) -> dict:
+    differences, radius = signed_differences(run)
+    relative = differences / radius
+    magnitude = np.abs(relative)
+    return {"run": run.name, "pairs": int(len(relative)), "median_abs_r": float(np.median(magnitude)),
+            "p90_abs_r": float(np.quantile(magnitude, 0.9)), "median_signed_r": float(np.median(relative)),
+            "within_1pct_r": float((magnitude <= 0.01).mean()), "machine": C.machine(), "commit": C.git_commit(),
+            "date": C.timestamp(), "benchmark": "sfm_depth"}
+
+
+def report(records: list[dict]) -> str:
+    latest = {r["run"]: r for r in records}
+    columns = [("run", "run", ""), ("point-view pairs", "pairs", ","),
+               ("median abs. difference %R", "", lambda r: f"{100 * r['median_abs_r']:.2f}"),
+               ("p90 %R", "", lambda r: f"{100 * r['p90_abs_r']:.2f}"),
+               ("median signed %R (+: behind)", "", lambda r: f"{100 * r['median_signed_r']:+.2f}"),
+               ("within 1% R", "", lambda r: f"{100 * r['within_1pct_r']:.1f}%")]
+    return ("# The splats' median depth at the SfM points (sfm_depth.py)\n\n"
+            + C.markdown_table(list(latest.values()), columns) + "\n")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--runs", nargs="+", type=Path, help="default: mesh_quality.py's cup and bird runs")
+    parser.add_argument("--report", action="store_true", help="only rebuild the table from the records")
+    args = parser.parse_args()
+    records_file = OUT / "sfm_depth.jsonl"
+    if not args.report:
+        runs = args.runs or [RUNS / name for name in DEFAULT_RUNS if (RUNS / name / "metrics.json").is_file()]
+        for run in runs:
+            record = measure(run)
+            C.emit(record)
+            C.append_jsonl(records_file, [record])
+    C.write_text(OUT / "sfm_depth.md", report(C.read_jsonl(records_file)))
+    print(f"wrote {OUT / 'sfm_depth.md'}")
+
+
+if __name__ == "__main__":
+    main()
