@@ -50,12 +50,9 @@ def signed_differences(run: Path) -> tuple[np.ndarray, float]:
     for view in scene.train[::VIEW_STRIDE]:
         camera = view.camera
         out = render(trained.model, camera, median_depth=True)
-        w2c = camera.world_to_camera.float()
-        p = points @ w2c[:3, :3].T + w2c[:3, 3]
-        z = p[:, 2]
-        u = camera.fx * p[:, 0] / z + camera.cx
-        v = camera.fy * p[:, 1] / z + camera.cy
-        inside = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        local = camera.to_camera_space(points)
+        z = local[:, 2]
+        u, v, inside = camera.pixels_of(local)
         col, row = u[inside].long(), v[inside].long()
         covered = out.alpha.reshape(camera.height, camera.width)[row, col] >= ALPHA_MIN
         difference = out.median_depth.reshape(camera.height, camera.width)[row, col] - z[inside]

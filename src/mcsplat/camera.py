@@ -74,6 +74,22 @@ class Camera:
             return self
         return getattr(self, "_host", None)
 
+    def to_camera_space(self, points: torch.Tensor) -> torch.Tensor:
+        """World points [N, 3] in this camera's coordinates, in their own dtype and device."""
+        w2c = self.world_to_camera.to(points.device, points.dtype)
+        return points @ w2c[:3, :3].T + w2c[:3, 3]
+
+    def pixels_of(self, local: torch.Tensor, near: float = 0.0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(u, v, inside): the pixel coordinates (centres at +0.5) of camera-space points [N, 3], and which of them lie
+        in front of depth `near` and project inside the image. Points at or behind `near` take depth 1 for the
+        division (their u, v mean nothing), so that no value is infinite."""
+        z = local[:, 2]
+        in_front = z > near
+        z_safe = torch.where(in_front, z, torch.ones_like(z))
+        u = local[:, 0] / z_safe * self.fx + self.cx
+        v = local[:, 1] / z_safe * self.fy + self.cy
+        return u, v, in_front & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+
 
 def intrinsics(fx: float, fy: float, cx: float, cy: float) -> torch.Tensor:
     """A 3x3 float32 intrinsic matrix."""

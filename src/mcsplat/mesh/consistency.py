@@ -43,18 +43,13 @@ class KeptDepth:
         self.stride = max(1, math.ceil(max(depth.shape) / CHECK_SIZE))
         half = self.stride // 2
         self.depth = depth[half::self.stride, half::self.stride].to(torch.float16)
-        self.world_to_camera = camera.world_to_camera.to(depth.device, torch.float32)
         self.camera = camera
 
     def agrees(self, points: torch.Tensor, tolerance: float) -> torch.Tensor:
         """[N] bool: world points [N, 3] that this view sees at their own depth, within `tolerance` of it."""
-        local = points @ self.world_to_camera[:3, :3].T + self.world_to_camera[:3, 3]
+        local = self.camera.to_camera_space(points)
         z = local[:, 2]
-        in_front = z > 0
-        z_safe = torch.where(in_front, z, torch.ones_like(z))
-        column = local[:, 0] / z_safe * self.camera.fx + self.camera.cx
-        row = local[:, 1] / z_safe * self.camera.fy + self.camera.cy
-        inside = in_front & (column >= 0) & (column < self.camera.width) & (row >= 0) & (row < self.camera.height)
+        column, row, inside = self.camera.pixels_of(local)
         height, width = self.depth.shape
         kept_row = (row / self.stride).long().clamp_(0, height - 1)
         kept_column = (column / self.stride).long().clamp_(0, width - 1)

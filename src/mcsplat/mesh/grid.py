@@ -75,12 +75,7 @@ def object_box(means: torch.Tensor, opacities: torch.Tensor, cameras: Sequence[C
 
 def _in_field_of_view(points: torch.Tensor, camera: Camera) -> torch.Tensor:
     """[N] bool: in front of the camera and projected inside its image."""
-    w2c = camera.world_to_camera.to(points.device, points.dtype)
-    local = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = local[:, 2].clamp(min=NEAR_PLANE)
-    u = local[:, 0] / z * camera.fx + camera.cx
-    v = local[:, 1] / z * camera.fy + camera.cy
-    return (local[:, 2] > NEAR_PLANE) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    return camera.pixels_of(camera.to_camera_space(points), near=NEAR_PLANE)[2]
 
 
 def choose_grid(low: torch.Tensor, high: torch.Tensor, voxel_size: float | None, voxel_budget: int,

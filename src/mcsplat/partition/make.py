@@ -135,14 +135,7 @@ def _sightings(views: list[View], scene: Scene, ground: GroundFrame) -> Sighting
 def _in_image(view: View, points: torch.Tensor) -> torch.Tensor:
     """[P] bool: the points in front of the view's camera that project inside its image."""
     camera = view.camera
-    w2c = camera.world_to_camera.to(torch.float64)
-    local = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = local[:, 2]
-    front = z > 1e-6
-    depth = torch.where(front, z, torch.ones_like(z))
-    u = camera.fx * local[:, 0] / depth + camera.cx
-    v = camera.fy * local[:, 1] / depth + camera.cy
-    return front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    return camera.pixels_of(camera.to_camera_space(points.to(torch.float64)), near=1e-6)[2]
 
 
 def _centres(views: list[View]) -> torch.Tensor:
