@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import pytest
 import torch
-import warp as wp
 
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import set_cpu_threads
@@ -167,8 +166,7 @@ def test_the_projection_reads_a_moved_cameras_numbers_from_its_host_copy():
     moved = camera.to("meta")
     assert moved.K.device.type == "meta" and moved.on_host() is camera and camera.on_host() is camera
     assert moved.to("meta").on_host() is camera
-    expected = _camera_arguments(camera, 0.01, 100.0, 0.3, wp.float32)
-    got = _camera_arguments(moved, 0.01, 100.0, 0.3, wp.float32)
-    assert [str(a) for a in got] == [str(a) for a in expected]
+    expected = _camera_arguments(camera, 0.01, 100.0, 0.3)
+    assert _camera_arguments(moved, 0.01, 100.0, 0.3) == expected
     # A camera made from device tensors (a pose being refined) has no host copy and is read where it is.
     assert type(moved)(K=moved.K, world_to_camera=moved.world_to_camera, width=40, height=30).on_host() is None

@@ -1,10 +1,10 @@
 """Differentiable Gaussian rasterizer: `render(gaussians, camera, background, sh_degree) -> RenderResult`.
 
-Projection and SH colour run in one Warp kernel (project_kernel.py), binning in Warp kernels and a radix sort
-(binning.py), and alpha compositing in Warp kernels with a hand-written backward: SIMD kernels on the CPU (cpu/),
-tile kernels on CUDA (tile_kernels.py), scalar kernels for float64 on the CPU (kernels.py). Everything runs on
-every CPU core or on CUDA, wherever the tensors are. The three stages are one choosable value (paths.py); the fixed
-numbers are in constants.py.
+Projection and SH colour run in one kernel (project_kernel.py: SIMD kernels on the CPU, cpu/project.py; a Warp
+kernel on CUDA and for float64), binning in Warp kernels and a radix sort (binning.py), and alpha compositing in Warp
+kernels with a hand-written backward: SIMD kernels on the CPU (cpu/), tile kernels on CUDA (tile_kernels.py), scalar
+kernels for float64 on the CPU (kernels.py). Everything runs on every CPU core or on CUDA, wherever the tensors are.
+The three stages are one choosable value (paths.py); the fixed numbers are in constants.py.
 """
 
 from __future__ import annotations
@@ -182,13 +182,16 @@ def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -
     """The Warp kernels one render and its backward launch on `device` (compute.compile loads them ahead)."""
     from ..compute.runtime import warp_scalar
     from . import binning, kernels, project_kernel, tile_kernels
-    from .cpu import composite
-    from .launch import cuda_kernels
+    from .cpu import composite, project
+    from .launch import kernels_for
 
     scalar = warp_scalar(dtype)
-    found = [*project_kernel.projection_kernels(scalar), binning._count_pairs, binning._write_pairs]
-    if device.type == "cpu" and dtype == torch.float32:
-        return found + [composite.composite_forward_simd, composite.composite_backward_simd]
-    if device.type == "cuda" and cuda_kernels() == "tile":
+    choice = kernels_for(torch.empty(0, dtype=dtype, device=device))
+    found = [binning._count_pairs, binning._write_pairs]
+    if choice == "simd":
+        return found + [project.project_simd, project.project_backward_simd, composite.composite_forward_simd,
+                        composite.composite_backward_simd]
+    found += project_kernel.projection_kernels(scalar)
+    if choice == "tile":
         return found + [tile_kernels.forward_kernel(scalar), tile_kernels.backward_kernel(scalar)]
     return found + list(kernels.composite_kernels(scalar))

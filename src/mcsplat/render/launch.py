@@ -5,7 +5,8 @@ the scalar Warp kernels of kernels.py (a thread per pixel), and CUDA the tile ke
 threads per tile, batches of Gaussians in shared memory). `set_cpu_kernels("scalar")` forces the scalar kernels on
 the CPU too (the benchmarks' in-process baseline, the tests' second opinion), `set_cpu_kernels("tile")` runs the CUDA
 kernels on the CPU as cooperative fibers (how the tests check them without a GPU), and `set_cuda_kernels("scalar")`
-puts the scalar kernels back on CUDA (the GPU benchmarks' in-process baseline).
+puts the scalar kernels back on CUDA (the GPU benchmarks' in-process baseline). The projection follows the same
+choice (project_kernel.py): 'simd' runs the CPU's SIMD projection, anything else the Warp kernel CUDA runs.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ _cuda_kernels = "tile"
 
 def set_cpu_kernels(name: str) -> None:
     """'simd' (the default), 'scalar' or 'tile' (the CUDA kernels on CPU fibers, for tests): which compositing
-    kernels float32 renders on the CPU use."""
+    kernels float32 renders on the CPU use, and with them which projection ('simd': the CPU's own)."""
     global _cpu_kernels
     if name not in CPU_KERNELS:
         raise ValueError(f"CPU kernels must be one of {', '.join(CPU_KERNELS)}, got {name!r}")
