@@ -10,6 +10,7 @@ from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import set_cpu_threads
 from mcsplat.render.binning import bin_gaussians
 from mcsplat.render.binning_torch import torch_bin_gaussians
+from mcsplat.render.launch import set_cpu_kernels
 from mcsplat.render.project import project_gaussians, view_dependent_colors
 from mcsplat.render.project_kernel import project_and_shade
 
@@ -72,14 +73,21 @@ def test_projection_kernel_gradcheck_float64(device):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("masks", [True, False])
-def test_binning_kernels_match_torch_binning(dtype, masks, device):
+@pytest.mark.parametrize("kernels", ["simd", "scalar"])  # the CPU's C++ loops, or the Warp kernels CUDA runs
+def test_binning_kernels_match_torch_binning(dtype, masks, kernels, device):
+    if kernels == "scalar" and device.type == "cuda":
+        pytest.skip("the CPU's choice of kernels: CUDA runs the Warp kernels either way")
     splats = on(device, random_splats(3000, 9, dtype=dtype, spread=1.5, log_scale=(-5.0, -1.5)))
     camera = Camera(K=intrinsics(90.0, 90.0, 61.0, 47.0), world_to_camera=make_camera().world_to_camera,
                     width=120, height=90).to(device)
     p = project_gaussians(*(getattr(splats, name) for name in PARAMS[:4]), camera)
     p.depths.data[::50] = p.depths.data[1::50][:p.depths[::50].numel()]  # equal depths: ties go by index
     extra = dict(means2d=p.means2d, alpha_extent=p.alpha_extent) if masks else {}
-    bins = bin_gaussians(p.tile_min, p.tile_max, p.depths, p.radii, 8, 6, **extra)
+    set_cpu_kernels(kernels)
+    try:
+        bins = bin_gaussians(p.tile_min, p.tile_max, p.depths, p.radii, 8, 6, **extra)
+    finally:
+        set_cpu_kernels("simd")
     expected = torch_bin_gaussians(p.tile_min, p.tile_max, p.depths, p.radii, 8, 6, **extra)
     assert bins.num_pairs == expected.num_pairs > 3000
     assert torch.equal(bins.tile_ranges, expected.tile_ranges)
@@ -90,9 +98,10 @@ def test_binning_kernels_match_torch_binning(dtype, masks, device):
         assert (bins.pair_masks != expected.pair_masks).float().mean() < 1e-3
 
 
-def test_binning_with_nothing_visible(device):
-    zeros = torch.zeros(5, 2, dtype=torch.int32, device=device)
-    bins = bin_gaussians(zeros, zeros, torch.ones(5, device=device), torch.zeros(5, dtype=torch.int32, device=device),
+@pytest.mark.parametrize("n", [0, 5])
+def test_binning_with_nothing_visible(n, device):
+    zeros = torch.zeros(n, 2, dtype=torch.int32, device=device)
+    bins = bin_gaussians(zeros, zeros, torch.ones(n, device=device), torch.zeros(n, dtype=torch.int32, device=device),
                          3, 2)
     assert bins.num_pairs == 0 and bins.tile_ranges.shape == (6, 2) and not bins.tile_ranges.any()
 

@@ -182,16 +182,16 @@ def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -
     """The Warp kernels one render and its backward launch on `device` (compute.compile loads them ahead)."""
     from ..compute.runtime import warp_scalar
     from . import binning, kernels, project_kernel, tile_kernels
-    from .cpu import composite, project
-    from .launch import kernels_for
+    from .cpu import binning as cpu_binning, composite, project
+    from .kernel_choice import kernels_for
 
     scalar = warp_scalar(dtype)
     choice = kernels_for(torch.empty(0, dtype=dtype, device=device))
-    found = [binning._count_pairs, binning._write_pairs]
     if choice == "simd":
-        return found + [project.project_simd, project.project_backward_simd, composite.composite_forward_simd,
-                        composite.composite_backward_simd]
-    found += project_kernel.projection_kernels(scalar)
+        return [project.project_simd, project.project_backward_simd, cpu_binning.count_pairs_cpu,
+                cpu_binning.slot_offsets_cpu, cpu_binning.write_pairs_cpu, cpu_binning.split_pairs_cpu,
+                composite.composite_forward_simd, composite.composite_backward_simd]
+    found = [*project_kernel.projection_kernels(scalar), binning._count_pairs, binning._write_pairs]
     if choice == "tile":
         return found + [tile_kernels.forward_kernel(scalar), tile_kernels.backward_kernel(scalar)]
     return found + list(kernels.composite_kernels(scalar))

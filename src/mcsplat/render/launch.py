@@ -1,12 +1,8 @@
-"""The compositing step as a torch.autograd.Function, and the choice of kernels for it.
+"""The compositing step as a torch.autograd.Function, on the kernels kernel_choice.py chooses.
 
 float32 tensors on the CPU get the SIMD kernels of render/cpu/ (a 4x4 pixel block per vector), float64 on the CPU
 the scalar Warp kernels of kernels.py (a thread per pixel), and CUDA the tile kernels of tile_kernels.py (a block of
-threads per tile, batches of Gaussians in shared memory). `set_cpu_kernels("scalar")` forces the scalar kernels on
-the CPU too (the benchmarks' in-process baseline, the tests' second opinion), `set_cpu_kernels("tile")` runs the CUDA
-kernels on the CPU as cooperative fibers (how the tests check them without a GPU), and `set_cuda_kernels("scalar")`
-puts the scalar kernels back on CUDA (the GPU benchmarks' in-process baseline). The projection follows the same
-choice (project_kernel.py): 'simd' runs the CPU's SIMD projection, anything else the Warp kernel CUDA runs.
+threads per tile, batches of Gaussians in shared memory). The choice's functions are re-exported here.
 """
 
 from __future__ import annotations
@@ -16,52 +12,14 @@ import torch
 from ..compute.runtime import (cpu_threads, ensure_warp, num_workers_for, run_bands, run_tiled, set_cpu_threads,
                                warp_scalar, warp_view)
 from .binning import TileBins
+from .kernel_choice import cpu_kernels, cuda_kernels, kernels_for, set_cpu_kernels, set_cuda_kernels
 from .constants import PIXELS_PER_TILE
 from .cpu import run as simd
 from . import tile_kernels
 from .kernels import composite_kernels, median_forward_kernel
 
 __all__ = ["CompositeFunction", "composite", "set_cpu_kernels", "cpu_kernels", "set_cuda_kernels", "cuda_kernels",
-           "ensure_warp", "set_cpu_threads", "cpu_threads"]
-
-CPU_KERNELS = ("simd", "scalar", "tile")
-# "tile-all": the tile backward without its skip of pairs no pixel of a warp uses (tile_kernels.backward_kernel).
-CUDA_KERNELS = ("tile", "tile-all", "scalar")
-_cpu_kernels = "simd"
-_cuda_kernels = "tile"
-
-
-def set_cpu_kernels(name: str) -> None:
-    """'simd' (the default), 'scalar' or 'tile' (the CUDA kernels on CPU fibers, for tests): which compositing
-    kernels float32 renders on the CPU use, and with them which projection ('simd': the CPU's own)."""
-    global _cpu_kernels
-    if name not in CPU_KERNELS:
-        raise ValueError(f"CPU kernels must be one of {', '.join(CPU_KERNELS)}, got {name!r}")
-    _cpu_kernels = name
-
-
-def cpu_kernels() -> str:
-    return _cpu_kernels
-
-
-def set_cuda_kernels(name: str) -> None:
-    """'tile' (the default), 'tile-all' or 'scalar': which compositing kernels CUDA renders use."""
-    global _cuda_kernels
-    if name not in CUDA_KERNELS:
-        raise ValueError(f"CUDA kernels must be one of {', '.join(CUDA_KERNELS)}, got {name!r}")
-    _cuda_kernels = name
-
-
-def cuda_kernels() -> str:
-    return _cuda_kernels
-
-
-def kernels_for(tensor: torch.Tensor, cpu_choice: str | None = None) -> str:
-    """'simd', 'scalar' or 'tile': the kernels a composite of `tensor` runs (`cpu_choice` overrides the CPU's)."""
-    if tensor.device.type == "cuda":
-        return _cuda_kernels
-    chosen = cpu_choice or _cpu_kernels
-    return "scalar" if chosen == "simd" and tensor.dtype != torch.float32 else chosen
+           "kernels_for", "ensure_warp", "set_cpu_threads", "cpu_threads"]
 
 
 class CompositeFunction(torch.autograd.Function):

@@ -28,7 +28,7 @@ from ..geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
 from .cpu import run as simd
 from .cpu.project import CAMERA_LAYOUT
-from .launch import kernels_for
+from .kernel_choice import kernels_for
 from .project import Projection
 
 # Warp kernels read module constants only as plain numbers.
