@@ -1,11 +1,11 @@
 """Which kernels the renderer runs: one choice for the CPU and one for CUDA, read by every stage.
 
-float32 tensors on the CPU get the CPU's own kernels ('simd': the SIMD projection and compositing of render/cpu/ and
-the binning's C++ loops); float64 on the CPU the scalar Warp kernels; CUDA the tile kernels (a block of threads per
-tile). `set_cpu_kernels("scalar")` puts the Warp kernels CUDA runs on the CPU too (the benchmarks' in-process
-baseline, the tests' second opinion), `set_cpu_kernels("tile")` runs the CUDA tile kernels on the CPU as cooperative
-fibers (how the tests check them without a GPU), and `set_cuda_kernels("scalar")` puts the scalar compositing
-kernels back on CUDA (the GPU benchmarks' in-process baseline).
+On the CPU, 'simd' (the default) runs the CPU's own kernels of render/cpu/: the SIMD projection and compositing for
+float32 tensors (float64 gets the scalar Warp kernels) and the binning's C++ loops. 'scalar' runs the Warp kernels
+instead (the projection and binning as CUDA runs them, the scalar compositing): the benchmarks' in-process baseline
+and the tests' second opinion. 'tile' is 'scalar' with CUDA's tile compositing run as cooperative fibers (how the
+tests check it without a GPU). On CUDA, 'tile' (the default) or 'tile-all' compositing, or 'scalar' (the GPU
+benchmarks' in-process baseline).
 """
 
 from __future__ import annotations

@@ -84,14 +84,16 @@ _WRITE = _PAIR_TILES + f"""
             int column = 0xffff;
             if (use_masks) {{
                 const int fy = span[2] - ty * {TILE_SIZE}, ly = span[3] - ty * {TILE_SIZE};
-                const int bfy = (fy > 0 ? fy : 0) / {BLOCK_SIZE}, bly = (ly < {TILE_SIZE - 1} ? ly : {TILE_SIZE - 1}) / {BLOCK_SIZE};
+                const int bfy = (fy > 0 ? fy : 0) / {BLOCK_SIZE};
+                const int bly = (ly < {TILE_SIZE - 1} ? ly : {TILE_SIZE - 1}) / {BLOCK_SIZE};
                 column = ((1 << ({BLOCK_SIZE} * (bly + 1))) - (1 << ({BLOCK_SIZE} * bfy))) / 15;
             }}
             for (int tx = rect[0]; tx < rect[1]; ++tx) {{
                 int mask = {ALL_BLOCKS};
                 if (use_masks) {{
                     const int fx = span[0] - tx * {TILE_SIZE}, lx = span[1] - tx * {TILE_SIZE};
-                    const int bfx = (fx > 0 ? fx : 0) / {BLOCK_SIZE}, blx = (lx < {TILE_SIZE - 1} ? lx : {TILE_SIZE - 1}) / {BLOCK_SIZE};
+                    const int bfx = (fx > 0 ? fx : 0) / {BLOCK_SIZE};
+                    const int blx = (lx < {TILE_SIZE - 1} ? lx : {TILE_SIZE - 1}) / {BLOCK_SIZE};
                     mask = ((1 << (blx + 1)) - (1 << bfx)) * column;  // the row of blocks, in every row of the column
                 }}
                 tiles_[slot] = ty * tiles_x + tx;
@@ -142,8 +144,8 @@ def _split(total: int, num_tiles: int, tiles: _int_array, pairs: _long_array, ga
 
 
 @wp.kernel
-def count_pairs_cpu(first_part: int, n: int, parts: int, tile_min: _int_array, tile_max: _int_array, means2d: _float_array,
-                    alpha_extent: _float_array, use_masks: int, counts: _int_array):
+def count_pairs_cpu(first_part: int, n: int, parts: int, tile_min: _int_array, tile_max: _int_array,
+                    means2d: _float_array, alpha_extent: _float_array, use_masks: int, counts: _int_array):
     """Part p of `parts` counts the pairs of Gaussians [n p / parts, n (p + 1) / parts) (one part per thread of the
     pool, compute.runtime.run_ranges over the parts)."""
     p = first_part + wp.tid()
@@ -158,9 +160,9 @@ def slot_offsets_cpu(n: int, order: _int_array, counts: _int_array, offsets: _in
 
 
 @wp.kernel
-def write_pairs_cpu(first_part: int, n: int, parts: int, tile_min: _int_array, tile_max: _int_array, means2d: _float_array,
-                    alpha_extent: _float_array, use_masks: int, tiles_x: int, offsets: _int_array,
-                    tiles: _int_array, pairs: _long_array):
+def write_pairs_cpu(first_part: int, n: int, parts: int, tile_min: _int_array, tile_max: _int_array,
+                    means2d: _float_array, alpha_extent: _float_array, use_masks: int, tiles_x: int,
+                    offsets: _int_array, tiles: _int_array, pairs: _long_array):
     """Part p of `parts` writes the pairs of Gaussians [n p / parts, n (p + 1) / parts) at their slots."""
     p = first_part + wp.tid()
     _write_range(n * p // parts, n * (p + 1) // parts, tile_min, tile_max, means2d, alpha_extent, use_masks,
