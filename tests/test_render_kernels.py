@@ -165,6 +165,28 @@ def test_covariance_times_matches_the_batched_matrix_product(device):
     torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.parametrize("n", [10_003, 7])  # full chunks of 16 and a short one; a single short chunk
+def test_covariance_times_in_float32_is_float32_close_to_float64(n, device):
+    """On the CPU float32 takes the SIMD kernel (16 Gaussians per vector), on CUDA the Warp kernel; either way the
+    float64 product to float32's precision, quaternions under the normalisation's clamp included."""
+    from mcsplat.geometry.covariance import covariance_times
+    from mcsplat.geometry.rotation import covariance_3d
+
+    g = torch.Generator().manual_seed(n)
+    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    quats[::101] *= 1e-14
+    scales = torch.rand(n, 3, generator=g, dtype=torch.float64) + 0.1
+    vectors = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    set_cpu_threads(2)
+    try:
+        got = covariance_times(*(t.float().to(device) for t in (quats, scales, vectors))).cpu().double()
+    finally:
+        set_cpu_threads(None)
+    exact = torch.bmm(covariance_3d(quats, scales), vectors[:, :, None])[:, :, 0]
+    size = scales.max(dim=1).values ** 2 * vectors.norm(dim=1)  # |Sigma v| is at most this
+    assert ((got - exact).norm(dim=1) / size).max() < 1e-6
+
+
 def test_the_projection_reads_a_moved_cameras_numbers_from_its_host_copy():
     """A camera moved to the GPU keeps the host copy it came from, and the projection's scalar arguments are read
     from it: reading them from device tensors would wait for every kernel queued before (a stall per render). The

@@ -20,82 +20,18 @@ from __future__ import annotations
 
 import warp as wp
 
+from ...compute.simd_lanes import LANES, VECTOR_TYPES, lanes_in, lanes_out
 from ...geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from ..constants import TILE_SIZE
 
-LANES = 16
 # Order of the packed camera numbers: world-to-camera rotation (row-major), translation, camera centre, intrinsics,
 # near and far planes, the low-pass filter.
 CAMERA_LAYOUT = ("r00", "r01", "r02", "r10", "r11", "r12", "r20", "r21", "r22", "t0", "t1", "t2",
                  "centre_x", "centre_y", "centre_z", "fx", "fy", "cx", "cy", "near", "far", "eps2d")
 
 
-def _concatenated(parts: list[str]) -> str:
-    """C++ for the vectors `parts` (16 lanes each) as one vector of 16 x len(parts) lanes, padded to 32 or 64."""
-    if len(parts) == 1:
-        return parts[0]
-    pairs = [(parts[k], parts[min(k + 1, len(parts) - 1)]) for k in range(0, len(parts), 2)]
-    halves = [f"__builtin_shufflevector({a}, {b}, {', '.join(map(str, range(32)))})" for a, b in pairs]
-    if len(halves) == 1:
-        return halves[0]
-    return f"__builtin_shufflevector({halves[0]}, {halves[1]}, {', '.join(map(str, range(64)))})"
-
-
-def _lanes_in(dst: str, src: str, stride: int, kind: str = "f") -> str:
-    """C++ that fills the vectors dst[0 .. stride - 1] with the chunk's rows of an interleaved array (dst[k] lane l
-    = src[stride * (first + l) + k]): a full chunk as `stride` vector loads and one shuffle per vector, a short one
-    lane by lane (spare lanes repeat the last Gaussian)."""
-    lanes = LANES
-    loads = ", ".join(f"*(const v{kind}_u*)(row + {lanes * k})" for k in range(stride))
-    picks = "\n".join(
-        f"        {dst}[{k}] = __builtin_shufflevector(all, all, "
-        + ", ".join(str(stride * j + k) for j in range(lanes)) + ");" for k in range(stride))
-    return f"""
-    if (count == {lanes}) {{
-        const auto* row = {src} + {stride} * first;
-        const v{kind}_u parts[{stride}] = {{{loads}}};
-        const auto all = {_concatenated([f"(v{kind})parts[{k}]" for k in range(stride)])};
-{picks}
-    }} else {{
-        for (int l = 0; l < {lanes}; ++l) {{
-            const int i = first + (l < count ? l : count - 1);
-            for (int k = 0; k < {stride}; ++k) {dst}[k][l] = {src}[{stride} * i + k];
-        }}
-    }}
-"""
-
-
-def _lanes_out(values: list[str], dst: str, kind: str = "f") -> str:
-    """C++ that writes the vectors `values` (one per component) as the chunk's rows of an interleaved array
-    (dst[stride * (first + l) + k] = values[k] lane l): a full chunk as one shuffle and one vector store per
-    16 entries, a short one lane by lane."""
-    lanes, stride = LANES, len(values)
-    stores = "\n".join(
-        f"        *(v{kind}_u*)(row + {lanes * m}) = __builtin_shufflevector(all, all, "
-        + ", ".join(str(lanes * (e % stride) + e // stride) for e in range(lanes * m, lanes * (m + 1))) + ");"
-        for m in range(stride))
-    singles = " ".join(f"{dst}[{stride} * i + {k}] = ({values[k]})[l];" for k in range(stride))
-    return f"""
-    {{
-        if (count == {lanes}) {{
-            auto* row = {dst} + {stride} * first;
-            const auto all = {_concatenated([f"(v{kind})({v})" for v in values])};
-{stores}
-        }} else {{
-            for (int l = 0; l < count; ++l) {{
-                const int i = first + l;
-                {singles}
-            }}
-        }}
-    }}
-"""
-
-
 _PRELUDE = f"""
-    typedef float vf __attribute__((ext_vector_type(16)));
-    typedef int vi __attribute__((ext_vector_type(16)));
-    typedef float vf_u __attribute__((ext_vector_type(16), aligned(4)));  // unaligned loads and stores
-    typedef int vi_u __attribute__((ext_vector_type(16), aligned(4)));
+{VECTOR_TYPES}
     auto select = [](vi mask, vf a, vf b) -> vf {{ return (vf)(((vi)a & mask) | ((vi)b & ~mask)); }};
     auto vmin = [](vf a, vf b) -> vf {{ return __builtin_elementwise_min(a, b); }};
     auto vmax = [](vf a, vf b) -> vf {{ return __builtin_elementwise_max(a, b); }};
@@ -146,7 +82,7 @@ _PRELUDE = f"""
     const float* quats_ = (const float*)quats.data;
     const float* scales_ = (const float*)scales.data;
     vf mean[3], q_raw[4], s[3];
-""" + _lanes_in("mean", "means_", 3) + _lanes_in("s", "scales_", 3) + _lanes_in("q_raw", "quats_", 4)
+""" + lanes_in("mean", "means_", 3) + lanes_in("s", "scales_", 3) + lanes_in("q_raw", "quats_", 4)
 
 # Camera space, the Jacobian (its view direction clamped), the rotation of the normalised quaternion, and the 2D
 # covariance J W R S S^T R^T W^T J^T with the low-pass on its diagonal: what forward and backward both need.
@@ -231,7 +167,7 @@ _FORWARD_BODY = (_PRELUDE + _GEOMETRY + """
     }
     const float* opacities_ = (const float*)opacities.data;
     vf opacity_row[1];
-""" + _lanes_in("opacity_row", "opacities_", 1) + f"""
+""" + lanes_in("opacity_row", "opacities_", 1) + f"""
     const vf opacity = opacity_row[0];
     const vf conic[3] = {{c / det_safe, -b / det_safe, a / det_safe}};
     // Mip-Splatting's 2D filter: the opacity shrinks by the ratio of the areas before and after the low-pass.
@@ -278,10 +214,10 @@ _FORWARD_BODY = (_PRELUDE + _GEOMETRY + """
     const vi kept_lo_y = valid & __builtin_convertvector(lo_y, vi);
     const vi kept_hi_x = valid & __builtin_convertvector(hi_x, vi);
     const vi kept_hi_y = valid & __builtin_convertvector(hi_y, vi);
-""" + _lanes_out(["mean2d[0]", "mean2d[1]"], "means2d_") + _lanes_out(["conic[0]", "conic[1]", "conic[2]"], "conics_")
-    + _lanes_out(["p[2]"], "depths_") + _lanes_out(["compensation"], "compensations_")
-    + _lanes_out(["kept_radius"], "radii_", "i") + _lanes_out(["kept_lo_x", "kept_lo_y"], "tile_min_", "i")
-    + _lanes_out(["kept_hi_x", "kept_hi_y"], "tile_max_", "i") + _lanes_out(["box_x", "box_y"], "alpha_extent_"))
+""" + lanes_out(["mean2d[0]", "mean2d[1]"], "means2d_") + lanes_out(["conic[0]", "conic[1]", "conic[2]"], "conics_")
+    + lanes_out(["p[2]"], "depths_") + lanes_out(["compensation"], "compensations_")
+    + lanes_out(["kept_radius"], "radii_", "i") + lanes_out(["kept_lo_x", "kept_lo_y"], "tile_min_", "i")
+    + lanes_out(["kept_hi_x", "kept_hi_y"], "tile_max_", "i") + lanes_out(["box_x", "box_y"], "alpha_extent_"))
 
 _BACKWARD_BODY = (_PRELUDE + """
     const float* g_means2d_ = (const float*)grad_means2d.data;
@@ -291,9 +227,9 @@ _BACKWARD_BODY = (_PRELUDE + """
     const float* colors_ = (const float*)colors.data;  // the forward's: where it is 0 the clamp stops the gradient
     const float* g_compensations_ = (const float*)grad_compensations.data;
     vf g_mean2d[2], g_conic[3], g_depth_row[1], g_color[3], g_compensation_row[1] = {(vf)0.0f};
-""" + _lanes_in("g_mean2d", "g_means2d_", 2) + _lanes_in("g_conic", "g_conics_", 3)
-    + _lanes_in("g_color", "g_colors_", 3)    + _lanes_in("g_depth_row", "g_depths_", 1) + """
-    if (antialiased) {""" + _lanes_in("g_compensation_row", "g_compensations_", 1) + """
+""" + lanes_in("g_mean2d", "g_means2d_", 2) + lanes_in("g_conic", "g_conics_", 3)
+    + lanes_in("g_color", "g_colors_", 3) + lanes_in("g_depth_row", "g_depths_", 1) + """
+    if (antialiased) {""" + lanes_in("g_compensation_row", "g_compensations_", 1) + """
     }
     const vf g_depth = g_depth_row[0], g_compensation = g_compensation_row[0];
     // Lanes that some gradient reaches (the others are culled, or outside every pixel's list): their outputs are 0.
@@ -451,9 +387,9 @@ _BACKWARD_BODY = (_PRELUDE + """
         kept_scale[k] = select(reached, g_scale[k], (vf)0.0f);
     }
     for (int k = 0; k < 4; ++k) kept_q[k] = select(reached, g_q[k], (vf)0.0f);
-""" + _lanes_out(["kept_mean[0]", "kept_mean[1]", "kept_mean[2]"], "out_means_")
-    + _lanes_out(["kept_scale[0]", "kept_scale[1]", "kept_scale[2]"], "out_scales_")
-    + _lanes_out(["kept_q[0]", "kept_q[1]", "kept_q[2]", "kept_q[3]"], "out_quats_") + """
+""" + lanes_out(["kept_mean[0]", "kept_mean[1]", "kept_mean[2]"], "out_means_")
+    + lanes_out(["kept_scale[0]", "kept_scale[1]", "kept_scale[2]"], "out_scales_")
+    + lanes_out(["kept_q[0]", "kept_q[1]", "kept_q[2]", "kept_q[3]"], "out_quats_") + """
     if (view_grad) {
         // p = W mean + t; V = W Sigma W^T; camera centre = -W^T t (the colour's view direction):
         // dW = g_p mean^T + (dV + dV^T) W Sigma + t g_offset^T, dt = g_p + W g_offset.

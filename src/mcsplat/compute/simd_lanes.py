@@ -1,0 +1,82 @@
+"""C++ snippets for SIMD kernels over clang vector types (`wp.func_native`), one item per lane of a 16-lane vector.
+
+The CPU's SIMD kernels (render/cpu/, geometry/covariance.py) take items in chunks of LANES: chunk c holds items
+[16 c, 16 c + 16) and a short last chunk repeats its last item in the spare lanes. Their per-item arrays are
+interleaved rows (x, y, z of one item, then the next), which lanes_in turns into one vector per component and
+lanes_out back: for a full chunk with whole-vector loads or stores and one shuffle per vector (clang picks the
+permutes), for a short one lane by lane. The snippets expect `first` (the chunk's first item) and `count` (its items)
+in scope, and VECTOR_TYPES's typedefs.
+"""
+
+from __future__ import annotations
+
+LANES = 16
+
+# vf / vi: 16 floats / ints; the _u variants allow unaligned loads and stores (rows start anywhere).
+VECTOR_TYPES = """
+    typedef float vf __attribute__((ext_vector_type(16)));
+    typedef int vi __attribute__((ext_vector_type(16)));
+    typedef float vf_u __attribute__((ext_vector_type(16), aligned(4)));
+    typedef int vi_u __attribute__((ext_vector_type(16), aligned(4)));
+"""
+
+
+def concatenated(parts: list[str]) -> str:
+    """C++ for the vectors `parts` (16 lanes each) as one vector of 16 x len(parts) lanes, padded to 32 or 64."""
+    if len(parts) == 1:
+        return parts[0]
+    pairs = [(parts[k], parts[min(k + 1, len(parts) - 1)]) for k in range(0, len(parts), 2)]
+    halves = [f"__builtin_shufflevector({a}, {b}, {', '.join(map(str, range(32)))})" for a, b in pairs]
+    if len(halves) == 1:
+        return halves[0]
+    return f"__builtin_shufflevector({halves[0]}, {halves[1]}, {', '.join(map(str, range(64)))})"
+
+
+def lanes_in(dst: str, src: str, stride: int, kind: str = "f") -> str:
+    """C++ that fills the vectors dst[0 .. stride - 1] with the chunk's rows of an interleaved array (dst[k] lane l
+    = src[stride * (first + l) + k]): a full chunk as `stride` vector loads and one shuffle per vector, a short one
+    lane by lane (spare lanes repeat the last item)."""
+    lanes = LANES
+    loads = ", ".join(f"*(const v{kind}_u*)(row + {lanes * k})" for k in range(stride))
+    picks = "\n".join(
+        f"        {dst}[{k}] = __builtin_shufflevector(all, all, "
+        + ", ".join(str(stride * j + k) for j in range(lanes)) + ");" for k in range(stride))
+    return f"""
+    if (count == {lanes}) {{
+        const auto* row = {src} + {stride} * first;
+        const v{kind}_u parts[{stride}] = {{{loads}}};
+        const auto all = {concatenated([f"(v{kind})parts[{k}]" for k in range(stride)])};
+{picks}
+    }} else {{
+        for (int l = 0; l < {lanes}; ++l) {{
+            const int i = first + (l < count ? l : count - 1);
+            for (int k = 0; k < {stride}; ++k) {dst}[k][l] = {src}[{stride} * i + k];
+        }}
+    }}
+"""
+
+
+def lanes_out(values: list[str], dst: str, kind: str = "f") -> str:
+    """C++ that writes the vectors `values` (one per component) as the chunk's rows of an interleaved array
+    (dst[stride * (first + l) + k] = values[k] lane l): a full chunk as one shuffle and one vector store per
+    16 entries, a short one lane by lane."""
+    lanes, stride = LANES, len(values)
+    stores = "\n".join(
+        f"        *(v{kind}_u*)(row + {lanes * m}) = __builtin_shufflevector(all, all, "
+        + ", ".join(str(lanes * (e % stride) + e // stride) for e in range(lanes * m, lanes * (m + 1))) + ");"
+        for m in range(stride))
+    singles = " ".join(f"{dst}[{stride} * i + {k}] = ({values[k]})[l];" for k in range(stride))
+    return f"""
+    {{
+        if (count == {lanes}) {{
+            auto* row = {dst} + {stride} * first;
+            const auto all = {concatenated([f"(v{kind})({v})" for v in values])};
+{stores}
+        }} else {{
+            for (int l = 0; l < count; ++l) {{
+                const int i = first + l;
+                {singles}
+            }}
+        }}
+    }}
+"""
