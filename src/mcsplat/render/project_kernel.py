@@ -1,6 +1,7 @@
 """EWA projection and SH colour of every Gaussian in one kernel, with its backward: a Warp kernel (CUDA, float64, and
 the CPU's second opinion) defined here, or for float32 on the CPU the SIMD kernels of cpu/project.py (16 Gaussians
-per vector, 2.5x faster forward and 3x backward), chosen with the compositing's kernels (launch.kernels_for).
+per vector: at 100k on 2 cores 1.0 ms forward and 2.0 backward against this kernel's 4.3 and 8.5), chosen as
+kernel_choice.py says.
 
 Same maths and conventions as project.py (which stays as the readable torch version and the benchmarks' baseline):
 OpenCV camera, pixel centres at +0.5, the 3DGS low-pass filter (+eps2d on the 2D covariance diagonal; antialiased,
