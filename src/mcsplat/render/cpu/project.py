@@ -9,8 +9,11 @@ lie in each Gaussian's own row, runs lane by lane over the basis values the vect
 its last Gaussian in the spare lanes and stores only its own.
 
 The backward writes every entry of its outputs (zeros for a Gaussian no gradient reaches and for SH bands above the
-active degree), so its buffers need no zero-fill first. Float32 only: project_kernel.py chooses these kernels for
-float32 tensors on the CPU. Each thread writes only its own Gaussians, so the result does not depend on timing.
+active degree), so its buffers need no zero-fill first, and it reads the forward's colours for the clamp at 0 instead
+of evaluating the SH again: the gradient passes where a colour is above 0 (the Warp kernel also passes it where the
+colour before the clamp is exactly 0: the one place the two can differ). Float32 only: project_kernel.py chooses
+these kernels for float32 tensors on the CPU. Each thread writes only its own Gaussians, so the result does not
+depend on timing.
 
 Camera numbers come packed in one float32 array (see CAMERA_LAYOUT); the logarithm is a polynomial (a libm call
 would stop the lanes from vectorising), relative error about 1e-7, used only for the screen extent, which has margins.
