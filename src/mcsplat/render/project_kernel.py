@@ -424,10 +424,10 @@ class _ProjectFunction(torch.autograd.Function):
                                                   for t in (means, quats, scales, sh_dc, opacities))
         sh_rest = sh_dc if ctx.together else sh_rest.detach().contiguous()
         ctx.simd = kernels_for(means) == "simd"
+        ctx.packed_camera = _packed_camera(camera_args) if ctx.simd else None
         if ctx.simd:
-            outputs = simd.project(means, quats, scales, opacities, sh_dc, sh_rest, ctx.together,
-                                   _packed_camera(camera_args), *camera_args[7:11], sh_degree, opacity_aware_radius,
-                                   antialiased)
+            outputs = simd.project(means, quats, scales, opacities, sh_dc, sh_rest, ctx.together, ctx.packed_camera,
+                                   *camera_args[7:11], sh_degree, opacity_aware_radius, antialiased)
         else:
             outputs = _scalar_forward(means, quats, scales, opacities, sh_dc, sh_rest, ctx.together, camera_args,
                                       sh_degree, opacity_aware_radius, antialiased)
@@ -447,9 +447,8 @@ class _ProjectFunction(torch.autograd.Function):
             (grad_compensations, means[:, 0]))]
         view_grad = ctx.needs_input_grad[10]
         if ctx.simd:
-            camera_args = ctx.camera_args
             grads, per_gaussian_view = simd.project_backward(
-                means, quats, scales, sh_dc, sh_rest, ctx.together, _packed_camera(camera_args), *camera_args[7:9],
+                means, quats, scales, sh_dc, sh_rest, ctx.together, ctx.packed_camera, *ctx.camera_args[7:9],
                 ctx.sh_degree, ctx.antialiased, colors, upstream, view_grad)
         else:
             grads, per_gaussian_view = _scalar_backward(means, quats, scales, sh_dc, sh_rest, ctx.together,
