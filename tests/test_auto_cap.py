@@ -25,7 +25,7 @@ def fake_render(grad2d: torch.Tensor, visible: torch.Tensor | None = None) -> Si
     """What the statistic reads from a render after its backward: means2d.grad (per pixel) and radii."""
     n = grad2d.shape[0]
     radii = torch.ones(n, dtype=torch.int32) if visible is None else visible.to(torch.int32)
-    return SimpleNamespace(means2d=SimpleNamespace(grad=grad2d), radii=radii)
+    return SimpleNamespace(means2d=SimpleNamespace(grad=grad2d), radii=radii, contributed=radii > 0)
 
 
 def per_pixel(ndc_norm: float, n: int) -> torch.Tensor:
@@ -113,8 +113,29 @@ def test_cap_max_auto_in_the_configuration(tmp_path):
     again = from_jsonable(to_jsonable(config))
     assert again.cap_max == "auto" and again.mcmc.auto_cap
     assert not TrainConfig(data=tmp_path, cap_max=5000).mcmc.auto_cap
+    default = TrainConfig(data=tmp_path)  # no --cap-max: the count from the scene, the paper's 1M its ceiling
+    assert default.cap_max is None and default.mcmc.auto_cap and default.mcmc.cap_max == 1_000_000
+    assert not TrainConfig(data=tmp_path, strategy="adc").adc.cap_max, "ADC's growth has its own rule"
+    block = dataclasses.replace(default, cap_max=40_000)  # a block's share of the cap: a number, grown to
+    assert not block.mcmc.auto_cap and block.mcmc.cap_max == 40_000
     with pytest.raises(MCSplatError, match="--cap-max auto is for the MCMC strategy"):
         TrainConfig(data=tmp_path, cap_max="auto", strategy="adc")
+
+
+def test_a_run_without_cap_max_stops_growing_where_the_scene_stops_asking(tmp_path, mini_demo):
+    """No --cap-max: a short run of the mini demo grows while its views ask for more Gaussians and stops where they
+    stop, below the paper's 1M and the per-pixel ceiling; metrics.json says where. (In 600 steps of a few views
+    every Gaussian still asks at 3DGS's threshold; at ten times it the scene stops asking within the run.)"""
+    from mcsplat.config import ModelConfig
+    from mcsplat.train import train
+    metrics = train(TrainConfig(data=mini_demo, out=tmp_path / "run", steps=600, downscale=4, quiet=True,
+                                save_every=0, save_renders=False, lpips_net="alex",
+                                model=ModelConfig(num_init_points=300), mcmc=MCMCConfig(demand_threshold=0.002)))
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert metrics["auto_cap"] is not None and metrics["auto_cap"] < metrics["auto_cap_ceiling"] < 1_000_000, metrics
+    assert metrics["num_gaussians"] == metrics["auto_cap"] > 300, "it grew, then stopped"
+    reached = next(r["step"] for r in log if r["num_gaussians"] == metrics["auto_cap"])
+    assert all(r["num_gaussians"] == metrics["auto_cap"] for r in log if r["step"] >= reached)
 
 
 def test_the_log_keeps_the_last_demand_and_sums_the_counts(tmp_path):

@@ -79,26 +79,52 @@ def test_a_short_run_grows_to_its_cap(tmp_path, mini_demo):
 
 
 # ---------------------------------------------------------------------------------------------------- --budget
-def test_the_budget_planner_fills_the_time_with_the_balanced_cap():
-    """With a known step cost (10 ms + 40 ms s^2 + 20 ms per 100k Gaussians at full size), a 120 s budget plans the
-    cap where Gaussians cost twice as much as pixels (2 x (a + b) = 100 ms = 500k Gaussians) x sqrt(120 / 600), and
-    steps whose predicted times add up to the budget."""
-    config = TrainConfig(data=DEMO, budget="120s", model=ModelConfig(num_init_points=1000))
+def _known_costs(budget: str = "120s", pixels: float = 0.040, per_gaussian: float = 0.2e-6) -> BudgetPlanner:
+    """A planner calibrated on steps of 10 ms + `pixels` s^2 + `per_gaussian` n, started at 1,000 Gaussians."""
+    config = TrainConfig(data=DEMO, budget=budget, model=ModelConfig(num_init_points=1000))
     planner = BudgetPlanner(config, ceiling=1_000_000)
-    for n, s in ((1000, 1.0), (1000, 0.25), (300_000, 1.0), (300_000, 0.25), (50_000, 0.5)):
-        planner.calibrate(0.010 + 0.040 * s * s + 0.2e-6 * n, n, s)
+    probes = ((1000, 1.0), (1000, 0.25), (300_000, 1.0), (300_000, 0.25), (50_000, 0.5))
+    for n, s in probes:
+        planner.calibrate(0.010 + pixels * s * s + per_gaussian * n, n, s)
     planner.start(0, 0.0, 1000)
+    return planner
+
+
+def test_the_budget_planner_takes_the_most_gaussians_that_leave_the_steps_it_wants():
+    """With a known step cost (10 ms + 10 ms s^2 + 20 ms per 100k Gaussians at full size), a 240 s budget wants
+    8,000 x sqrt(240 / 600) = 5,060 steps: the cap is the largest count whose run still gets them (10% more would
+    not), and the steps' predicted times add up to the budget."""
+    planner = _known_costs(budget="240s", pixels=0.010)
     plan = planner.plan
-    assert plan.mcmc.cap_max == pytest.approx(500_000 * math.sqrt(0.2), rel=0.01)
+    assert planner.wanted_steps() == 5060
+    assert 5060 <= plan.steps < 5060 * 1.03
+    assert planner._steps_for(0, 240.0, 1000, int(plan.mcmc.cap_max * 1.1)) < 5060
     ks = np.arange(plan.steps)
     scales = np.array([plan.resolution_at(int(k)) for k in ks])
     assert scales[0] == pytest.approx(0.25) and scales[-1] == 1.0
-    upper = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * plan.mcmc.cap_max)  # every step at the cap
-    lower = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * 1000)                 # every step at the start count
-    assert lower < 120.0 < upper and 1000 < plan.steps
+    upper = np.sum(0.010 + 0.010 * scales ** 2 + 0.2e-6 * plan.mcmc.cap_max)  # every step at the cap
+    lower = np.sum(0.010 + 0.010 * scales ** 2 + 0.2e-6 * 1000)                 # every step at the start count
+    assert lower < 240.0 < upper
     assert plan.mcmc.refine_every == max(1, round(100 * plan.steps / 30_000))
     assert plan.budget["history"][0]["steps"] == plan.steps
+    config = planner.config
     assert config.steps == 30_000 and config.mcmc.cap_max == 1_000_000, "the plan is its own: the options stay"
+
+
+def test_where_pixels_take_the_time_the_gaussians_get_as_much_of_it():
+    """10 ms + 40 ms s^2 a step: 120 s cannot give 3,578 steps even at the starting count, so the run takes half the
+    steps that count would have, and its Gaussians get about the time its pixels take."""
+    planner = _known_costs(pixels=0.040)
+    at_start = planner._steps_for(0, 120.0, 1000, 1000)
+    assert at_start < 3578
+    assert at_start // 2 <= planner.plan.steps < at_start // 2 * 1.03
+
+
+def test_a_faster_loss_leaves_time_for_more_gaussians():
+    """The count comes from what a step costs, not from a ratio of costs: halving the pixels' cost (a faster loss)
+    raises it, where the balanced ratio lowered it (a real 4K capture: a third fewer Gaussians, 1.3 dB less)."""
+    base = _known_costs(budget="10m").plan.mcmc.cap_max
+    assert _known_costs(budget="10m", pixels=0.020).plan.mcmc.cap_max > 1.2 * base
 
 
 def test_a_run_ahead_of_its_plan_plans_again_to_end_on_time():
@@ -266,3 +292,38 @@ def test_a_scene_without_points_starts_from_points_triangulated_from_its_poses(s
     assert np.median(distance) < 0.01 * cup.radius, np.median(distance) / cup.radius
     again, note = initial_model(config, scene, torch.device("cpu"), torch.Generator().manual_seed(0))
     assert "from the cache" in note and torch.equal(again.means, model.means)
+
+
+def test_a_resumed_budget_run_keeps_the_ceiling_it_started_with():
+    """config.json holds the last plan's cap in --mcmc.cap-max's place; read back, the run's ceiling is still the
+    one it started with (before, a run stopped at a planned cap of 3,148 resumed capped there)."""
+    from types import SimpleNamespace
+    from mcsplat.planning import read_record, run_record
+    from mcsplat.planning.budget import budget_planner
+    config = TrainConfig(data=DEMO, budget="120s", model=ModelConfig(num_init_points=1000))
+    scene = SimpleNamespace(train_image_pixels=200 * 200)
+    planner = budget_planner(config, Plan.literal(config), scene)
+    assert planner.ceiling == 120_000  # 3 per pixel of a 200x200 image, under the 1M of --mcmc.cap-max
+    for n, s in ((1000, 1.0), (1000, 0.25), (100_000, 1.0), (100_000, 0.25)):
+        planner.calibrate(0.010 + 0.010 * s * s + 0.5e-6 * n, n, s)
+    planner.start(0, 0.0, 1000)
+    assert planner.plan.mcmc.cap_max < planner.ceiling
+    saved, plan = read_record(json.loads(json.dumps(run_record(config, planner.plan))))
+    assert saved.mcmc.cap_max == planner.plan.mcmc.cap_max, "the option's place holds the plan's cap"
+    assert budget_planner(saved, plan, scene).ceiling == 120_000
+
+
+def test_the_planners_curves_give_numpy_no_warning_at_their_extremes():
+    """A start size that underflowed to 0 and growth at a huge rate made numpy warn ("divide by zero encountered in
+    power", "overflow encountered in power") on real captures' consoles; the curves now stay in range."""
+    import warnings
+    from dataclasses import replace
+    planner = _known_costs(pixels=0.010)
+    planner.plan = replace(planner.plan, resolution_start=0.0, resolution_full_at=0.5)
+    planner.scale_now = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        seconds = planner._future_seconds(0, 5000, 1, 10**9)
+        trial = planner._fitted(5000)
+        counts = planner._counts(trial, 0, np.arange(0, 5000, 7.0), 1, 10**9)
+    assert math.isfinite(seconds) and np.isfinite(counts).all() and counts.max() <= 10**9

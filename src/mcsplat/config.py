@@ -58,8 +58,9 @@ class TrainConfig:
     strategy: Literal["mcmc", "adc"] = "mcmc"
     """mcmc: the paper's method. adc: classic 3DGS densification, the baseline."""
     cap_max: int | Literal["auto"] | None = None
-    """Maximum number of Gaussians (sets --mcmc.cap-max, or --adc.cap-max for the budgeted baseline). auto (MCMC):
-    grow only while the screen gradients ask for more Gaussians, up to --mcmc.cap-max (see the README)."""
+    """Maximum number of Gaussians (sets --mcmc.cap-max, or --adc.cap-max for the budgeted baseline); the MCMC run
+    grows to it. Default (or auto), MCMC: grow only while the screen gradients ask for more Gaussians, up to
+    --mcmc.cap-max (the paper's 1,000,000) and 3 per training pixel (see the README)."""
     steps: int = 30_000
     """Training steps (the paper: 30,000). The step schedules follow it (--scale-schedule)."""
     budget: str | None = None
@@ -226,10 +227,12 @@ class TrainConfig:
             budget_seconds(self.budget)  # a one-line error for a budget it cannot read
         # Coarse to fine under --budget; --cap-max goes to the strategy that takes it.
         mcmc, adc = self.mcmc, self.adc
-        if self.cap_max == "auto":
+        if self.cap_max == "auto" or (self.cap_max is None and self.strategy == "mcmc"):
+            # No number: MCMC grows to what the scene asks for, up to --mcmc.cap-max (the paper's 1M) at most.
             mcmc = dataclasses.replace(mcmc, auto_cap=True)
-        elif self.cap_max is not None:
-            mcmc, adc = dataclasses.replace(mcmc, cap_max=self.cap_max), dataclasses.replace(adc, cap_max=self.cap_max)
+        elif self.cap_max is not None:  # a number: the run grows to it (the paper's method)
+            mcmc = dataclasses.replace(mcmc, cap_max=self.cap_max, auto_cap=False)
+            adc = dataclasses.replace(adc, cap_max=self.cap_max)
         resolution = _default(self.resolution_start, BUDGET_RESOLUTION_START if self.budget is not None else 1.0)
         self._derive(resolution_start=resolution, mcmc=mcmc, adc=adc)
 

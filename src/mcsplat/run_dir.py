@@ -296,7 +296,7 @@ def refuse_options_resume_ignores(config: TrainConfig, given: frozenset[str], sa
     if saved.budget is not None:
         planned = REPLANNED_KEYS - {"steps"}  # its --steps is said below
     else:
-        planned = {"mcmc.grow_rate"} if saved.cap_max is not None else set()  # what --cap-max plans
+        planned = {"mcmc.grow_rate"} if saved.cap_max is not None or saved.mcmc.auto_cap else set()  # --cap-max's
     ignored = []
     for key in sorted(given & trained.keys()):
         if key.split(".")[0] in RESUME_MAY_CHANGE or key in planned:

@@ -291,7 +291,7 @@ class TrainingRun:
                          sh_degree=final_degree, processes=team.world_size,
                          invisible_gaussians=count_invisible(state.model, seen).as_dict(),
                          budget_seconds=self.planner.budget_seconds,
-                         auto_cap=(strategy.chosen_cap, strategy.ceiling) if config.cap_max == "auto" else None,
+                         auto_cap=(strategy.chosen_cap, strategy.ceiling) if config.mcmc.auto_cap else None,
                          pose_corrections=poses.summary() if (poses := state.module("poses")) else None)
         record = metrics(evaluation, config.lpips_net, state.step, state.model.num_gaussians, facts)
         if team.is_main:

@@ -64,7 +64,7 @@ def make_plan(scene: Scene, training: TrainConfig, count: int | None = None, mem
 def total_cap(training: TrainConfig) -> int:
     """The Gaussians of the whole scene: the training options' cap (blocks share it)."""
     if training.strategy == "mcmc":
-        if training.mcmc.auto_cap:
+        if training.cap_max == "auto":
             raise MCSplatError("--cap-max auto grows one run as its gradients ask; blocks need a number to share "
                                "out: give --cap-max N for the whole scene")
         return training.mcmc.cap_max

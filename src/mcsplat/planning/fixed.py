@@ -25,9 +25,10 @@ def initial_plan(config: TrainConfig, world_size: int = 1) -> Plan:
 
 
 def with_growth(plan: Plan, config: TrainConfig, gaussians: int, strategy: Strategy) -> Plan:
-    """With --cap-max, MCMC grows fast enough to reach that cap (or the automatic cap's ceiling, the `strategy`'s)
-    from `gaussians` by growth_share of the run; the default cap (the paper's 1M) is a ceiling, not a target."""
-    if config.strategy != "mcmc" or config.cap_max is None:
+    """MCMC grows fast enough to reach --cap-max (or the automatic cap's ceiling, the `strategy`'s) from
+    `gaussians` by growth_share of the run (at least at the paper's rate); the automatic cap stops it earlier where
+    the scene asks for no more."""
+    if config.strategy != "mcmc" or (config.cap_max is None and not config.mcmc.auto_cap):
         return plan
     rate = planned_growth_rate(plan, config.mcmc.growth_share, gaussians, strategy.ceiling)
     return replace(plan, mcmc=replace(plan.mcmc, grow_rate=rate))

@@ -76,19 +76,43 @@ def gaussians(runs: list[RunRecord]) -> bytes:
 
 
 REFINE_KEYS = ("relocated", "added", "cloned", "split", "pruned")
+# MCMC's health at its refine steps (strategy/health.py): shares on the left axis, copies per host on the right.
+HEALTH_SHARES = {"dead_share": "dead", "unseen_dead_share": "dead no view reached", "born_dead_share": "copies born dead"}
+HEALTH_COPIES = {"copies_max": "copies per host, most", "copies_mean": "copies per host, mean"}
 
 
 def refinement(runs: list[RunRecord]) -> bytes:
     """Relocated / added (MCMC) or cloned / split (ADC) and pruned Gaussians per log record (every 100 steps: one
-    refine step at the paper's schedule)."""
-    figure, (ax,) = _axes("Refinement per 100 steps", "step", "Gaussians")
+    refine step at the paper's schedule); beside it, for MCMC, the health levels of the last refine step of each
+    record: the share of the Gaussians dead, of those the share no view reached, of the copies the share born dead,
+    and the copies per host."""
+    health = any(run.series("dead_share")[1].size for run in runs)
+    figure, axes = _axes("Refinement per 100 steps", "step", "Gaussians", panels=2 if health else 1)
     styles = {"relocated": "-", "added": "--", "cloned": "-", "split": "--", "pruned": ":"}
     for run in runs:
         for key in REFINE_KEYS:
             steps, values = run.series(key)
             if values.size and values.any():
-                ax.plot(steps, values, styles[key], label=f"{run.name}: {key}" if len(runs) > 1 else key)
-    _legend(ax)
+                axes[0].plot(steps, values, styles[key], label=f"{run.name}: {key}" if len(runs) > 1 else key)
+    _legend(axes[0])
+    if health:
+        shares, copies = axes[1], axes[1].twinx()
+        shares.set_ylabel("share")
+        shares.set_ylim(0, 1)
+        copies.set_ylabel("copies per host")
+        for run in runs:
+            prefix = f"{run.name}: " if len(runs) > 1 else ""
+            for key, label in HEALTH_SHARES.items():
+                steps, values = run.series(key)
+                if values.size:
+                    shares.plot(steps, values, label=prefix + label)
+            for key, label in HEALTH_COPIES.items():
+                steps, values = run.series(key)
+                if values.size:
+                    copies.plot(steps, values, ":", label=prefix + label)
+        shares.set_title("MCMC at its refine steps", fontsize=9)
+        lines = shares.get_legend_handles_labels(), copies.get_legend_handles_labels()
+        shares.legend(lines[0][0] + lines[1][0], lines[0][1] + lines[1][1], fontsize=7)
     return _png(figure)
 
 

@@ -74,7 +74,7 @@ class RefineReport:
         return {f.name: int(getattr(self, f.name)) for f in fields(self)
                 if f.name != "num_gaussians" and f.name not in self.LEVELS}
 
-    def levels(self) -> dict[str, int]:
+    def levels(self) -> dict[str, float]:
         """The levels measured at this step (a log record keeps the last one)."""
         return {name: getattr(self, name) for name in self.LEVELS if getattr(self, name) is not None}
 

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import asdict, dataclass, fields
-from typing import Any, Callable, ClassVar, Mapping
+from typing import Any, Callable, ClassVar, Literal, Mapping
 
 import torch
 
@@ -40,7 +40,9 @@ from .auto_cap import (DEFAULT_DEMAND_SHARE, DEFAULT_DEMAND_THRESHOLD, DEFAULT_G
 from .base import ALONE, RefineReport, l1_regularizers
 from .noise import (NOISE_GATE_CENTER, NOISE_GATE_K, NOISE_SCHEDULES, NoiseSchedule, inject_parameter_noise,
                     inject_position_noise, noise_gate)
-from .relocation import DEFAULT_MAX_COPIES, relocation_params, sample_by_weight
+from .health import HEALTH_LEVELS, SeenWindow, refine_health
+from .relocation import (DEFAULT_COPY_FLOOR, DEFAULT_MAX_COPIES, copy_capacity, relocation_params, sample_by_weight,
+                         sample_hosts)
 from .screen_gradients import ScreenGradients
 
 __all__ = ["MCMCConfig", "MCMCSchedule", "MCMCStrategy", "MCMCReport", "inject_noise", "noise_gate", "relocate_dead",
@@ -71,6 +73,11 @@ class MCMCConfig:
     growth_share: float = 0.4       # the cap is reached by this share of the run at the latest (schedule.py)
     min_opacity: float = DEAD_OPACITY  # dead: opacity <= min_opacity
     max_copies: int = DEFAULT_MAX_COPIES  # N clamp in Eq. 9
+    # "alive": no host takes more copies than keep an Eq. 9 opacity of copy_floor each, and the model does not grow
+    # while relocation left dead Gaussians unplaced; "paper": up to max_copies copies a host, whatever their opacity
+    # (docs/method.md, "When the cap is far above what the scene needs").
+    relocation: Literal["alive", "paper"] = "alive"
+    copy_floor: float = DEFAULT_COPY_FLOOR
     auto_cap: bool = False          # grow only where the screen gradient asks for more (cap_max is then a ceiling)
     demand_threshold: float = DEFAULT_DEMAND_THRESHOLD  # the automatic cap's gradient threshold (3DGS's, NDC units)
     demand_share: float = DEFAULT_DEMAND_SHARE  # the automatic cap stops growth once D < demand_share N
@@ -110,6 +117,11 @@ class MCMCConfig:
                              f"got {self.noise_schedule!r}")
         if not 0.0 < self.param_noise_decay <= 1.0:
             raise ValueError(f"param_noise_decay must be in (0, 1], got {self.param_noise_decay}")
+        if self.relocation not in ("alive", "paper"):
+            raise ValueError(f"relocation must be alive or paper, got {self.relocation!r}")
+        if not self.min_opacity < self.copy_floor < 1.0:
+            raise ValueError(f"copy_floor must be above min_opacity ({self.min_opacity}) and below 1, got "
+                             f"{self.copy_floor}")
         if not 1 <= self.max_copies <= 1000:
             raise ValueError(f"max_copies must be in [1, 1000], got {self.max_copies}")
         object.__setattr__(self, "cap_max", int(self.cap_max))  # frozen: normalised while it is being made
@@ -151,22 +163,48 @@ def _apply_eq9(model: GaussianModel, sources: torch.Tensor, min_opacity: float,
     return logits, torch.log(scales)
 
 
+def eq9_opacities(opacities: torch.Tensor, sources: torch.Tensor, max_copies: int,
+                  min_opacity: float) -> torch.Tensor:
+    """The Eq. 9 opacity each copy of `sources` (one index per copy) gets, from the hosts' `opacities` before the
+    move; at min_opacity where Eq. 9 gives less (the clamp)."""
+    if sources.numel() == 0:
+        return opacities.new_zeros(0, dtype=torch.float64)
+    counts = (torch.bincount(sources, minlength=opacities.shape[0])[sources] + 1).clamp(max=max_copies)
+    born = 1.0 - torch.pow(1.0 - opacities[sources].to(torch.float64), 1.0 / counts.to(torch.float64))
+    return born.clamp_min(min_opacity)
+
+
+def empty_rows(model: GaussianModel) -> torch.Tensor:
+    return torch.zeros(0, dtype=torch.long, device=model.means.device)
+
+
 def _no_alive_warning(min_opacity: float, what: str) -> None:
     warnings.warn(f"MCMC: every Gaussian has opacity <= {min_opacity}, so there is nothing to copy from; {what} "
                   f"skipped (gsplat #1027)", RuntimeWarning, stacklevel=3)
 
 
+def _draw_sources(weights: torch.Tensor, num: int, generator: torch.Generator, copy_floor: float | None,
+                  max_copies: int) -> torch.Tensor:
+    """`num` hosts drawn by weight (opacity), the paper's way (copy_floor None); or as many as the hosts can take
+    while every copy keeps an Eq. 9 opacity of at least copy_floor (strategy/relocation.py, copy_capacity)."""
+    if copy_floor is None:
+        return sample_by_weight(weights, num, generator)
+    return sample_hosts(weights, copy_capacity(weights, copy_floor, max_copies), num, generator)
+
+
 @torch.no_grad()
 def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch.Generator, *,
-                  min_opacity: float = DEAD_OPACITY,
-                  max_copies: int = DEFAULT_MAX_COPIES, agree: Agree = _as_drawn) -> tuple[torch.Tensor, torch.Tensor]:
+                  min_opacity: float = DEAD_OPACITY, max_copies: int = DEFAULT_MAX_COPIES,
+                  copy_floor: float | None = None, agree: Agree = _as_drawn) -> tuple[torch.Tensor, torch.Tensor]:
     """Move the dead Gaussians (opacity <= min_opacity) onto live ones (docs/method.md, "Relocation of dead Gaussians").
 
     Sources are drawn from the live Gaussians with replacement, with probability proportional to opacity. Every dead
     slot takes its source's position, rotation and colour; the source and its copies all get the Eq. 9 opacity and
     scale. Adam moments are zeroed at the sources only; dead slots keep theirs (paper section 3.4, official #21).
-    Returns (dead slot indices, their source indices). With nothing alive it warns and changes nothing. `agree`
-    sees the drawn sources before they are used (several processes: rank 0's draw on all of them).
+    With `copy_floor` no host takes more copies than keep that opacity each (relocation "alive"): the dead that find
+    no such host stay where they are. Returns (the relocated slots, their source indices). With nothing alive it
+    warns and changes nothing. `agree` sees the drawn sources before they are used (several processes: rank 0's
+    draw on all of them).
     """
     device = model.means.device
     empty = torch.zeros(0, dtype=torch.long, device=device)
@@ -180,8 +218,8 @@ def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch
         _no_alive_warning(min_opacity, "relocation")
         return empty, empty
     # All sampling happens before Eq. 9 changes anything.
-    sources = agree(alive[sample_by_weight(opacities[alive], num_dead, generator)])
-    slots = torch.nonzero(dead)[:, 0]
+    sources = agree(alive[_draw_sources(opacities[alive], num_dead, generator, copy_floor, max_copies)])
+    slots = torch.nonzero(dead)[:, 0][:sources.shape[0]]
     logits, log_scales = _apply_eq9(model, sources, min_opacity, max_copies)
     copy_rows(model, sources, slots)
     both = torch.cat([sources, slots])
@@ -194,13 +232,14 @@ def relocate_dead(model: GaussianModel, optimizers: Optimizers, generator: torch
 @torch.no_grad()
 def grow(model: GaussianModel, optimizers: Optimizers, generator: torch.Generator, *, cap_max: int,
          grow_rate: float = 1.05, min_opacity: float = DEAD_OPACITY, max_copies: int = DEFAULT_MAX_COPIES,
-         agree: Agree = _as_drawn) -> torch.Tensor:
+         copy_floor: float | None = None, agree: Agree = _as_drawn) -> torch.Tensor:
     """Append min(cap_max, int(grow_rate N)) - N copies of Gaussians drawn by opacity (docs/method.md, "Growth").
 
     The sources and the appended copies (the last rows, in the order of the returned source indices) get the Eq. 9
     opacity and scale; the copies have zero Adam moments and the sources' moments are zeroed. Note that
     int(1.05 N) == N below N = 20: a model that small does not grow (as in the official code). Nothing is added when
-    no Gaussian is alive (with a warning) or when N >= cap_max. `agree` as in relocate_dead().
+    no Gaussian is alive (with a warning) or when N >= cap_max. With `copy_floor`, fewer when the hosts cannot give
+    that many copies that keep that opacity (relocate_dead). `agree` as in relocate_dead().
     """
     n = model.num_gaussians
     empty = torch.zeros(0, dtype=torch.long, device=model.means.device)
@@ -211,7 +250,9 @@ def grow(model: GaussianModel, optimizers: Optimizers, generator: torch.Generato
     if not bool((opacities > min_opacity).any()):
         _no_alive_warning(min_opacity, "growth")
         return empty
-    sources = agree(sample_by_weight(opacities, num_add, generator))
+    sources = agree(_draw_sources(opacities, num_add, generator, copy_floor, max_copies))
+    if sources.numel() == 0:
+        return empty
     logits, log_scales = _apply_eq9(model, sources, min_opacity, max_copies)
     set_rows(model, sources, {"opacity_logits": logits, "log_scales": log_scales})
     zero_moments(optimizers, sources)
@@ -241,12 +282,19 @@ class MCMCReport(RefineReport):
     added: int = 0
     pruned: int = 0
     demand: int | None = None  # --cap-max auto: D at this refine step (None: not measured at this step)
-    LEVELS: ClassVar[tuple[str, ...]] = ("demand",)
+    # The instruments of strategy/health.py at this refine step (None: not a refine step).
+    dead_share: float | None = None
+    unseen_dead_share: float | None = None
+    copies_max: float | None = None
+    copies_mean: float | None = None
+    born_dead_share: float | None = None
+    unplaced: float | None = None
+    LEVELS: ClassVar[tuple[str, ...]] = ("demand",) + HEALTH_LEVELS
 
 
-# At the cap, a relocation that finds more than this share dead splits each live Gaussian among several copies that
-# start near the dead opacity: the share then feeds itself until nearly all are dead (benchmarks/README.md, "GPU:
-# the broken 1M run"). Healthy runs stay below a quarter.
+# At the cap, a relocation that finds more than this share dead: with the paper's relocation each live Gaussian is
+# split among several copies born at the dead opacity, and the share feeds itself until nearly all are dead
+# (docs/method.md, "When the cap is far above what the scene needs"). Healthy runs stay below a quarter.
 COLLAPSE_SHARE = 0.5
 
 
@@ -256,8 +304,8 @@ def collapse_warning(step: int, dead: int, count: int, cap: int) -> str | None:
     if count < cap or dead <= COLLAPSE_SHARE * count:
         return None
     return (f"MCMC step {step}: {dead / count:.0%} of the {count:,} Gaussians were dead at this relocation; past "
-            f"half, relocation cannot keep up and the scene fades. The cap is likely far above what this scene "
-            f"needs: lower --cap-max, or use --cap-max auto")
+            f"half, the paper's relocation cannot keep up and the scene fades. The cap is likely far above what "
+            f"this scene needs: leave --cap-max out (the count the scene asks for), or lower it")
 
 
 class MCMCStrategy:
@@ -276,6 +324,7 @@ class MCMCStrategy:
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.collective = ALONE
         self.gradients = ScreenGradients()  # kept only with auto_cap
+        self.seen = SeenWindow()  # which Gaussians a view composited since the last refine step (health.py)
         self.chosen_cap: int | None = None   # auto_cap: the count at which growth stopped
         self.image_pixels = image_pixels
         self.collapse_warned = False
@@ -301,40 +350,63 @@ class MCMCStrategy:
 
     def step_post_backward(self, step: int, model: GaussianModel, render_result: Any, width: int,
                            height: int) -> None:
-        """With auto_cap, the screen-gradient statistic that decides the growth; the paper's MCMC keeps none."""
-        if (self.config.auto_cap and self.chosen_cap is None and step < self.schedule.refine_stop
-                and model.num_gaussians):
+        """Which Gaussians the view composited (the health instruments), and with auto_cap the screen-gradient
+        statistic that decides the growth; the paper's MCMC keeps neither."""
+        if step >= self.schedule.refine_stop or not model.num_gaussians:
+            return
+        self.seen.add(render_result, model.num_gaussians)
+        if self.config.auto_cap and self.chosen_cap is None:
             self.gradients.add(render_result, model.num_gaussians, width, height)
 
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Optimizers,
                             means_lr: float) -> MCMCReport:
-        c, s = self.config, self.schedule
+        c = self.config
         counts: dict[str, Any] = {}
         if self.is_refine_step(step):
-            counts["pruned"] = prune_to_cap(model, optimizers, s.cap_max)
-            opacities = model.opacities.detach()
-            if model.num_gaussians and not bool((opacities > c.min_opacity).any()):
-                warnings.warn(f"MCMC step {step}: every Gaussian has opacity <= {c.min_opacity}, so there is "
-                              f"nothing to copy from; relocation and growth skipped (gsplat #1027)", RuntimeWarning,
-                              stacklevel=2)
-            else:
-                cap, counts["demand"] = self._auto_cap(model) if c.auto_cap else (s.cap_max, None)
-                slots, _ = relocate_dead(model, optimizers, self.generator, min_opacity=c.min_opacity,
-                                         max_copies=c.max_copies, agree=self.collective.agree)
-                warning = collapse_warning(step, int(slots.numel()), model.num_gaussians, cap)
-                if warning is not None and not self.collapse_warned:
-                    warnings.warn(warning, RuntimeWarning, stacklevel=2)
-                    self.collapse_warned = True
-                added = grow(model, optimizers, self.generator, cap_max=cap, grow_rate=s.grow_rate,
-                             min_opacity=c.min_opacity, max_copies=c.max_copies, agree=self.collective.agree)
-                counts["relocated"], counts["added"] = int(slots.numel()), int(added.numel())
+            counts = self._refine(step, model, optimizers)
             if c.auto_cap and self.chosen_cap is None:
                 self.gradients.reset(model.num_gaussians, model.means.device)
+            self.seen.reset()
         inject_position_noise(model, c.noise_lr * means_lr, self.generator, covariance=c.noise_covariance,
                               gated=c.noise_gated)
         if c.noise_all_params:
-            inject_parameter_noise(model, s.param_noise_decay ** step, self.generator, gated=c.noise_gated)
+            inject_parameter_noise(model, self.schedule.param_noise_decay ** step, self.generator,
+                                   gated=c.noise_gated)
         return MCMCReport(num_gaussians=model.num_gaussians, **counts)
+
+    def _refine(self, step: int, model: GaussianModel, optimizers: Optimizers) -> dict[str, Any]:
+        """One refine step: down to the cap, relocation, growth; their counts and the health levels."""
+        c, s = self.config, self.schedule
+        counts: dict[str, Any] = {"pruned": prune_to_cap(model, optimizers, s.cap_max)}
+        opacities = model.opacities.detach().clone()
+        if model.num_gaussians and not bool((opacities > c.min_opacity).any()):
+            warnings.warn(f"MCMC step {step}: every Gaussian has opacity <= {c.min_opacity}, so there is "
+                          f"nothing to copy from; relocation and growth skipped (gsplat #1027)", RuntimeWarning,
+                          stacklevel=3)
+            return counts
+        floor = c.copy_floor if c.relocation == "alive" else None
+        cap, counts["demand"] = self._auto_cap(model) if c.auto_cap else (s.cap_max, None)
+        dead = opacities <= c.min_opacity
+        unseen = self.seen.unseen_share(dead)
+        slots, moved = relocate_dead(model, optimizers, self.generator, min_opacity=c.min_opacity,
+                                     max_copies=c.max_copies, copy_floor=floor, agree=self.collective.agree)
+        unplaced = int(dead.sum()) - int(slots.numel())
+        warning = collapse_warning(step, int(dead.sum()), model.num_gaussians, cap)
+        if warning is not None and not self.collapse_warned:
+            warnings.warn(warning, RuntimeWarning, stacklevel=3)
+            self.collapse_warned = True
+        hosts_before_growth = model.opacities.detach().clone()
+        # Relocation "alive": dead left unplaced mean no host can give a copy that stays alive; growth would only
+        # add more of them.
+        added = empty_rows(model) if unplaced and floor is not None else grow(
+            model, optimizers, self.generator, cap_max=cap, grow_rate=s.grow_rate, min_opacity=c.min_opacity,
+            max_copies=c.max_copies, copy_floor=floor, agree=self.collective.agree)
+        counts["relocated"], counts["added"] = int(slots.numel()), int(added.numel())
+        born = torch.cat([eq9_opacities(opacities, moved, c.max_copies, c.min_opacity),
+                          eq9_opacities(hosts_before_growth, added, c.max_copies, c.min_opacity)])
+        counts.update(refine_health(int(dead.numel()), int(dead.sum()), unseen, torch.cat([moved, added]), born,
+                                    c.min_opacity, unplaced))
+        return counts
 
     def _auto_cap(self, model: GaussianModel) -> tuple[int, int | None]:
         """(this refine step's cap, the demand D measured, or None) under auto_cap: the cap is N + D while

@@ -27,11 +27,13 @@ import torch
 
 from ..gaussians import DEAD_OPACITY
 
-__all__ = ["DEFAULT_MAX_COPIES", "MAX_OPACITY", "binomial_table", "relocation_coefficients", "relocation_params",
-           "sample_by_weight"]
+__all__ = ["DEFAULT_MAX_COPIES", "DEFAULT_COPY_FLOOR", "MAX_OPACITY", "binomial_table", "copy_capacity",
+           "relocation_coefficients", "relocation_params", "sample_by_weight", "sample_hosts"]
 
 DEFAULT_MAX_COPIES = 51                                  # gsplat's n_max; the official code clamps at 50
 MAX_OPACITY = 1.0 - float(torch.finfo(torch.float32).eps)  # the official upper clamp, 1 - 1.19e-7
+# Relocation "alive": every copy's Eq. 9 opacity is at least this (4x the dead threshold), so no copy is born dead.
+DEFAULT_COPY_FLOOR = 4 * DEAD_OPACITY
 _CHUNK = 1 << 16                                         # rows per float64 evaluation (bounds the temporary memory)
 
 
@@ -124,3 +126,54 @@ def sample_by_weight(weights: torch.Tensor, num_samples: int, generator: torch.G
     # Rounding can land the last draws on a trailing zero-weight entry: move them to the last positive one.
     last_positive = int(torch.nonzero(w > 0)[-1])
     return torch.where(indices > last_positive, torch.full_like(indices, last_positive), indices)
+
+
+def copy_capacity(opacities: torch.Tensor, floor: float, n_max: int = DEFAULT_MAX_COPIES) -> torch.Tensor:
+    """How many copies each Gaussian can host (int64 [M]) so that it and every copy keep an Eq. 9 opacity of at least
+    `floor`: the largest N with 1 - (1 - o)^(1/N) >= floor is log(1 - o) / log(1 - floor); N counts the host too and
+    stays within n_max (Eq. 9's clamp), and the copies are N - 1. A host below the floor takes none."""
+    if not 0.0 < floor < 1.0:
+        raise ValueError(f"the copies' opacity floor must be in (0, 1), got {floor}")
+    o = opacities.detach().to(torch.float64).clamp(0.0, MAX_OPACITY)
+    # The small margin keeps a host whose N lands exactly on the floor from rounding one copy too many.
+    total = torch.floor(torch.log1p(-o) / math.log1p(-floor) * (1.0 - 1e-9))
+    return (total.clamp(1, n_max) - 1).to(torch.long)
+
+
+def sample_hosts(weights: torch.Tensor, capacity: torch.Tensor, num_samples: int,
+                 generator: torch.Generator, rounds: int = 8) -> torch.Tensor:
+    """Up to `num_samples` indices drawn with replacement with probability proportional to `weights`, no index more
+    often than its `capacity`: the draws past a full host are drawn again among those with room (at most `rounds`
+    times). Returns the draws kept, in the order drawn (where every host has room, exactly sample_by_weight's);
+    fewer than asked when the capacity runs out."""
+    if weights.shape != capacity.shape or weights.dim() != 1:
+        raise ValueError(f"weights and capacity must be matching vectors, got {list(weights.shape)} and "
+                         f"{list(capacity.shape)}")
+    device = weights.device
+    counts = torch.zeros(weights.shape[0], dtype=torch.long, device=device)
+    kept = []
+    for _ in range(rounds):
+        room = (capacity.to(device) - counts).clamp_min(0)
+        open_weights = torch.where(room > 0, weights.detach().to(torch.float64),
+                                   torch.zeros((), dtype=torch.float64, device=device))
+        remaining = num_samples - int(counts.sum())
+        if remaining <= 0 or not float(open_weights.sum()) > 0:
+            break
+        drawn = sample_by_weight(open_weights, remaining, generator)
+        taken = drawn[_occurrence(drawn) < room[drawn]]
+        counts += torch.bincount(taken, minlength=counts.shape[0])
+        kept.append(taken)
+    return torch.cat(kept) if kept else torch.zeros(0, dtype=torch.long, device=device)
+
+
+def _occurrence(values: torch.Tensor) -> torch.Tensor:
+    """For each entry, how many equal entries come before it (0 for the first of its value)."""
+    order = torch.sort(values, stable=True).indices
+    ordered = values[order]
+    position = torch.arange(values.shape[0], device=values.device)
+    starts = torch.ones_like(ordered, dtype=torch.bool)
+    starts[1:] = ordered[1:] != ordered[:-1]
+    first = torch.cummax(torch.where(starts, position, torch.zeros_like(position)), dim=0).values
+    rank = torch.empty_like(position)
+    rank[order] = position - first
+    return rank
