@@ -4,9 +4,9 @@
     .venv/bin/python benchmarks/auto_cap.py --scenes cup --caps 300000 auto-demand
     .venv/bin/python benchmarks/auto_cap.py --report            # only rebuild results.md from results.jsonl
 
-Every scene trains with MCMC at each fixed cap and with each automatic rule (default: no --cap-max, mcsplat's default
-since issue 56, the automatic cap with relocation "alive"; auto: `--cap-max auto` with the paper's relocation, as
-recorded before; auto-demand: the same without its per-pixel ceiling), from the same init (lego and DTU:
+Every scene trains with MCMC at each fixed cap and with each automatic rule (default: no --cap-max, mcsplat's
+default since issue 56, the automatic cap with relocation "alive"; auto: `--cap-max auto` with the paper's
+relocation, as recorded before; auto-demand: the same without its per-pixel ceiling), from the same init (lego, DTU:
 5,000 random points; the other captures: their SfM points), with the same steps and schedules (the paper's, multiplied by
 --schedule-scale, like budget.py). The target (issue 15): the automatic cap's test PSNR within 0.3 dB of the best
 fixed cap's, with at most 1.5x that cap's count. Two runs at a time, one thread each; a finished run is reused, an
@@ -129,8 +129,10 @@ def report(records: list[dict], out: Path) -> str:
     stopped = "".join(f"- {r['scene']} at cap {r['cap']}: did not finish ({r['error'].split(';')[0]})\n" for r in failed)
     demand = trajectories(records)
     text = (f"# --cap-max auto against fixed caps\n\n{table}\n\nTarget: PSNR within {PSNR_MARGIN} dB of the best fixed "
-            f"cap, at most {COUNT_FACTOR}x its count. Rule default: no --cap-max (the automatic cap with relocation alive); "
-            f"auto: `--cap-max auto` (demand, ceiling 3 Gaussians per training pixel, the paper's relocation); auto-demand: the same before the per-pixel ceiling (1M ceiling).\n\n{checks}\n" + (f"\n{stopped}" if stopped else "") +
+            f"cap, at most {COUNT_FACTOR}x its count. Rule default: no --cap-max (the automatic cap with relocation "
+            f"alive); auto: `--cap-max auto` (demand, ceiling 3 Gaussians per training pixel, the paper's "
+            f"relocation); auto-demand: the same before the per-pixel ceiling (1M ceiling).\n\n{checks}\n"
+            + (f"\n{stopped}" if stopped else "") +
             (f"\nDemand D/N of one refine step as the automatic cap grew (log.jsonl, every {LOG_EVERY} steps):\n\n"
              f"{demand}\n" if demand else ""))
     C.write_text(out / "results.md", text)

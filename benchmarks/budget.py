@@ -118,7 +118,7 @@ def make_config(job: Job, args, run_dir: Path, resume: bool, overwrite: bool) ->
         sh_increase_every=sched["sh_increase_every"],
         model=ModelConfig(init=job.init, num_init_points=init_points(job.cap, args.init_points)),
         mcmc=MCMCConfig(refine_start=sched["refine_start"], refine_stop=sched["refine_stop"],
-                        refine_every=sched["refine_every"]),
+                        refine_every=sched["refine_every"], relocation="paper"),  # the paper's MCMC, grown to the cap
         adc=ADCConfig(densify_start=sched["densify_start"], densify_stop=sched["densify_stop"],
                       densify_every=sched["densify_every"], reset_every=sched["reset_every"]))
 

@@ -7,7 +7,8 @@
 
 Each arm is one `mcsplat train` of the scene from its SfM points, with the same steps, seed and schedules:
 `RELOCATION:CAP` trains with `--cap-max CAP --mcmc.relocation RELOCATION` (paper: Eq. 9 with up to 51 copies a host,
-whatever their opacity; alive: mcsplat's default, no copy born dead and no growth while dead are left unplaced);
+whatever their opacity, grown to the cap; alive: mcsplat's default, no copy born dead, no growth while dead are left
+unplaced, growth stops where the scene stops asking);
 `auto` trains without `--cap-max` (the count from the scene). The target (issue 56): at 1M, at most 25% dead at the
 last refine step and a test PSNR within 0.5 dB of the fitting cap's (62,500). The record keeps the health levels of
 every log record (log.jsonl: dead share, unseen dead share, copies per host, copies born dead, unplaced). Runs live in
@@ -72,9 +73,10 @@ def record(job: dict, run: Path) -> dict:
 def report(folder: Path) -> None:
     rows = C.read_jsonl(folder / "results.jsonl")
     lines = ["# MCMC at a cap far above what the scene needs", "",
-             "`benchmarks/collapse.py`: the health levels at the last refine step (log.jsonl) and the test PSNR of each "
-             "arm. paper: Eq. 9 with up to 51 copies a host; alive: no copy born dead, no growth while dead are "
-             "left unplaced (the default); auto: no --cap-max.", ""]
+             "`benchmarks/collapse.py`: the health levels at the last refine step (log.jsonl) and the test PSNR of "
+             "each arm. paper: the paper's relocation and growth (Eq. 9 with up to 51 copies a host); alive: no copy "
+             "born dead, no growth while dead are left unplaced, growth stops where the scene stops asking (the "
+             "default); auto: no --cap-max.", ""]
     for tag in sorted({r["tag"] for r in rows}):
         group = [r for r in rows if r["tag"] == tag]
         lines += [f"## {tag}", "", "| arm | steps | PSNR | Gaussians | dead share | unseen dead | copies max / mean | "

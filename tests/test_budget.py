@@ -327,3 +327,17 @@ def test_the_planners_curves_give_numpy_no_warning_at_their_extremes():
         trial = planner._fitted(5000)
         counts = planner._counts(trial, 0, np.arange(0, 5000, 7.0), 1, 10**9)
     assert math.isfinite(seconds) and np.isfinite(counts).all() and counts.max() <= 10**9
+
+
+def test_once_the_scene_stops_asking_the_plan_gives_the_time_to_steps():
+    """The automatic cap fixed its count at 20,000 (the scene asks for no more): the next plan keeps that count
+    and fills the time with steps, where it would otherwise still plan growth to the affordable cap."""
+    from types import SimpleNamespace
+    growing = _known_costs(budget="10m", pixels=0.010)
+    growing.strategy = SimpleNamespace(chosen_cap=None)
+    growing.replan(500, 30.0, 20_000)
+    stopped = _known_costs(budget="10m", pixels=0.010)
+    stopped.strategy = SimpleNamespace(chosen_cap=20_000)
+    stopped.replan(500, 30.0, 20_000)
+    assert growing.plan.mcmc.cap_max > 20_000 and stopped.plan.mcmc.cap_max == 20_000
+    assert stopped.plan.steps > growing.plan.steps

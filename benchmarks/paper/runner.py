@@ -73,6 +73,7 @@ def make_config(run: Run, scale: Scale, cap: int | None, run_dir: Path, resume: 
         group, _, key = option.rpartition(".")
         (nested[group] if group else top)[key] = value
     nested["model"].setdefault("init", "random" if run.init == "random" else "auto")
+    nested["mcmc"].setdefault("relocation", "paper")  # the paper's method: its relocation and growth to the cap
     nested["model"].setdefault("num_init_points", scale.random_points)
     steps = top.pop("steps", scale.steps)
     return TrainConfig(

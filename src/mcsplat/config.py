@@ -243,6 +243,14 @@ class TrainConfig:
             object.__setattr__(self, name, value)
 
     @property
+    def max_gaussians(self) -> int | None:
+        """The most Gaussians the run may hold, whatever its plan: MCMC's cap (the ceiling of the count the scene
+        asks for, unless --cap-max gives a number), ADC's optional budget (None: no limit). The one rule for it:
+        the initialisation, --budget and blocks read it here; the plan's cap, config.json's `mcmc.cap_max` on a
+        --budget run, is at most this."""
+        return self.mcmc.cap_max if self.strategy == "mcmc" else self.adc.cap_max
+
+    @property
     def run_dir(self) -> Path:
         return self.out if self.out is not None else Path("runs") / Path(self.data).resolve().name
 

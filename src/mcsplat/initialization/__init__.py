@@ -31,12 +31,7 @@ def initial_model(config: TrainConfig, scene: Scene, device: torch.device, gener
     the points when there are more (gsplat issue 516: a run would otherwise train above its cap until its first
     refine step)."""
     model, note = _initial_model(config, scene, device, generator, progress)
-    return within_cap(model, note, cap_of(config), generator)
-
-
-def cap_of(config: TrainConfig) -> int | None:
-    """The most Gaussians the run may hold (MCMC's cap, ADC's optional budget)."""
-    return config.mcmc.cap_max if config.strategy == "mcmc" else config.adc.cap_max
+    return within_cap(model, note, config.max_gaussians, generator)
 
 
 def within_cap(model: GaussianModel, note: str, cap: int | None, generator: torch.Generator

@@ -63,14 +63,12 @@ def make_plan(scene: Scene, training: TrainConfig, count: int | None = None, mem
 
 def total_cap(training: TrainConfig) -> int:
     """The Gaussians of the whole scene: the training options' cap (blocks share it)."""
-    if training.strategy == "mcmc":
-        if training.cap_max == "auto":
-            raise MCSplatError("--cap-max auto grows one run as its gradients ask; blocks need a number to share "
-                               "out: give --cap-max N for the whole scene")
-        return training.mcmc.cap_max
-    if training.adc.cap_max is None:
+    if training.cap_max == "auto":
+        raise MCSplatError("--cap-max auto grows one run as its gradients ask; blocks need a number to share "
+                           "out: give --cap-max N for the whole scene")
+    if training.max_gaussians is None:
         raise MCSplatError("blocks share out a cap: give ADC's --cap-max N for the whole scene")
-    return training.adc.cap_max
+    return training.max_gaussians
 
 
 def _blocks(scene: Scene, uv: torch.Tensor, seen: tuple[Sightings, Sightings], count: int, total: int,

@@ -137,7 +137,7 @@ def budget_planner(config: TrainConfig, plan: Plan, scene: Scene) -> BudgetPlann
     # the record's (a run stopped at a planned cap of 3,148 resumed capped there, and ended 3.5 dB lower).
     ceiling = (plan.budget or {}).get("ceiling")
     if ceiling is None:
-        cap = config.mcmc.cap_max if config.strategy == "mcmc" else (config.adc.cap_max or config.mcmc.cap_max)
+        cap = config.max_gaussians or config.mcmc.cap_max  # ADC without a budget: MCMC's ceiling
         ceiling = pixel_ceiling(cap, scene.train_image_pixels, config.mcmc.gaussians_per_pixel)
     return BudgetPlanner(config, int(ceiling), plan)
 
@@ -158,6 +158,7 @@ class BudgetPlanner:
         self.history: list[dict] = list(record.get("history", []))
         self.cost = StepCost()
         self.last_plan_at = -math.inf
+        self.strategy = None  # the run's, from begin()
         self.sh_fixed = bool(record.get("sh_fixed", False))
         # The coarse phase's length is chosen from the costs unless given (kept across a resume by the record).
         self.full_size_chosen = bool(record.get("full_size_chosen", config.resolution_full_at is None))
@@ -170,6 +171,7 @@ class BudgetPlanner:
               step_function: StepFunction) -> None:
         """Before the clock starts: time a few steps, make the first plan, and cut an initialisation larger than
         it affords."""
+        self.strategy = state.strategy  # whether the scene has stopped asking for more (its automatic cap)
         for seconds, gaussians, scale in timed_steps(self.config, self.plan, state.model, scene, background, device,
                                                      step_function, start=self.plan.resolution_at(state.step)):
             self.calibrate(seconds, gaussians, scale)
@@ -260,13 +262,14 @@ class BudgetPlanner:
 
         The cap never falls below the current count once the run is under way (pruning a trained model costs
         more than the steps it saves). Only the starting count can be cut (MCMC keeps the most opaque: a random
-        initialisation of more points than the budget affords). Once growth is over (growth_share of the run)
-        the cap is the count reached. Where the scene asks for fewer Gaussians (the automatic cap, on unless
-        --cap-max gives a number) growth stops there, and the plans that follow give the time saved to steps."""
+        initialisation of more points than the budget affords). Once growth is over (growth_share of the run, or
+        the scene has stopped asking for more: the automatic cap, on unless --cap-max gives a number) the cap is
+        the count reached, and the plans that follow give the time it saves to steps."""
         left = self.budget_seconds - wall_seconds
         current = max(gaussians, 1)
         top = max(self.ceiling, 1)
-        if step >= min(self.config.mcmc.growth_share * self.plan.steps, self.plan.mcmc.refine_stop):
+        growth_over = step >= min(self.config.mcmc.growth_share * self.plan.steps, self.plan.mcmc.refine_stop)
+        if growth_over or getattr(self.strategy, "chosen_cap", None) is not None:
             return Choice(self._steps_for(step, left, current, current), current, self.base["mcmc.grow_rate"])
         lowest = min(top, max(MIN_START_GAUSSIANS, current // 10) if step == 0 else current)
         cap = self.affordable_cap(step, left, current, lowest)

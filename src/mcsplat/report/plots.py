@@ -77,7 +77,8 @@ def gaussians(runs: list[RunRecord]) -> bytes:
 
 REFINE_KEYS = ("relocated", "added", "cloned", "split", "pruned")
 # MCMC's health at its refine steps (strategy/health.py): shares on the left axis, copies per host on the right.
-HEALTH_SHARES = {"dead_share": "dead", "unseen_dead_share": "dead no view reached", "born_dead_share": "copies born dead"}
+HEALTH_SHARES = {"dead_share": "dead", "unseen_dead_share": "dead no view reached",
+                 "born_dead_share": "copies born dead"}
 HEALTH_COPIES = {"copies_max": "copies per host, most", "copies_mean": "copies per host, mean"}
 
 

@@ -73,9 +73,11 @@ class MCMCConfig:
     growth_share: float = 0.4       # the cap is reached by this share of the run at the latest (schedule.py)
     min_opacity: float = DEAD_OPACITY  # dead: opacity <= min_opacity
     max_copies: int = DEFAULT_MAX_COPIES  # N clamp in Eq. 9
-    # "alive": no host takes more copies than keep an Eq. 9 opacity of copy_floor each, and the model does not grow
-    # while relocation left dead Gaussians unplaced; "paper": up to max_copies copies a host, whatever their opacity
-    # (docs/method.md, "When the cap is far above what the scene needs").
+    # "alive": no host takes more copies than keep an Eq. 9 opacity of copy_floor each, the model does not grow
+    # while relocation left dead Gaussians unplaced, and growth stops for good where the scene stops asking for more
+    # (the automatic cap's demand rule), however far below the cap; "paper": the paper's relocation and growth, up to
+    # max_copies copies a host whatever their opacity, to the cap (docs/method.md, "When the cap is far above what
+    # the scene needs").
     relocation: Literal["alive", "paper"] = "alive"
     copy_floor: float = DEFAULT_COPY_FLOOR
     auto_cap: bool = False          # grow only where the screen gradient asks for more (cap_max is then a ceiling)
@@ -174,7 +176,7 @@ def eq9_opacities(opacities: torch.Tensor, sources: torch.Tensor, max_copies: in
     return born.clamp_min(min_opacity)
 
 
-def empty_rows(model: GaussianModel) -> torch.Tensor:
+def _no_rows(model: GaussianModel) -> torch.Tensor:
     return torch.zeros(0, dtype=torch.long, device=model.means.device)
 
 
@@ -355,7 +357,7 @@ class MCMCStrategy:
         if step >= self.schedule.refine_stop or not model.num_gaussians:
             return
         self.seen.add(render_result, model.num_gaussians)
-        if self.config.auto_cap and self.chosen_cap is None:
+        if self._asks_the_scene() and self.chosen_cap is None:
             self.gradients.add(render_result, model.num_gaussians, width, height)
 
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Optimizers,
@@ -364,7 +366,7 @@ class MCMCStrategy:
         counts: dict[str, Any] = {}
         if self.is_refine_step(step):
             counts = self._refine(step, model, optimizers)
-            if c.auto_cap and self.chosen_cap is None:
+            if self._asks_the_scene() and self.chosen_cap is None:
                 self.gradients.reset(model.num_gaussians, model.means.device)
             self.seen.reset()
         inject_position_noise(model, c.noise_lr * means_lr, self.generator, covariance=c.noise_covariance,
@@ -385,7 +387,8 @@ class MCMCStrategy:
                           stacklevel=3)
             return counts
         floor = c.copy_floor if c.relocation == "alive" else None
-        cap, counts["demand"] = self._auto_cap(model) if c.auto_cap else (s.cap_max, None)
+        cap, counts["demand"] = (self._auto_cap(model) if c.auto_cap else self._asked_cap(model)
+                                 if c.relocation == "alive" else (s.cap_max, None))
         dead = opacities <= c.min_opacity
         unseen = self.seen.unseen_share(dead)
         slots, moved = relocate_dead(model, optimizers, self.generator, min_opacity=c.min_opacity,
@@ -398,7 +401,7 @@ class MCMCStrategy:
         hosts_before_growth = model.opacities.detach().clone()
         # Relocation "alive": dead left unplaced mean no host can give a copy that stays alive; growth would only
         # add more of them.
-        added = empty_rows(model) if unplaced and floor is not None else grow(
+        added = _no_rows(model) if unplaced and floor is not None else grow(
             model, optimizers, self.generator, cap_max=cap, grow_rate=s.grow_rate, min_opacity=c.min_opacity,
             max_copies=c.max_copies, copy_floor=floor, agree=self.collective.agree)
         counts["relocated"], counts["added"] = int(slots.numel()), int(added.numel())
@@ -420,6 +423,27 @@ class MCMCStrategy:
             return min(self.ceiling, n + demand), demand
         self.chosen_cap = n
         return min(self.ceiling, self.chosen_cap), demand
+
+    def _asks_the_scene(self) -> bool:
+        """Whether growth asks the scene (the demand D): the automatic cap, and relocation "alive" with a cap."""
+        return self.config.auto_cap or self.config.relocation == "alive"
+
+    def _asked_cap(self, model: GaussianModel) -> tuple[int, int | None]:
+        """(this refine step's cap, the demand D measured, or None) with a number for the cap and relocation
+        "alive": the paper's growth to cap_max while the scene asks for more; from the first refine step where
+        D < demand_share N, the count of that step for the rest of the run, however far below cap_max (where the
+        cap fits the scene, the demand lasts until it is reached: the paper's run). No view since the last refine
+        step (a strategy driven without renders): no decision."""
+        n, cap = model.num_gaussians, self.schedule.cap_max
+        if self.chosen_cap is not None:
+            return min(cap, self.chosen_cap), None
+        demand = self._growth_demand(model)
+        if self.gradients.views is None or not bool(self.gradients.views.any()):
+            return cap, None
+        if demand < self.config.demand_share * n:
+            self.chosen_cap = n
+            return min(cap, n), demand
+        return cap, demand
 
     def _growth_demand(self, model: GaussianModel) -> int:
         """The automatic cap's D, from every process's views when several train together."""
