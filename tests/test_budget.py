@@ -341,3 +341,19 @@ def test_once_the_scene_stops_asking_the_plan_gives_the_time_to_steps():
     stopped.replan(500, 30.0, 20_000)
     assert growing.plan.mcmc.cap_max > 20_000 and stopped.plan.mcmc.cap_max == 20_000
     assert stopped.plan.steps > growing.plan.steps
+
+
+def test_the_count_goes_no_further_than_twice_what_was_timed():
+    """Calibrated only at 1,000 and 18,000 Gaussians, a plan that would afford far more still caps at 36,000: the
+    cost model is trusted near what it measured (young Gaussians cost less than trained ones); a step timed at
+    30,000 extends it to 60,000."""
+    config = TrainConfig(data=DEMO, budget="10m", model=ModelConfig(num_init_points=1000))
+    planner = BudgetPlanner(config, ceiling=1_000_000)
+    for n, s in ((1000, 1.0), (1000, 0.25), (18_000, 1.0), (18_000, 0.25)):
+        planner.calibrate(0.010 + 0.005 * s * s + 0.02e-6 * n, n, s)
+    planner.start(0, 0.0, 1000)
+    assert planner.plan.mcmc.cap_max == 36_000
+    for _ in range(40):
+        planner.observe(0.010 + 0.005 + 0.02e-6 * 30_000, 30_000, 1.0)
+    planner.replan(400, 10.0, 30_000)
+    assert planner.plan.mcmc.cap_max == 60_000

@@ -174,3 +174,32 @@ def test_eq9_opacities_match_relocation_params():
     expected, _ = relocation_params(opacities[sources], torch.ones(6, 3), counts)
     assert torch.allclose(eq9_opacities(opacities, sources, 51, DEAD_OPACITY).float(), expected, atol=1e-7)
     assert math.isclose(float(eq9_opacities(opacities, sources, 51, DEAD_OPACITY)[0]), 1 - 0.1 ** 0.2, rel_tol=1e-6)
+
+
+def _view(num: int, asking: int) -> SimpleNamespace:
+    """A render after its backward in which the first `asking` of `num` Gaussians have a screen gradient far above
+    3DGS's threshold and the rest none; all of them composited."""
+    grad = torch.zeros(num, 2)
+    grad[:asking, 0] = 1.0
+    return SimpleNamespace(means2d=SimpleNamespace(grad=grad), radii=torch.ones(num, dtype=torch.int32),
+                           contributed=torch.ones(num, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("relocation, grows", [("alive", False), ("paper", True)])
+def test_with_a_cap_far_above_the_scene_growth_stops_where_it_stops_asking(relocation, grows):
+    """--cap-max 10,000 on a model of 400 whose views ask for more in 2 of them (under 1%): relocation alive keeps
+    the count there for the rest of the run; the paper's grows on to the cap. While 10% ask, both grow at the
+    paper's 5%."""
+    model = make_model([0.6] * 400, seed=7)
+    optimizers = make_optimizers(model, OptimConfig(), RADIUS)
+    strategy = MCMCStrategy(MCMCConfig(cap_max=10_000, relocation=relocation), RADIUS,
+                            torch.Generator().manual_seed(0))
+    assert strategy.asks_the_scene == (relocation == "alive")
+    strategy.step_post_backward(599, model, _view(400, 40), 100, 100)
+    report = strategy.step_post_optimizer(600, model, optimizers, means_lr=0.0)
+    assert report.added == 20 and model.num_gaussians == 420
+    for step in (700, 800):
+        strategy.step_post_backward(step - 1, model, _view(model.num_gaussians, 2), 100, 100)
+        strategy.step_post_optimizer(step, model, optimizers, means_lr=0.0)
+    assert (model.num_gaussians > 420) == grows
+    assert (strategy.chosen_cap == 420) == (not grows)

@@ -58,9 +58,10 @@ class TrainConfig:
     strategy: Literal["mcmc", "adc"] = "mcmc"
     """mcmc: the paper's method. adc: classic 3DGS densification, the baseline."""
     cap_max: int | Literal["auto"] | None = None
-    """Maximum number of Gaussians (sets --mcmc.cap-max, or --adc.cap-max for the budgeted baseline); the MCMC run
-    grows to it. Default (or auto), MCMC: grow only while the screen gradients ask for more Gaussians, up to
-    --mcmc.cap-max (the paper's 1,000,000) and 3 per training pixel (see the README)."""
+    """Maximum number of Gaussians (sets --mcmc.cap-max, or --adc.cap-max for the budgeted baseline); MCMC grows to
+    it at the paper's rate, stopping earlier only where the views ask for no more. Default (or auto), MCMC: grow only
+    while the screen gradients ask for more Gaussians, up to --mcmc.cap-max (the paper's 1,000,000) and 3 per
+    training pixel (see the README)."""
     steps: int = 30_000
     """Training steps (the paper: 30,000). The step schedules follow it (--scale-schedule)."""
     budget: str | None = None
@@ -230,7 +231,7 @@ class TrainConfig:
         if self.cap_max == "auto" or (self.cap_max is None and self.strategy == "mcmc"):
             # No number: MCMC grows to what the scene asks for, up to --mcmc.cap-max (the paper's 1M) at most.
             mcmc = dataclasses.replace(mcmc, auto_cap=True)
-        elif self.cap_max is not None:  # a number: the run grows to it (the paper's method)
+        elif self.cap_max is not None:  # a number: the run grows to it at the paper's rate
             mcmc = dataclasses.replace(mcmc, cap_max=self.cap_max, auto_cap=False)
             adc = dataclasses.replace(adc, cap_max=self.cap_max)
         resolution = _default(self.resolution_start, BUDGET_RESOLUTION_START if self.budget is not None else 1.0)

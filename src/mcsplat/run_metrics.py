@@ -22,7 +22,8 @@ class RunFacts:
     processes: int
     invisible_gaussians: dict[str, int]
     budget_seconds: float | None = None  # --budget
-    auto_cap: tuple[int | None, int] | None = None  # --cap-max auto: (where growth stopped or None, the ceiling)
+    # MCMC asking the scene (no --cap-max, or relocation alive): (where growth stopped or None, the most allowed)
+    auto_cap: tuple[int | None, int] | None = None
     pose_corrections: dict[str, float] | None = None  # --pose-opt
 
 
@@ -43,7 +44,7 @@ def metrics(evaluation: Evaluation | None, lpips_net: str, steps: int, num_gauss
             "wall_seconds": round(run.wall_seconds, 2),
             **({"budget_seconds": run.budget_seconds} if run.budget_seconds is not None else {}),
             "invisible_gaussians": run.invisible_gaussians,
-            # --cap-max auto: where growth stopped (None: the demand never fell, the ceiling decided)
+            # Where growth stopped as the scene asked for no more (None: it asked to the end, the ceiling decided)
             **({"auto_cap": run.auto_cap[0], "auto_cap_ceiling": run.auto_cap[1]} if run.auto_cap else {}),
             **scores["masked"], **scores["compensated"],
             **({"pose_corrections": run.pose_corrections} if run.pose_corrections is not None else {}),

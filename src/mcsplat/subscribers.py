@@ -88,6 +88,9 @@ class ConsoleLog(Subscriber):
             self.result(f"test PSNR {evaluation.psnr:.2f} dB, SSIM {evaluation.ssim:.4f}, LPIPS-{m['lpips_net']} "
                         f"{lpips_text} on {evaluation.views} views; {m['num_gaussians']:,} Gaussians, "
                         f"{m['train_seconds']:.0f} s of training")
+        if m.get("auto_cap") is not None and m["auto_cap"] < m["auto_cap_ceiling"]:
+            self.write(f"growth stopped at {m['auto_cap']:,} Gaussians, where the views asked for no more (at most "
+                       f"{m['auto_cap_ceiling']:,}; --mcmc.relocation paper grows to --cap-max whatever)")
         if m.get("compensated_psnr") is not None and event.run.config.appearance != "none":
             self.result(f"compensated (each test view's colour transform fitted on its left half, the right half "
                         f"scored): PSNR {m['compensated_psnr']:.2f} dB, SSIM {m['compensated_ssim']:.4f}")

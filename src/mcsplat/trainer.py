@@ -285,13 +285,14 @@ class TrainingRun:
                                         progress=not config.quiet)
         seen = seen_in_views(state.model, self.scene.train, self.background, self.device, team)
         exported = self.folder.export_splats(state.model) if team.is_main else int(run_dir.alive(state.model).sum())
-        strategy = state.strategy  # --cap-max auto: where growth stopped, and the ceiling
+        strategy = state.strategy  # where growth stopped as the scene asked for no more, and the most allowed
         facts = RunFacts(exported_gaussians=exported, train_seconds=state.train_seconds,
                          wall_seconds=state.wall_seconds, device=str(self.device), strategy=config.strategy,
                          sh_degree=final_degree, processes=team.world_size,
                          invisible_gaussians=count_invisible(state.model, seen).as_dict(),
                          budget_seconds=self.planner.budget_seconds,
-                         auto_cap=(strategy.chosen_cap, strategy.ceiling) if config.mcmc.auto_cap else None,
+                         auto_cap=((strategy.chosen_cap, strategy.ceiling) if getattr(strategy, "asks_the_scene", False)
+                                   else None),
                          pose_corrections=poses.summary() if (poses := state.module("poses")) else None)
         record = metrics(evaluation, config.lpips_net, state.step, state.model.num_gaussians, facts)
         if team.is_main:

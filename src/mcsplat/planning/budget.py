@@ -64,6 +64,7 @@ from .seam import Background, RunState, StepFunction
 from .schedule import PAPER_STEPS, growth_rate_reaching, refine_steps_between, scale_schedules
 
 STEPS_AT_TEN_MINUTES = 8000       # affordable_cap: the steps its count leaves a 10-minute run (x sqrt(time / 10 min))
+REACH = 2.0                       # ... and it is at most twice the largest count a step has been timed at
 MIN_STEPS, MAX_STEPS = 1000, 30_000  # the cap leaves at least MIN_STEPS; the search for steps stops at 10 x MAX
 REPLAN_SHARE = 0.02               # a new plan every 2% of the budget
 LATE_REPLAN_SHARE = 0.005         # ... every 0.5% in its last 10%
@@ -106,6 +107,10 @@ class StepCost:
 
     def predict(self, gaussians: np.ndarray, scale: np.ndarray) -> np.ndarray:
         return self.features(gaussians, scale) @ self.coefficients
+
+    def largest_count(self) -> int:
+        """The most Gaussians a timed step had (0 before any)."""
+        return int(max((n for _, n, _, _ in self.samples), default=0))
 
 
 def continuing_resolution(plan: Plan, step: int, scale: float) -> Plan:
@@ -284,11 +289,14 @@ class BudgetPlanner:
         return int(min(MAX_STEPS, max(MIN_STEPS, round(wanted))))
 
     def affordable_cap(self, step: int, left: float, gaussians: int, lowest: int) -> int:
-        """The most Gaussians (from `lowest` to the ceiling) with which the `left` seconds still give the run
-        wanted_steps() steps in all, growing to that count as planned. It is set by what a step costs at this
+        """The most Gaussians (from `lowest` to the ceiling, and to REACH times the largest count timed so far) with
+        which the `left` seconds still give the run wanted_steps() steps in all, growing to that count as planned. It is set by what a step costs at this
         count on this machine, not by a ratio of costs: a faster loss leaves time for more Gaussians. (On the
         bird, 10 minutes at 38k Gaussians and 8,300 steps beat 57k and 6,900 by 0.7 dB.)"""
-        top = max(self.ceiling, lowest, 1)
+        # The cost model is trusted only near the counts it was measured at: a count far beyond them is reached only
+        # after steps nearer it have been timed (the bird's young Gaussians of the calibration cost half what trained
+        # ones do; planned from them, its 10 minutes grew to 64k and took 3,900 steps).
+        top = max(min(self.ceiling, int(REACH * self.cost.largest_count())), lowest, 1)
         # Where even the lowest count cannot have them (pixels that cost most of the time: a 4K capture), half the
         # steps it could have: Gaussians then get as much of the time as the pixels.
         wanted = max(MIN_STEPS, min(self.wanted_steps(), self._steps_for(step, left, gaussians, lowest) // 2))

@@ -357,7 +357,7 @@ class MCMCStrategy:
         if step >= self.schedule.refine_stop or not model.num_gaussians:
             return
         self.seen.add(render_result, model.num_gaussians)
-        if self._asks_the_scene() and self.chosen_cap is None:
+        if self.asks_the_scene and self.chosen_cap is None:
             self.gradients.add(render_result, model.num_gaussians, width, height)
 
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Optimizers,
@@ -366,7 +366,7 @@ class MCMCStrategy:
         counts: dict[str, Any] = {}
         if self.is_refine_step(step):
             counts = self._refine(step, model, optimizers)
-            if self._asks_the_scene() and self.chosen_cap is None:
+            if self.asks_the_scene and self.chosen_cap is None:
                 self.gradients.reset(model.num_gaussians, model.means.device)
             self.seen.reset()
         inject_position_noise(model, c.noise_lr * means_lr, self.generator, covariance=c.noise_covariance,
@@ -424,8 +424,10 @@ class MCMCStrategy:
         self.chosen_cap = n
         return min(self.ceiling, self.chosen_cap), demand
 
-    def _asks_the_scene(self) -> bool:
-        """Whether growth asks the scene (the demand D): the automatic cap, and relocation "alive" with a cap."""
+    @property
+    def asks_the_scene(self) -> bool:
+        """Whether growth asks the scene (the demand D) and stops where it asks for no more: the automatic cap, and
+        relocation "alive" with a cap; `chosen_cap` is then where it stopped."""
         return self.config.auto_cap or self.config.relocation == "alive"
 
     def _asked_cap(self, model: GaussianModel) -> tuple[int, int | None]:
