@@ -357,3 +357,14 @@ def test_the_count_goes_no_further_than_twice_what_was_timed():
         planner.observe(0.010 + 0.005 + 0.02e-6 * 30_000, 30_000, 1.0)
     planner.replan(400, 10.0, 30_000)
     assert planner.plan.mcmc.cap_max == 60_000
+
+
+def test_a_count_grown_past_what_the_time_affords_stops_growing():
+    """The early plans came from cheaper steps than the run then measured (young Gaussians): at 600,000 Gaussians
+    the time left no longer gives the steps the run wants, so the plan keeps the count and grows no more."""
+    planner = _known_costs(budget="10m", pixels=0.010)
+    wanted = planner.steps_wanted
+    assert wanted == 8000 and planner.plan.mcmc.cap_max > 1000
+    planner.replan(500, 60.0, 600_000)
+    assert planner._steps_for(500, 540.0, 600_000, 600_000) < wanted
+    assert planner.plan.mcmc.cap_max == 600_000 and planner.steps_wanted == wanted

@@ -19,7 +19,10 @@ number of steps. What the budget decides is that number and the cap, from the ti
   for more, and the plans that follow give the time saved to steps. The count no longer comes from a ratio of
   costs, under which a faster loss asked for fewer Gaussians (a real 4K capture: a third fewer, 1.3 dB less). On the
   bird, 10 minutes at 38k Gaussians and 8,300 steps gave 33.10 dB where the ratio's 57k and 6,900 steps gave 32.39.
-  The ceiling of 3 Gaussians per pixel and --cap-max bound it, and it leaves at least 1,000 steps.
+  The count is never more than twice the largest count a step has been timed at (REACH): the first plans come from
+  the calibration's young Gaussians, which on the bird cost half what trained ones do, and a cap planned from them
+  was grown to before the run could see it was too many. The ceiling of 3 Gaussians per pixel and --cap-max bound
+  it, and it leaves at least 1,000 steps.
 - How long the coarse phase lasts follows the same costs (unless --resolution-full-at is given): a step at a
   quarter of the size saves most of the share of a full-size step its pixels take (b + d n over the whole, at the
   planned cap), so the larger that share, the later full size comes: at 40% of the steps where pixels take 40% or
@@ -164,6 +167,7 @@ class BudgetPlanner:
         self.cost = StepCost()
         self.last_plan_at = -math.inf
         self.strategy = None  # the run's, from begin()
+        self.steps_wanted: int | None = record.get("steps_wanted")  # affordable_cap's, from the first plan
         self.sh_fixed = bool(record.get("sh_fixed", False))
         # The coarse phase's length is chosen from the costs unless given (kept across a resume by the record).
         self.full_size_chosen = bool(record.get("full_size_chosen", config.resolution_full_at is None))
@@ -250,7 +254,7 @@ class BudgetPlanner:
     def _record(self, plan: Plan) -> dict:
         """What config.json (budget_plan) and the report keep of the planning."""
         return {"budget_seconds": self.budget_seconds, "steps": plan.steps, "cap": plan.mcmc.cap_max,
-                "ceiling": self.ceiling,
+                "ceiling": self.ceiling, "steps_wanted": self.steps_wanted,
                 "resolution_start": plan.resolution_start, "resolution_first": self.first_size,
                 "resolution_full_at": plan.resolution_full_at,
                 "full_size_chosen": self.full_size_chosen, "growth_share": self.config.mcmc.growth_share,
@@ -290,16 +294,22 @@ class BudgetPlanner:
 
     def affordable_cap(self, step: int, left: float, gaussians: int, lowest: int) -> int:
         """The most Gaussians (from `lowest` to the ceiling, and to REACH times the largest count timed so far) with
-        which the `left` seconds still give the run wanted_steps() steps in all, growing to that count as planned. It is set by what a step costs at this
-        count on this machine, not by a ratio of costs: a faster loss leaves time for more Gaussians. (On the
-        bird, 10 minutes at 38k Gaussians and 8,300 steps beat 57k and 6,900 by 0.7 dB.)"""
+        which the `left` seconds still give the run the steps it wants in all (`steps_wanted`), growing to that
+        count as planned. It is set by what a step costs at this count on this machine, not by a ratio of costs: a
+        faster loss leaves time for more Gaussians. (On the bird, 10 minutes at 38k Gaussians and 8,300 steps beat
+        57k and 6,900 by 0.7 dB.) A count already past it is kept: growth stops there."""
         # The cost model is trusted only near the counts it was measured at: a count far beyond them is reached only
         # after steps nearer it have been timed (the bird's young Gaussians of the calibration cost half what trained
         # ones do; planned from them, its 10 minutes grew to 64k and took 3,900 steps).
         top = max(min(self.ceiling, int(REACH * self.cost.largest_count())), lowest, 1)
-        # Where even the lowest count cannot have them (pixels that cost most of the time: a 4K capture), half the
-        # steps it could have: Gaussians then get as much of the time as the pixels.
-        wanted = max(MIN_STEPS, min(self.wanted_steps(), self._steps_for(step, left, gaussians, lowest) // 2))
+        if self.steps_wanted is None:
+            # Decided once, at the first plan: where even the starting count cannot have them (pixels that cost most
+            # of the time: a 4K capture), half the steps it could have, so that the Gaussians get about as much of
+            # the time as the pixels.
+            at_start = self._steps_for(step, left, gaussians, lowest)
+            self.steps_wanted = max(MIN_STEPS, min(self.wanted_steps(), at_start // 2 if at_start < self.wanted_steps()
+                                                   else at_start))
+        wanted = self.steps_wanted
         if self._steps_for(step, left, gaussians, top) >= wanted:
             return top
         if self._steps_for(step, left, gaussians, lowest) < wanted:
