@@ -11,18 +11,15 @@ number of steps. What the budget decides is that number and the cap, from the ti
 - A step's time is modelled as  t = a + b s^2 + c n + d n s^2  (s the share of the image size trained at, n the
   Gaussians in units of 100,000; non-negative coefficients), fitted to the steps measured so far, recent ones
   weighing more, and to a few timed steps at full size before the clock starts (`calibrate`).
-- The cap is the smaller of two counts. What the time affords (`affordable_cap`): the most Gaussians with which the
-  run still takes 8,000 steps in 10 minutes, times sqrt(budget / 10 minutes) (if the error falls as 1/steps +
-  1/Gaussians, more time buys both), at most the paper's 30,000; where even the starting count cannot have that
-  many (pixels that cost most of a step), half the steps that count would have. What the scene asks for: the
-  automatic cap (strategy/auto_cap.py, on unless --cap-max gives a number) stops growth where the views stop asking
-  for more, and the plans that follow give the time saved to steps. The count no longer comes from a ratio of
-  costs, under which a faster loss asked for fewer Gaussians (a real 4K capture: a third fewer, 1.3 dB less). On the
-  bird, 10 minutes at 38k Gaussians and 8,300 steps gave 33.10 dB where the ratio's 57k and 6,900 steps gave 32.39.
-  The count is never more than twice the largest count a step has been timed at (REACH): the first plans come from
-  the calibration's young Gaussians, which on the bird cost half what trained ones do, and a cap planned from them
-  was grown to before the run could see it was too many. The ceiling of 3 Gaussians per pixel and --cap-max bound
-  it, and it leaves at least 1,000 steps.
+- The cap balances the two costs of a step: where a full-size step spends twice as long on its Gaussians (c + d per
+  Gaussian) as on its pixels (a + b), times sqrt(budget / 10 minutes), so that more time buys both more steps and
+  more Gaussians (if the error falls as 1/steps + 1/Gaussians, the best count grows with the square root of the
+  time). Twice: on the demo scene at 95 s, 1x gave 12k Gaussians and 29.7 dB, 2x 32k and 30.5 dB, 3x 81k and
+  30.2 dB. The automatic cap's ceiling of 3 Gaussians per pixel and --cap-max bound it, and it stays small enough to
+  leave at least 1,000 steps. Where the scene asks for fewer (the automatic cap, on unless --cap-max gives a number,
+  stops growth where the views stop asking for more), the plans that follow give the time saved to steps. A rule
+  from the steps the time should give (8,000 in 10 minutes) instead of this ratio was tried and measured worse on
+  the bird and the cup (docs/quality.md, 2026-11-28).
 - How long the coarse phase lasts follows the same costs (unless --resolution-full-at is given): a step at a
   quarter of the size saves most of the share of a full-size step its pixels take (b + d n over the whole, at the
   planned cap), so the larger that share, the later full size comes: at 40% of the steps where pixels take 40% or
@@ -66,8 +63,7 @@ from .plan import Plan
 from .seam import Background, RunState, StepFunction
 from .schedule import PAPER_STEPS, growth_rate_reaching, refine_steps_between, scale_schedules
 
-STEPS_AT_TEN_MINUTES = 8000       # affordable_cap: the steps its count leaves a 10-minute run (x sqrt(time / 10 min))
-REACH = 2.0                       # ... and it is at most twice the largest count a step has been timed at
+BALANCE = 2.0                     # balanced_cap: Gaussians' time in a full-size step over the pixels'
 MIN_STEPS, MAX_STEPS = 1000, 30_000  # the cap leaves at least MIN_STEPS; the search for steps stops at 10 x MAX
 REPLAN_SHARE = 0.02               # a new plan every 2% of the budget
 LATE_REPLAN_SHARE = 0.005         # ... every 0.5% in its last 10%
@@ -110,10 +106,6 @@ class StepCost:
 
     def predict(self, gaussians: np.ndarray, scale: np.ndarray) -> np.ndarray:
         return self.features(gaussians, scale) @ self.coefficients
-
-    def largest_count(self) -> int:
-        """The most Gaussians a timed step had (0 before any)."""
-        return int(max((n for _, n, _, _ in self.samples), default=0))
 
 
 def continuing_resolution(plan: Plan, step: int, scale: float) -> Plan:
@@ -167,7 +159,6 @@ class BudgetPlanner:
         self.cost = StepCost()
         self.last_plan_at = -math.inf
         self.strategy = None  # the run's, from begin()
-        self.steps_wanted: int | None = record.get("steps_wanted")  # affordable_cap's, from the first plan
         self.sh_fixed = bool(record.get("sh_fixed", False))
         # The coarse phase's length is chosen from the costs unless given (kept across a resume by the record).
         self.full_size_chosen = bool(record.get("full_size_chosen", config.resolution_full_at is None))
@@ -234,13 +225,9 @@ class BudgetPlanner:
         """A new plan from the costs measured so far."""
         self.cost.fit()
         self.scale_now = self.plan.resolution_at(step)  # before anything moves: the new plan rises from here
-        choice = self._choose(step, wall_seconds, gaussians)
         if self.full_size_chosen and step < self.plan.resolution_full_at * self.plan.steps:
-            # The coarse phase's length follows the pixels' share of a step at the count chosen; the count and
-            # the steps are chosen again for that length.
-            self.plan = replace(self.plan, resolution_full_at=self.full_size_at(choice.cap))
-            choice = self._choose(step, wall_seconds, gaussians)
-        self._apply(choice, step)
+            self.plan = replace(self.plan, resolution_full_at=self.full_size_at(self._balanced_from(gaussians)))
+        self._apply(self._choose(step, wall_seconds, gaussians), step)
         self.last_plan_at = wall_seconds
         self.history.append({"at_seconds": round(wall_seconds, 1), "step": step, "steps": self.plan.steps,
                              "cap": self.plan.mcmc.cap_max, "gaussians": gaussians,
@@ -254,7 +241,7 @@ class BudgetPlanner:
     def _record(self, plan: Plan) -> dict:
         """What config.json (budget_plan) and the report keep of the planning."""
         return {"budget_seconds": self.budget_seconds, "steps": plan.steps, "cap": plan.mcmc.cap_max,
-                "ceiling": self.ceiling, "steps_wanted": self.steps_wanted,
+                "ceiling": self.ceiling,
                 "resolution_start": plan.resolution_start, "resolution_first": self.first_size,
                 "resolution_full_at": plan.resolution_full_at,
                 "full_size_chosen": self.full_size_chosen, "growth_share": self.config.mcmc.growth_share,
@@ -266,8 +253,8 @@ class BudgetPlanner:
         self.plan = replace(plan, budget=self._record(plan))
 
     def _choose(self, step: int, wall_seconds: float, gaussians: int) -> Choice:
-        """The cap the time affords (`affordable_cap`, within the ceiling), and the steps that fill the time left
-        with it.
+        """The cap of `balanced_cap` (within the ceiling, and small enough to leave MIN_STEPS), and the steps that
+        fill the time left with it.
 
         The cap never falls below the current count once the run is under way (pruning a trained model costs
         more than the steps it saves). Only the starting count can be cut (MCMC keeps the most opaque: a random
@@ -281,48 +268,25 @@ class BudgetPlanner:
         if growth_over or getattr(self.strategy, "chosen_cap", None) is not None:
             return Choice(self._steps_for(step, left, current, current), current, self.base["mcmc.grow_rate"])
         lowest = min(top, max(MIN_START_GAUSSIANS, current // 10) if step == 0 else current)
-        cap = self.affordable_cap(step, left, current, lowest)
+        cap = self._balanced_from(lowest)
         steps = self._steps_for(step, left, current, cap)
+        while steps < MIN_STEPS and cap > lowest:
+            cap = max(lowest, int(cap * 0.8))
+            steps = self._steps_for(step, left, current, cap)
         return Choice(steps, cap, self._grow_rate(step, steps, current, cap))
 
-    def wanted_steps(self) -> int:
-        """The steps a run of this budget should have: STEPS_AT_TEN_MINUTES at 10 minutes, growing with the square
-        root of the time (if the error falls as 1/steps + 1/Gaussians, more time buys both), within MIN_STEPS and
-        the paper's 30,000."""
-        wanted = STEPS_AT_TEN_MINUTES * math.sqrt(self.budget_seconds / 600.0)
-        return int(min(MAX_STEPS, max(MIN_STEPS, round(wanted))))
+    def balanced_cap(self) -> int:
+        """The count at which a full-size step spends BALANCE times as long on its Gaussians as on its pixels,
+        times sqrt(budget / 10 minutes): a longer budget buys more Gaussians as well as more steps."""
+        a, b, c, d = self.cost.coefficients
+        per_gaussian = (c + d) / 1e5
+        if per_gaussian <= 0:
+            return max(self.ceiling, 1)
+        return int(BALANCE * (a + b) / per_gaussian * math.sqrt(self.budget_seconds / 600.0))
 
-    def affordable_cap(self, step: int, left: float, gaussians: int, lowest: int) -> int:
-        """The most Gaussians (from `lowest` to the ceiling, and to REACH times the largest count timed so far) with
-        which the `left` seconds still give the run the steps it wants in all (`steps_wanted`), growing to that
-        count as planned. It is set by what a step costs at this count on this machine, not by a ratio of costs: a
-        faster loss leaves time for more Gaussians. (On the bird, 10 minutes at 38k Gaussians and 8,300 steps beat
-        57k and 6,900 by 0.7 dB.) A count already past it is kept: growth stops there."""
-        # The cost model is trusted only near the counts it was measured at: a count far beyond them is reached only
-        # after steps nearer it have been timed (the bird's young Gaussians of the calibration cost half what trained
-        # ones do; planned from them, its 10 minutes grew to 64k and took 3,900 steps).
-        top = max(min(self.ceiling, int(REACH * self.cost.largest_count())), lowest, 1)
-        if self.steps_wanted is None:
-            # Decided once, at the first plan: where even the starting count cannot have them (pixels that cost most
-            # of the time: a 4K capture), half the steps it could have, so that the Gaussians get about as much of
-            # the time as the pixels.
-            at_start = self._steps_for(step, left, gaussians, lowest)
-            self.steps_wanted = max(MIN_STEPS, min(self.wanted_steps(), at_start // 2 if at_start < self.wanted_steps()
-                                                   else at_start))
-        wanted = self.steps_wanted
-        if self._steps_for(step, left, gaussians, top) >= wanted:
-            return top
-        if self._steps_for(step, left, gaussians, lowest) < wanted:
-            return lowest
-        low, high = lowest, top  # steps(low) >= wanted > steps(high)
-        while high - low > max(1, low // 100):
-            middle = int(math.sqrt(low * high)) if low > 0 else (low + high) // 2
-            middle = min(max(middle, low + 1), high - 1)
-            if self._steps_for(step, left, gaussians, middle) >= wanted:
-                low = middle
-            else:
-                high = middle
-        return low
+    def _balanced_from(self, lowest: int) -> int:
+        """The balanced cap, at least `lowest` and at most the ceiling."""
+        return min(max(self.ceiling, 1), max(lowest, self.balanced_cap()))
 
     def pixel_share(self, gaussians: int) -> float:
         """The share of a full-size step of `gaussians` that its pixels take (b + d n over the whole); 0 before
