@@ -42,7 +42,7 @@ from .render import RenderResult
 from .run_metrics import RunFacts, metrics
 from .run_setup import set_up
 from .stopping import AgreedRequests, StopSignals
-from .strategy.base import RefineReport, changed
+from .strategy.base import RefineReport, asks_the_scene, changed
 from .strategy.noise import noise_lr_at
 from .visibility import count_invisible
 
@@ -291,8 +291,7 @@ class TrainingRun:
                          sh_degree=final_degree, processes=team.world_size,
                          invisible_gaussians=count_invisible(state.model, seen).as_dict(),
                          budget_seconds=self.planner.budget_seconds,
-                         auto_cap=((strategy.chosen_cap, strategy.ceiling) if getattr(strategy, "asks_the_scene", False)
-                                   else None),
+                         auto_cap=(strategy.chosen_cap, strategy.ceiling) if asks_the_scene(strategy) else None,
                          pose_corrections=poses.summary() if (poses := state.module("poses")) else None)
         record = metrics(evaluation, config.lpips_net, state.step, state.model.num_gaussians, facts)
         if team.is_main:

@@ -25,7 +25,7 @@ import torch
 
 from ..gaussians import GaussianModel
 
-__all__ = ["Strategy", "Collective", "ALONE", "RefineReport", "changed", "l1_regularizers"]
+__all__ = ["Strategy", "Collective", "ALONE", "RefineReport", "asks_the_scene", "changed", "l1_regularizers"]
 
 
 class Collective(Protocol):
@@ -82,6 +82,12 @@ class RefineReport:
 def changed(report: RefineReport) -> bool:
     """Whether the step did anything worth an event: a non-zero count or a level measured."""
     return any(report.counts().values()) or any(report.levels().values())
+
+
+def asks_the_scene(strategy: Any) -> bool:
+    """Whether `strategy` stops growing where the scene asks for no more (MCMC without a number for its cap, or
+    with relocation "alive"); its `chosen_cap` is then where it stopped, and `ceiling` the most it allowed."""
+    return bool(getattr(strategy, "asks_the_scene", False))
 
 
 @runtime_checkable
