@@ -41,8 +41,8 @@ from .base import ALONE, RefineReport, l1_regularizers
 from .noise import (NOISE_GATE_CENTER, NOISE_GATE_K, NOISE_SCHEDULES, NoiseSchedule, inject_parameter_noise,
                     inject_position_noise, noise_gate)
 from .health import HEALTH_LEVELS, SeenWindow, refine_health
-from .relocation import (DEFAULT_COPY_FLOOR, DEFAULT_MAX_COPIES, copy_capacity, relocation_params, sample_by_weight,
-                         sample_hosts)
+from .relocation import (DEFAULT_COPY_FLOOR, DEFAULT_MAX_COPIES, MAX_OPACITY, copy_capacity, copy_opacity,
+                         relocation_params, sample_by_weight, sample_hosts)
 from .screen_gradients import ScreenGradients
 
 __all__ = ["MCMCConfig", "MCMCSchedule", "MCMCStrategy", "MCMCReport", "inject_noise", "noise_gate", "relocate_dead",
@@ -172,8 +172,7 @@ def eq9_opacities(opacities: torch.Tensor, sources: torch.Tensor, max_copies: in
     if sources.numel() == 0:
         return opacities.new_zeros(0, dtype=torch.float64)
     counts = (torch.bincount(sources, minlength=opacities.shape[0])[sources] + 1).clamp(max=max_copies)
-    born = 1.0 - torch.pow(1.0 - opacities[sources].to(torch.float64), 1.0 / counts.to(torch.float64))
-    return born.clamp_min(min_opacity)
+    return copy_opacity(opacities[sources].clamp(0.0, MAX_OPACITY), counts).clamp_min(min_opacity)
 
 
 def _no_rows(model: GaussianModel) -> torch.Tensor:

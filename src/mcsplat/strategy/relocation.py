@@ -27,7 +27,7 @@ import torch
 
 from ..gaussians import DEAD_OPACITY
 
-__all__ = ["DEFAULT_MAX_COPIES", "DEFAULT_COPY_FLOOR", "MAX_OPACITY", "binomial_table", "copy_capacity",
+__all__ = ["DEFAULT_MAX_COPIES", "DEFAULT_COPY_FLOOR", "MAX_OPACITY", "binomial_table", "copy_capacity", "copy_opacity",
            "relocation_coefficients", "relocation_params", "sample_by_weight", "sample_hosts"]
 
 DEFAULT_MAX_COPIES = 51                                  # gsplat's n_max; the official code clamps at 50
@@ -66,6 +66,12 @@ def _coefficient_tensor(n_max: int) -> torch.Tensor:
     return torch.from_numpy(relocation_coefficients(n_max).copy())
 
 
+def copy_opacity(opacities: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """Eq. 9's opacity of each of `counts` copies sharing a Gaussian of opacity `opacities`: 1 - (1 - o)^(1/N), in
+    float64, unclamped."""
+    return 1.0 - torch.pow(1.0 - opacities.to(torch.float64), 1.0 / counts.to(torch.float64))
+
+
 def relocation_params(opacities: torch.Tensor, scales: torch.Tensor, counts: torch.Tensor, *,
                       n_max: int = DEFAULT_MAX_COPIES,
                       min_opacity: float = DEAD_OPACITY) -> tuple[torch.Tensor, torch.Tensor]:
@@ -90,7 +96,7 @@ def relocation_params(opacities: torch.Tensor, scales: torch.Tensor, counts: tor
         rows = slice(start, start + _CHUNK)
         o = opacities[rows].to(torch.float64).clamp(0.0, MAX_OPACITY)
         n = counts[rows].to(device=device, dtype=torch.long).clamp(1, n_max)
-        o_new = 1.0 - torch.pow(1.0 - o, 1.0 / n.to(torch.float64))
+        o_new = copy_opacity(o, n)
         # D = sum_k A[N, k] o_new^(k+1); the zero coefficients beyond k = N-1 drop the unused powers.
         denominator = (table[n] * o_new[:, None] ** powers).sum(dim=1)
         ratio = torch.where(denominator > 0, o / denominator, torch.ones_like(o))
