@@ -247,7 +247,7 @@ def test_bad_depth_files_are_one_line_errors(shared_data, tmp_path):
         assert "\n" not in str(info.value)
         return str(info.value)
 
-    assert "is no folder" in error(DepthOptions(str(tmp_path / "nowhere")))
+    assert "no such folder" in error(DepthOptions(str(tmp_path / "nowhere")))
     assert "holds no depth map for any of the 77 images" in error(DepthOptions(str(folder)))
     Image.new("L", (800, 600), 9).save(folder / "12.png")
     assert "8-bit L PNG, whose 256 steps cannot hold a depth" in error(DepthOptions(str(folder)))
@@ -283,3 +283,70 @@ def test_missing_or_empty_depth_is_no_depth(tmp_path, shared_data):
     bare = load_scene(shared_data / "colmap_cup", downscale=4, attachments=[DepthOptions()])
     assert all(view.attachment("depth") is None for view in bare.train)
     assert not any(note.startswith("depth maps") for note in bare.notes)
+
+
+def test_depths_float32_cannot_hold_and_non_real_arrays_are_refused(shared_data, tmp_path):
+    """A .npy of depths beyond float32's range would load as inf (read as "no depth" nowhere, a training target of
+    inf); a complex array would lose its imaginary part with only numpy's ComplexWarning; object and string arrays
+    are no depths either: each is one line naming the file (issue 58)."""
+    import warnings
+
+    folder = tmp_path / "depths"
+    folder.mkdir()
+
+    def error(array: np.ndarray, **save) -> str:
+        np.save(folder / "12.npy", array, **save)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # numpy's ComplexWarning is no answer
+            with pytest.raises(DataError) as info:
+                load_scene(shared_data / "colmap_cup", downscale=4, attachments=[DepthOptions(str(folder))])
+        assert "\n" not in str(info.value) and "12.npy" in str(info.value)
+        return str(info.value)
+
+    huge = np.full((600, 800), 2.5)
+    huge[0, 0] = 1e300
+    assert "float32" in error(huge) and "1e+300" in error(huge)
+    assert "complex128" in error(np.full((600, 800), 2.5 + 1j))
+    assert "<U3" in error(np.full((600, 800), "2.5"))
+    assert "object" in error(np.full((600, 800), 2.5, dtype=object), allow_pickle=True).lower()
+    assert "timedelta64" in error(np.full((600, 800), 3, dtype="timedelta64[s]"))
+
+
+# ------------------------------------------------------------------------------------------ depth: mcsplat train
+def _train_config(argv: list[str]):
+    """The configuration `mcsplat train ARGV` runs with (parsed as cli.main parses it, without training)."""
+    import tyro
+
+    from mcsplat import cli
+
+    return tyro.extras.subcommand_cli_from_dict(cli.COMMANDS, prog="mcsplat", args=["train", *argv])
+
+
+def test_train_loads_the_depth_maps_its_options_name(mini_demo, tmp_path):
+    """--depths FOLDER (with --depth-encoding, --depth-measure, --depth-png-step) puts the depth maps on the views of
+    the run's scene, also when the run is read back from config.json (eval, resume); without it a run loads none."""
+    from mcsplat.config import from_jsonable, to_jsonable
+    from mcsplat.run_dir import scene_of
+
+    folder = tmp_path / "depths"
+    (folder / "train").mkdir(parents=True)
+    Image.fromarray(np.full((200, 200), 1500, dtype=np.uint16)).save(folder / "train" / "r_1.png")
+    np.save(folder / "train" / "r_2.npy", np.full((200, 200), 2.0))
+    config = _train_config([str(mini_demo), "--depths", str(folder), "--depth-png-step", "0.002"])
+    for loaded in (config, from_jsonable(to_jsonable(config))):
+        scene = scene_of(loaded)
+        depths = {view.name: view.attachment("depth") for view in scene.train + scene.test}
+        assert float(depths["train/r_1"].max()) == pytest.approx(3.0) and float(depths["train/r_2"].min()) == 2.0
+        assert sum(depth is not None for depth in depths.values()) == 2
+        assert any(note.startswith("depth maps for 2 of 15 images") for note in scene.notes), scene.notes
+    assert all(view.attachment("depth") is None for view in scene_of(_train_config([str(mini_demo)])).train)
+
+
+def test_train_with_a_missing_depth_folder_is_one_line(mini_demo, tmp_path, capsys):
+    from mcsplat.cli import main
+
+    missing = tmp_path / "no_depths"
+    status = main(["train", str(mini_demo), "--out", str(tmp_path / "run"), "--steps", "1", "--depths", str(missing)])
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert status == 2 and error.startswith(f"mcsplat: error: --depths {missing}: no such folder"), error
+    assert "'auto'" in error and "'none'" in error and not (tmp_path / "run").exists()

@@ -293,19 +293,87 @@ def test_masks_keep_sift_off_what_they_leave_out_and_come_with_the_scene(cup_pho
 
 def test_a_photo_that_does_not_decode_whole_is_left_out_and_named(cup_photos, tmp_path):
     """A truncated JPEG opens and its header reads (Pillow's verify() passes it), but two thirds of its rows are
-    flat grey: it is left out before SfM, with a warning that names it, and the scene has no copy of it."""
+    flat grey: it is left out before SfM, with a warning that names it, and the scene has no copy of it. So are a
+    byte-identical copy of a photo (it would be one view twice: a test view that is trained on) and a .webp photo
+    (SfM's reader does not decode it), each with its own reason (issue 58)."""
     photos = copy_photos(cup_photos, tmp_path / "photos", 16)
     broken = sorted(photos.iterdir())[5]
     broken.write_bytes(broken.read_bytes()[: broken.stat().st_size // 3])
+    original = sorted(photos.iterdir())[0]
+    (photos / "zz_copy.jpg").write_bytes(original.read_bytes())
+    Image.open(sorted(photos.iterdir())[1]).save(photos / "webp_photo.webp")
     out = tmp_path / "scene"
     with pytest.warns(UserWarning) as warned:
         summary = process(photos, out, ProcessOptions(threads=2, progress=False))
     left_out = [str(w.message) for w in warned if broken.name in str(w.message)]
     assert left_out and "left out" in left_out[0] and "truncated" in left_out[0], [str(w.message) for w in warned]
-    assert summary.images == 15 and summary.left_out == [broken.name], summary
-    assert any(line.startswith("left out:") and broken.name in line for line in summary.lines())
-    assert broken.name not in {p.name for p in (out / "images").iterdir()}
-    assert broken.name not in json.loads((out / "process.json").read_text())["files"]
+    assert "zz_copy.jpg" in left_out[0] and "webp_photo.webp" in left_out[0], left_out[0]
+    assert summary.images == 15 and sorted(summary.left_out) == [broken.name, "webp_photo.webp", "zz_copy.jpg"]
+    assert f"a byte-identical copy of {original.name}" in summary.left_out["zz_copy.jpg"]
+    assert ".webp" in summary.left_out["webp_photo.webp"] and "convert" in summary.left_out["webp_photo.webp"]
+    line = next(line for line in summary.lines() if line.startswith("left out:"))
+    assert all(name in line for name in summary.left_out), line
+    written = json.loads((out / "process.json").read_text())
+    assert written["left_out"] == summary.left_out
+    for name in summary.left_out:
+        assert name not in {p.name for p in (out / "images").iterdir()} and name not in written["files"]
+
+
+def test_copies_and_other_formats_are_left_out_of_the_photos_and_named(cup_photos, tmp_path):
+    """list_photos: the first of byte-identical photos is kept (in name order, sub-folders too), each copy named
+    with its original; a photo in another image format is named, never silently skipped; a folder of only those
+    says so in its error."""
+    from mcsplat.capture.frames import list_photos
+
+    photos = copy_photos(cup_photos, tmp_path / "photos", 4)
+    first, second = sorted(p.name for p in photos.iterdir())[:2]
+    (photos / "sub").mkdir()
+    (photos / "sub" / "again.jpg").write_bytes((photos / second).read_bytes())
+    (photos / "z.jpg").write_bytes((photos / first).read_bytes())
+    Image.open(photos / first).save(photos / "phone.webp")
+    Image.open(photos / first).save(photos / "scan.tif")
+    (photos / "notes.txt").write_text("not a photo")
+    listed = list_photos(photos)
+    assert listed.names == sorted(p.name for p in cup_photos.glob("*.jpg"))[:4]
+    assert sorted(listed.left_out) == ["phone.webp", "scan.tif", "sub/again.jpg", "z.jpg"], listed.left_out
+    assert listed.left_out["z.jpg"].startswith(f"a byte-identical copy of {first}")
+    assert listed.left_out["sub/again.jpg"].startswith(f"a byte-identical copy of {second}")
+    assert "convert it to .jpg or .png" in listed.left_out["phone.webp"]
+    only_webp = tmp_path / "only_webp"
+    only_webp.mkdir()
+    Image.open(photos / first).save(only_webp / "a.webp")
+    with pytest.raises(MCSplatError, match=r"no images in .*: 1 \.webp file is not read") as info:
+        list_photos(only_webp)
+    assert "\n" not in str(info.value) and "convert" in str(info.value)
+
+
+def test_a_flat_frame_is_featureless_not_blurred(cup_photos, tmp_path):
+    """A flat grey frame has no sharpness, but it is not blurred: it has nothing to see. It gets its own reason and
+    advice; a blurred photo is still blurred, a dark copy still badly exposed (its contrast is the photo's)."""
+    from mcsplat.capture.registration import PhotoFigures, by_reason, diagnose, measure, suggestion
+
+    cup = sorted(cup_photos.glob("*.jpg"))
+    Image.new("RGB", SMALL, (128, 128, 128)).save(tmp_path / "grey.jpg", quality=95)
+    Image.open(cup[6]).filter(ImageFilter.GaussianBlur(6)).save(tmp_path / "blurred.jpg", quality=95)
+    dark = (np.asarray(Image.open(cup[7])).astype(np.float32) * 0.06).astype(np.uint8)
+    Image.fromarray(dark).save(tmp_path / "dark.jpg", quality=95)
+
+    def figures(path: Path, features: int, matches: int) -> PhotoFigures:
+        sharp, bright, contrast = measure(path)
+        return PhotoFigures(path.name, features, matches, matches, sharp, bright, camera="400x300",
+                            contrast=contrast)
+
+    photos = [figures(path, 400, 80) for path in cup[:6]] + [
+        figures(tmp_path / name, 0, 0) for name in ("grey.jpg", "blurred.jpg", "dark.jpg")]
+    left_out, medians = diagnose(photos, {path.name for path in cup[:6]})
+    reasons = {photo.name: photo for photo in left_out}
+    assert reasons["grey.jpg"].reason == "featureless", reasons["grey.jpg"]
+    assert "blur" not in reasons["grey.jpg"].other_causes and "contrast" in reasons["grey.jpg"].detail
+    assert reasons["blurred.jpg"].reason == "blur" and reasons["dark.jpg"].reason == "exposure"
+    assert "featureless" not in reasons["blurred.jpg"].other_causes + reasons["dark.jpg"].other_causes
+    assert by_reason([reasons["grey.jpg"]]) == "1 featureless (grey.jpg)"
+    advice = suggestion([reasons["grey.jpg"]])
+    assert "hold the camera still" not in advice and "lens cap" in advice, advice
 
 
 def _full_masks(photos: Path, folder: Path) -> Path:
@@ -414,7 +482,7 @@ def test_each_cause_is_judged_against_the_registered_photos():
 
     def photo(name, **figures):
         values = dict(features=300, best_matches=80, best_matches_any=80, sharpness=200.0, brightness=120.0,
-                      camera="Apple iPhone 15 4032x3024")
+                      camera="Apple iPhone 15 4032x3024", contrast=0.5)
         return PhotoFigures(name, **{**values, **figures})
 
     photos = [photo(f"{i}.jpg") for i in range(6)] + [

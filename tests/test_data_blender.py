@@ -165,7 +165,7 @@ def test_repeated_frames_are_used_once_and_never_in_both_splits(tmp_path: Path) 
     repeats = frames[:4] + [{**frames[5], "file_path": "copy_of_5.png"}]
     meta = json.loads((root / "transforms.json").read_text())
     (root / "transforms.json").write_text(json.dumps({**meta, "frames": frames + repeats}))
-    with pytest.warns(UserWarning, match="5 frames repeat an image") as record:
+    with pytest.warns(UserWarning, match="5 images repeat an image") as record:
         scene = load_scene(root)
     assert "copy_of_5.png" in str(record[0].message)
     assert len(scene.train) + len(scene.test) == 30 and len(scene.test) == 4
@@ -181,7 +181,7 @@ def test_a_test_frame_repeating_a_training_image_is_left_out_of_the_test_split(t
     (root / "transforms.json").unlink()
     (root / "transforms_train.json").write_text(json.dumps({**meta, "frames": frames[:4]}))
     (root / "transforms_test.json").write_text(json.dumps({**meta, "frames": frames[4:] + frames[1:2]}))
-    with pytest.warns(UserWarning, match="1 frame repeats an image"):
+    with pytest.warns(UserWarning, match="1 image repeats an image"):
         scene = load_scene(root)
     assert [view.name for view in scene.train] == ["0", "1", "2", "3"]
     assert [view.name for view in scene.test] == ["4", "5"]

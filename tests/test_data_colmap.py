@@ -176,3 +176,26 @@ def test_pinhole_model(shared_data: Path, tmp_path: Path) -> None:
         expected = np.array([[fx / 2, 0, cx / 2], [0, fy / 2, cy / 2], [0, 0, 1]])
         np.testing.assert_allclose(view.camera.K.numpy(), expected, rtol=1e-6)
         assert (view.camera.width, view.camera.height) == (272, 480)
+
+
+def test_a_byte_identical_copy_is_one_view_not_a_test_view_of_a_trained_image(shared_data: Path,
+                                                                              tmp_path: Path) -> None:
+    """A copy of 1.jpg registered under another name (COLMAP registers both): used once, with a warning naming it, so
+    that no test view is a training image (issue 58)."""
+    cup = shared_data / "colmap_cup"
+    reconstruction = pycolmap.Reconstruction(str(cup / "sparse" / "0"))
+    names = sorted(image.name for image in reconstruction.images.values())
+    next(image for image in reconstruction.images.values() if image.name == names[-1]).name = "zz_copy.jpg"
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    reconstruction.write_binary(str(tmp_path / "sparse" / "0"))
+    (tmp_path / "images_4").mkdir()
+    for name in names[:-1]:
+        (tmp_path / "images_4" / name).symlink_to(cup / "images_4" / name)
+    (tmp_path / "images_4" / "zz_copy.jpg").write_bytes((cup / "images_4" / names[0]).read_bytes())
+    with pytest.warns(UserWarning, match="1 image repeats an image listed before") as record:
+        scene = load_scene(tmp_path, downscale=4, test_every=2)
+    assert "images_4/zz_copy.jpg, a copy of images_4/1.jpg" in str(record[0].message)
+    views = scene.train + scene.test
+    assert len(views) == 76 and "zz_copy" not in {view.name for view in views}
+    trained = {view.image_file.read_bytes() for view in scene.train}
+    assert not any(view.image_file.read_bytes() in trained for view in scene.test), "a test view is trained on"

@@ -290,3 +290,119 @@ def test_view_opens_a_glb_of_gaussians_as_gaussians_and_a_mesh_glb_as_a_mesh(tmp
         assert model.sh_degree == 1
     trimesh.creation.box().export(tmp_path / "box.glb")
     assert holds_mesh(tmp_path / "box.glb")
+
+
+def malformed_documents(document: dict) -> dict[str, object]:
+    """Ways a .gltf handed to `view` may be wrong, each the good `document` changed in one place."""
+    def changed(change) -> dict:
+        edited = json.loads(json.dumps(document))
+        change(edited)
+        return edited
+
+    def primitive(d: dict) -> dict:
+        return d["meshes"][0]["primitives"][0]
+
+    def accessor(d: dict) -> dict:
+        return d["accessors"][primitive(d)["attributes"]["POSITION"]]
+
+    def set_primitive(d: dict, value) -> None:
+        d["meshes"][0]["primitives"][0] = value
+
+    return {
+        "buffer_without_uri": changed(lambda d: d["buffers"][0].pop("uri")),
+        "uri_up": changed(lambda d: d["buffers"][0].update(uri="..")),
+        "uri_here": changed(lambda d: d["buffers"][0].update(uri=".")),
+        "uri_a_folder": changed(lambda d: d["buffers"][0].update(uri="sub")),
+        "uri_not_text": changed(lambda d: d["buffers"][0].update(uri=5)),
+        "uri_absolute": changed(lambda d: d["buffers"][0].update(uri="/etc/hostname")),
+        "uri_data": changed(lambda d: d["buffers"][0].update(uri="data:application/octet-stream;base64,AAAA")),
+        "buffer_longer_than_its_file": changed(lambda d: d["buffers"][0].update(
+            byteLength=d["buffers"][0]["byteLength"] + 64)),
+        "buffer_not_an_object": changed(lambda d: d.update(buffers=[3])),
+        "primitive_not_an_object": changed(lambda d: set_primitive(d, 5)),
+        "primitive_a_list": changed(lambda d: set_primitive(d, [])),
+        "mesh_not_an_object": changed(lambda d: d.update(meshes=[7])),
+        "extensions_a_list": changed(lambda d: primitive(d).update(extensions=["KHR_gaussian_splatting"])),
+        "attributes_a_list": changed(lambda d: primitive(d).update(attributes=[0, 1])),
+        "accessor_index_negative": changed(lambda d: primitive(d)["attributes"].update(POSITION=-1)),
+        "accessor_index_true": changed(lambda d: primitive(d)["attributes"].update(POSITION=True)),
+        "accessor_index_past_the_list": changed(lambda d: primitive(d)["attributes"].update(POSITION=999)),
+        "accessor_not_an_object": changed(lambda d: d["accessors"].__setitem__(0, 3)),
+        "count_text": changed(lambda d: accessor(d).update(count="64")),
+        "count_negative": changed(lambda d: accessor(d).update(count=-1)),
+        "count_beyond_any_file": changed(lambda d: accessor(d).update(count=10**30)),
+        "type_of_another_width": changed(lambda d: accessor(d).update(type="SCALAR")),
+        "type_unknown": changed(lambda d: accessor(d).update(type="MAT4")),
+        "offset_unaligned": changed(lambda d: accessor(d).update(byteOffset=1)),
+        "offset_negative": changed(lambda d: accessor(d).update(byteOffset=-4)),
+        "offset_text": changed(lambda d: accessor(d).update(byteOffset="4")),
+        "past_its_buffer_view": changed(lambda d: d["bufferViews"][accessor(d)["bufferView"]].update(byteLength=4)),
+        "view_of_another_buffer": changed(lambda d: d["bufferViews"][accessor(d)["bufferView"]].update(buffer=1)),
+        "view_interleaved": changed(lambda d: d["bufferViews"][accessor(d)["bufferView"]].update(byteStride=16)),
+        "view_not_an_object": changed(lambda d: d["bufferViews"].__setitem__(accessor(d)["bufferView"], None)),
+        "view_past_the_buffer": changed(lambda d: d["bufferViews"][accessor(d)["bufferView"]].update(
+            byteOffset=d["buffers"][0]["byteLength"])),
+        "document_not_an_object": [document],
+    }
+
+
+def glb_of(document: object, binary: bytes) -> bytes:
+    text = json.dumps(document).encode()
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<II", len(text), 0x4E4F534A) + text
+    if binary:
+        chunks += struct.pack("<II", len(binary), 0x004E4942) + binary
+    return struct.pack("<III", 0x46546C67, 2, 12 + len(chunks)) + chunks
+
+
+def as_in_a_glb(document: object) -> object:
+    """The document as a .glb's: its buffer is the BIN chunk, which no uri names."""
+    buffers = document.get("buffers") if isinstance(document, dict) else None
+    if buffers and isinstance(buffers[0], dict):
+        buffers[0].pop("uri", None)
+    return document
+
+
+def test_every_malformation_of_a_gltf_is_one_line_naming_it(tmp_path):
+    """A buffer's uri is a file name beside the .gltf and nothing else; a part of the wrong type, an index out of
+    its list, a count or offset that reads outside its buffer view or buffer: one line naming the file, never a
+    traceback nor Gaussians read from the wrong bytes."""
+    import re
+
+    from mcsplat.errors import MCSplatError
+    from mcsplat.io.formats.gltf import holds_gaussians
+
+    write_gaussians("gltf", tmp_path / "x.gltf", random_gaussians(64, degree=1, seed=4))
+    (tmp_path / "sub").mkdir()
+    document, binary = json.loads((tmp_path / "x.gltf").read_text()), (tmp_path / "x.bin").read_bytes()
+    files = []
+    for name, edited in malformed_documents(document).items():
+        (tmp_path / f"{name}.gltf").write_text(json.dumps(edited))
+        files.append(tmp_path / f"{name}.gltf")
+        if not name.startswith(("uri_", "buffer_without_uri")):  # a .glb's buffer is its own BIN chunk
+            (tmp_path / f"{name}.glb").write_bytes(glb_of(as_in_a_glb(edited), binary))
+            files.append(tmp_path / f"{name}.glb")
+    with_uri = json.loads(json.dumps(document))
+    (tmp_path / "buffer_with_uri.glb").write_bytes(glb_of(with_uri, binary))
+    no_chunk = json.loads(json.dumps(document))
+    no_chunk["buffers"][0].pop("uri")
+    (tmp_path / "without_its_bin_chunk.glb").write_bytes(glb_of(no_chunk, b""))
+    files += [tmp_path / "buffer_with_uri.glb", tmp_path / "without_its_bin_chunk.glb"]
+    for path in files:
+        holds_gaussians(path)  # never raises: the viewer asks it of any .glb / .gltf
+        with pytest.raises(MCSplatError, match=f"^{re.escape(str(path))}: ") as error:
+            read_gaussians(path.suffix[1:], path)
+        assert "\n" not in str(error.value), path
+    assert not holds_gaussians(tmp_path / "document_not_an_object.gltf")
+
+
+@pytest.mark.parametrize("name", ["buffer_without_uri", "uri_up", "primitive_not_an_object"])
+def test_view_of_a_malformed_gltf_is_one_line(tmp_path, capsys, name):
+    """The issue's cases, through the command."""
+    write_gaussians("gltf", tmp_path / "x.gltf", random_gaussians(16, seed=5))
+    edited = malformed_documents(json.loads((tmp_path / "x.gltf").read_text()))[name]
+    (tmp_path / f"{name}.gltf").write_text(json.dumps(edited))
+    capsys.readouterr()
+    assert main(["view", str(tmp_path / f"{name}.gltf")]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("mcsplat: error:") and error.count("\n") == 1 and f"{name}.gltf" in error, error

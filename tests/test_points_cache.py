@@ -243,3 +243,11 @@ def test_a_signal_during_triangulation_ends_it_as_ctrl_c_does(cup_scene, tmp_pat
     assert not list(temporary.glob("mcsplat-triangulate-*")), "the temporary folder is removed"
     assert not list(cache.rglob("points.npz")), "nothing is cached"
     assert not (run / ".lock").exists(), "the run's lock is released"
+
+
+def test_an_entry_with_float_colours_is_said_to_have_them(entry, made_entry, cup_views):
+    """Colours of the right shape but floats (0-1) are what is wrong with the entry, not its shapes (issue 58)."""
+    consistent(rgb=lambda rgb: rgb.astype(np.float32) / 255)(entry, made_entry[1])
+    found, said = read_warning(entry, cup_views)
+    assert found is None and len(said) == 1 and "triangulating again" in said[0], said
+    assert "colours of float32, not uint8" in said[0] and "shape" not in said[0], said

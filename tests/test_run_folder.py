@@ -228,7 +228,8 @@ def test_a_cap_below_the_initial_points_is_kept_from_the_start(tmp_path, mini_de
                     subscribers=[lambda event: notes.append(getattr(event, "init_note", None))])
     assert metrics["num_gaussians"] == 500
     note = next(note for note in notes if note)
-    assert note.startswith("random (3,000 points") and "500 of the 3,000 kept at random to stay within --cap-max" in note
+    assert note.startswith("random (3,000 points")
+    assert "500 of the 3,000 kept at random to stay within --cap-max" in note
 
 
 def test_a_hand_edited_config_is_refused_on_resume_in_one_line(tmp_path, mini_demo, capsys):
@@ -254,7 +255,8 @@ def test_a_scene_folder_is_never_a_run_folder(tmp_path, mini_demo):
     other = Path(shutil.copytree(mini_demo, tmp_path / "other"))
     before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
     for out, expected in ((scene, "is inside the scene folder"), (scene / "runs" / "a", "is inside the scene folder"),
-                          (other, "holds a blender scene")):
+                          (other, "holds a blender scene"),
+                          (other / "images" / "a", "is inside .*other, which holds a blender scene")):
         with pytest.raises(MCSplatError, match=expected):
             train(mini_config(scene, out, steps=5))
     assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before, "nothing written into a scene"
@@ -366,3 +368,83 @@ def test_a_refused_run_leaves_no_folder_it_made(tmp_path, mini_demo):
         with pytest.raises(MCSplatError, match="does not exist"):
             train(mini_config(gone, out, steps=5))
     assert [path.name for path in mine.iterdir()] == ["notes.txt"]
+
+
+def _float_options() -> list[tuple[str, str]]:
+    """(group, name) of every float option of `mcsplat train` and of its model group: inf passed each range check
+    without an upper end (--surface-flatten, --surface-normal, --surface-distortion...)."""
+    from mcsplat.config import ModelConfig, TrainConfig
+    from mcsplat.config_types import option_types
+
+    return [(group, name) for group, cls in (("", TrainConfig), ("model", ModelConfig))
+            for name, hint in option_types(cls).items() if float in (hint, *getattr(hint, "__args__", ()))]
+
+
+@pytest.mark.parametrize("value", [float("inf"), float("nan")])
+def test_every_float_option_refuses_a_number_that_is_not_finite(value):
+    from dataclasses import replace
+
+    import torch
+
+    from mcsplat.config import ModelConfig, TrainConfig
+    from mcsplat.mesh.extract import MeshOptions
+    from mcsplat.mesh.grid import choose_grid
+
+    options = _float_options()
+    assert {"surface_flatten", "surface_normal", "surface_distortion", "init_extent"} <= {n for _, n in options}
+    base = TrainConfig(data=Path("scene"))
+    for group, name in options:
+        with pytest.raises(MCSplatError, match=f"--{group + '.' if group else ''}{name.replace('_', '-')} {value}: "
+                                               "not a finite number"):
+            if group:
+                replace(base, model=replace(ModelConfig(), **{name: value}))
+            else:
+                replace(base, **{name: value})
+    with pytest.raises(MCSplatError, match="--truncation must be at least 1"):
+        MeshOptions(truncation=value)
+    with pytest.raises(MCSplatError, match="--voxel-size must be a positive finite number"):
+        choose_grid(torch.zeros(3), torch.ones(3), value, 1 << 20)
+
+
+def test_a_loss_that_is_not_finite_claims_no_checkpoint(tmp_path, mini_demo, monkeypatch):
+    """The advice said "the last checkpoint is kept" at step 0, where there is none."""
+    from mcsplat import trainer
+
+    monkeypatch.setattr(trainer, "total_loss", lambda terms, context: context.rgb.sum() * float("inf"))
+    with pytest.raises(MCSplatError, match="step 0: the loss became inf") as refused:
+        train(mini_config(mini_demo, tmp_path / "run", steps=5))
+    assert "checkpoint" not in str(refused.value)
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()
+
+
+def test_surface_options_without_surface_are_refused(tmp_path, mini_demo, capsys):
+    run = tmp_path / "run"
+    cheap = ["--steps", "1", "--quiet", "--model.num-init-points", "500", "--lpips-net", "alex", "--no-save-renders"]
+    assert main(["train", str(mini_demo), "--out", str(run), "--surface-flatten", "50", "--surface-from", "0.5"]
+                + cheap) == 2
+    assert capsys.readouterr().err == "mcsplat: error: --surface-flatten 50.0, --surface-from 0.5: the --surface-* " \
+        "options shape the loss terms of --surface, which this run trains without, so they would be ignored; add " \
+        "--surface, or leave them out\n"
+    assert not run.exists()
+
+
+def test_config_json_whose_caps_disagree_with_cap_max_is_refused():
+    """A number in cap_max sets mcmc.cap_max (and adc.cap_max, mcmc.auto_cap): another value there, edited by hand,
+    was overridden without a word. A --budget run's file holds its plan's cap there, which stays allowed."""
+    from mcsplat.config import TrainConfig
+    from mcsplat.planning import Plan, read_record, run_record
+
+    config = TrainConfig(data=Path("scene"), cap_max=5000)
+    record = json.loads(json.dumps(run_record(config, Plan.literal(config))))
+    assert read_record(record)[0].mcmc.cap_max == 5000
+    for group, key, value in (("mcmc", "cap_max", 8000), ("adc", "cap_max", 3000), ("mcmc", "auto_cap", True)):
+        edited = {**record, group: {**record[group], key: value}}
+        with pytest.raises(MCSplatError, match=f"config.json: {group}.{key} is {json.dumps(value)}, but cap_max 5000 "
+                                               f"makes it"):
+            read_record(edited)
+    budget = TrainConfig(data=Path("scene"), cap_max=5000, budget="10m")
+    planned = {**json.loads(json.dumps(run_record(budget, Plan.literal(budget))))}
+    planned["mcmc"] = {**planned["mcmc"], "cap_max": 3000}
+    read_record(planned)  # the plan's cap, below cap_max: read as it is
+    with pytest.raises(MCSplatError, match="mcmc.cap_max is 9000"):
+        read_record({**planned, "mcmc": {**planned["mcmc"], "cap_max": 9000}})

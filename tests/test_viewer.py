@@ -367,3 +367,21 @@ def test_a_mesh_with_nan_vertices_is_shown_without_them(tmp_path):
     server.close()
     wxyz, position, fov = server.initial_pose
     assert np.isfinite(np.concatenate([np.ravel(wxyz), np.ravel(position), [fov]])).all(), server.initial_pose
+
+
+def test_a_file_of_no_gaussians_is_one_line(tmp_path):
+    """An empty .splat or a glTF whose accessors count 0 (any format's file of no Gaussians) says so, in one line,
+    rather than a torch error."""
+    from mcsplat.io.formats import write_gaussians
+    from mcsplat.viewer.saved import load_for_viewing
+    from test_export_formats import random_gaussians
+
+    (tmp_path / "empty.splat").write_bytes(b"")
+    write_gaussians("gltf", tmp_path / "x.gltf", random_gaussians(8))
+    document = json.loads((tmp_path / "x.gltf").read_text())
+    for accessor in document["accessors"]:
+        accessor.update(count=0)
+    (tmp_path / "x.gltf").write_text(json.dumps(document))
+    for path in (tmp_path / "empty.splat", tmp_path / "x.gltf"):
+        with pytest.raises(MCSplatError, match=f"^{re.escape(str(path))}: holds no Gaussians"):
+            load_for_viewing(path, torch.device("cpu"))

@@ -335,10 +335,13 @@ class Process:
     were left out and why is printed (and written to process.json) either way."""
 
     def run_command(self) -> int:
+        import math
+
         from mcsplat.capture import ProcessOptions, process
 
-        if self.num_frames is not None and self.num_frames < 3 or self.fps is not None and self.fps <= 0:
-            raise MCSplatError("--num-frames must be at least 3 and --fps positive")
+        if self.num_frames is not None and self.num_frames < 3 or \
+                self.fps is not None and not (self.fps > 0 and math.isfinite(self.fps)):
+            raise MCSplatError("--num-frames must be at least 3 and --fps a positive finite number")
         if self.invert_masks and self.masks is None:
             raise MCSplatError("--invert-masks without --masks: there are no masks to invert; give the masks' folder "
                                "with --masks, or leave --invert-masks out")
@@ -359,8 +362,18 @@ class BlocksPlan(TrainConfig):
     """Cut a scene into blocks that train as independent runs and merge into one model (docs/blocks.md): blocks on
     the ground plane with equal shares of the SfM points, each with the views that see it and a share of --cap-max.
     Writes OUT/blocks.json (read it, edit it) and shows each block's views, cap and estimated memory. Takes every
-    option of `mcsplat train`: each block trains with them. --out: the blocks folder (default runs/<scene>-blocks)."""
+    option of `mcsplat train`: each block trains with them."""
 
+    out: Path | None = None
+    """The blocks folder (default: runs/<scene folder name>-blocks)."""
+    overwrite: bool = False
+    """Plan again into a blocks folder that holds a plan (refused while it holds block runs trained to it)."""
+    # What the plan refuses is hidden: `blocks train OUT` resumes the blocks a stop left, `view OUT/block_NN` shows one.
+    resume: Annotated[bool, tyro.conf.Suppress] = False
+    viewer: Annotated[bool, tyro.conf.Suppress] = False
+    port: Annotated[int, tyro.conf.Suppress] = 8080
+    host: Annotated[str, tyro.conf.Suppress] = "127.0.0.1"
+    viewer_origin: Annotated[tuple[str, ...], tyro.conf.Suppress] = ()
     count: int | None = None
     """Number of blocks (default: the fewest that fit --memory)."""
     memory: str | None = None
@@ -376,9 +389,6 @@ class BlocksPlan(TrainConfig):
         from mcsplat.blocks import plan_blocks
         from mcsplat.partition import parse_bytes
 
-        if self.resume or self.viewer:
-            raise MCSplatError("blocks plan only writes the plan: `mcsplat blocks train OUT` resumes the blocks a stop "
-                               "left, and `mcsplat view OUT/block_NN` shows one")
         training = TrainConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(TrainConfig)})
         out = self.out or Path("runs") / f"{Path(self.data).resolve().name}-blocks"
         plan_blocks(training, out, count=self.count, memory=None if self.memory is None else parse_bytes(self.memory),
@@ -432,19 +442,29 @@ Blocks = Union[Annotated[BlocksPlan, tyro.conf.subcommand("plan")],
                Annotated[BlocksTrain, tyro.conf.subcommand("train")],
                Annotated[BlocksMerge, tyro.conf.subcommand("merge")]]
 
-COMMANDS: dict[str, type] = {"train": TrainConfig, "eval": Eval, "render": Render, "export": Export,
-                             "info": Info, "report": Report, "view": ViewSaved, "process": Process,
-                             "blocks": Blocks}
+
+def blocks(command: Annotated[Blocks, tyro.conf.OmitSubcommandPrefixes]) -> BlocksPlan | BlocksTrain | BlocksMerge:
+    """A scene too large for one run, as blocks (docs/blocks.md): plan them (blocks.json), train each as a run of its
+    own, merge them into one model."""
+    return command  # a function rather than the Union itself: its docstring is the help of `mcsplat blocks`
+
+
+COMMANDS: dict[str, object] = {"train": TrainConfig, "eval": Eval, "render": Render, "export": Export,
+                               "info": Info, "report": Report, "view": ViewSaved, "process": Process,
+                               "blocks": blocks}
 
 
 def _run(command, args: list[str]) -> int:
-    if type(command) is TrainConfig:
+    if isinstance(command, TrainConfig):  # train, and blocks plan (whose blocks train with these options)
         from dataclasses import replace
 
         from mcsplat.config import named_options
+
+        command = replace(command, named=named_options(args))  # what --resume and --budget check: the options given
+    if type(command) is TrainConfig:
         from mcsplat.train import train  # the trainer pulls in Warp: only when training
 
-        train(replace(command, named=named_options(args)))  # what --resume and --budget check: the options given
+        train(command)
         return 0
     return command.run_command()
 
@@ -460,7 +480,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = list(sys.argv[1:] if argv is None else argv)
         command = tyro.extras.subcommand_cli_from_dict(COMMANDS, prog="mcsplat", description=DESCRIPTION, args=args)
-        return _run(command, args)
+        from mcsplat.stopping import signals_interrupt
+
+        with signals_interrupt():  # SIGTERM and SIGHUP stop every command as Ctrl-C does
+            return _run(command, args)
     except MCSplatError as exc:
         print(f"mcsplat: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal, Sequence
@@ -90,6 +92,17 @@ class TrainConfig:
     folder. Evaluation reports masked PSNR / SSIM beside the plain ones."""
     invert_masks: bool = False
     """Masks are white where the pixel is left out (and black where it is kept)."""
+    depths: str = "none"
+    """Depth maps loaded onto the views, for a loss that reads them (none does yet: docs/extending.md): 'none',
+    'auto' (beside each photo as <photo stem>_depth.npy / .png, or the scene's depths/ folder) or a folder of
+    <image name>.npy / .png. A view without one has none."""
+    depth_encoding: Literal["metric", "nerf-synthetic"] = "metric"
+    """metric: .npy floats, or 16-bit PNG steps of --depth-png-step, in the capture's units; nerf-synthetic: its
+    8-bit renders (8 (1 - R/255) along the ray, R = 0: no object)."""
+    depth_measure: Literal["z", "ray"] = "z"
+    """What a metric depth map measures: z (along the optical axis) or ray (from the camera along the pixel's ray)."""
+    depth_png_step: float = 0.001
+    """A 16-bit PNG depth map's step in the capture's units (0.001: millimetres of a capture in metres)."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """auto: CUDA when available, else CPU."""
     seed: int = 0
@@ -188,6 +201,10 @@ class TrainConfig:
         scale, opacity = INITIAL_GAUSSIANS.get(self.strategy, INITIAL_GAUSSIANS["mcmc"])
         self._derive(model=dataclasses.replace(self.model, init_scale=_default(self.model.init_scale, scale),
                                                init_opacity=_default(self.model.init_opacity, opacity)))
+        not_finite = non_finite_options(self)  # first: inf passes every range check below without an upper end
+        if not_finite:
+            raise MCSplatError(f"{', '.join(not_finite)}: not a finite number; give one within the option's range "
+                               f"(--help says it)")
         checks = [(self.steps >= 1, "--steps must be at least 1"),
                   (self.downscale >= 1, "--downscale must be at least 1"),
                   (self.eval_every >= 0, "--eval-every must be 0 (off) or positive"),
@@ -199,6 +216,8 @@ class TrainConfig:
                   (self.threads is None or self.threads >= 1, "--threads must be at least 1"),
                   (self.sh_increase_every >= 1, "--sh-increase-every must be at least 1"),
                   (self.dist_timeout > 0, "--dist-timeout must be positive"),
+                  (self.depth_png_step > 0, "--depth-png-step must be positive (0.001: millimetres of a capture in "
+                                            "metres)"),
                   (0.0 <= self.ssim_weight <= 1.0, "--ssim-weight must be in [0, 1]"),
                   (self.appearance_lr > 0 and self.appearance_lr_final > 0 and self.appearance_reg >= 0
                    and self.appearance_grid_tv >= 0,
@@ -218,12 +237,18 @@ class TrainConfig:
                    "--resolution-full-at must be in (0, 1]"),
                   (0 <= self.model.sh_degree <= 3, "--model.sh-degree must be 0..3"),
                   (self.model.num_init_points >= 1, "--model.num-init-points must be at least 1"),
+                  (self.model.init_extent > 0, "--model.init-extent must be positive"),
                   (0.0 < self.model.init_opacity < 1.0, "--model.init-opacity must be in (0, 1)"),
                   (self.model.init_scale > 0, "--model.init-scale must be positive"),
                   (not (self.resume and self.overwrite), "--resume and --overwrite exclude each other")]
         for ok, message in checks:
             if not ok:
                 raise MCSplatError(message)
+        ignored = surface_options_ignored(self)
+        if ignored:
+            raise MCSplatError(f"{', '.join(ignored)}: the --surface-* options shape the loss terms of --surface, "
+                               f"which this run trains without, so they would be ignored; add --surface, or leave them "
+                               f"out")
         if self.budget is not None:
             budget_seconds(self.budget)  # a one-line error for a budget it cannot read
         # Coarse to fine under --budget; --cap-max goes to the strategy that takes it.
@@ -260,11 +285,32 @@ def _default(value: Any, default: Any) -> Any:
     return default if value is None else value
 
 
+def surface_options_ignored(config: TrainConfig) -> list[str]:
+    """The --surface-* options the command line gave (`config.named`) to a new run without --surface, as it gave them
+    (a resumed run's --surface is its own: run_dir compares the options given with it)."""
+    if config.surface or config.resume or not config.named:
+        return []
+    return [f"--{name.replace('_', '-')} {getattr(config, name)}" for name in SURFACE_OPTIONS if name in config.named]
+
+
+def non_finite_options(config: TrainConfig) -> list[str]:
+    """The float options of `config` and of its model group that hold inf or nan, as the command line gives them (the
+    groups optim, mcmc and adc check their own)."""
+    found = []
+    for group, prefix in ((config, ""), (config.model, "model.")):
+        for name, hint in option_types(type(group)).items():
+            value = getattr(group, name)
+            if float in (hint, *typing.get_args(hint)) and isinstance(value, float) and not math.isfinite(value):
+                found.append(f"--{prefix}{name.replace('_', '-')} {value}")
+    return found
+
+
 def process_options(config: TrainConfig) -> dict[str, Any]:
     """This process's own options (PROCESS_OPTIONS), as keyword arguments of `dataclasses.replace`."""
     return {name: getattr(config, name) for name in PROCESS_OPTIONS}
 
 
+SURFACE_OPTIONS = ("surface_flatten", "surface_normal", "surface_from", "surface_distortion")  # --surface's terms
 # (init scale, init opacity) per strategy: the MCMC paper's code, and 3DGS's for its ADC.
 INITIAL_GAUSSIANS = {"mcmc": (0.1, 0.5), "adc": (1.0, 0.1)}
 BUDGET_RESOLUTION_START = 0.25  # --budget trains coarse to fine from a quarter of the image size
@@ -332,22 +378,23 @@ def to_jsonable(config: Any) -> Any:
     return config
 
 
-def from_jsonable(data: dict) -> TrainConfig:
+def from_jsonable(data: dict, source: str = "config.json") -> TrainConfig:
     """Rebuild a TrainConfig from config.json (unknown keys are an error: the file belongs to another version; so is
-    a value of the wrong type or out of range: the file was edited by hand)."""
+    a value of the wrong type or out of range: the file was edited by hand). `source` names where the options were
+    read in the errors (blocks.json keeps them as its "training")."""
     def build(cls, values, prefix=""):
         kwargs = {}
         hints = option_types(cls)
         if not isinstance(values, dict):
-            raise MCSplatError(f"config.json: {prefix.rstrip('.') or 'the file'} must be an object {{...}}")
+            raise MCSplatError(f"{source}: {prefix.rstrip('.') or 'the file'} must be an object {{...}}")
         for key, value in values.items():
             if key not in hints or key == "named":
-                raise MCSplatError(f"config.json: unknown option {key!r} (written by another mcsplat version?)")
+                raise MCSplatError(f"{source}: unknown option {key!r} (written by another mcsplat version?)")
             nested = {"model": ModelConfig, "optim": OptimConfig, "mcmc": MCMCConfig, "adc": ADCConfig}
             if cls is TrainConfig and key in nested:
                 value = build(nested[key], value, f"{key}.")
             elif not fits(value, hints[key]):
-                raise MCSplatError(f"config.json: {prefix}{key} is {json.dumps(value)}, not {describe(hints[key])}; "
+                raise MCSplatError(f"{source}: {prefix}{key} is {json.dumps(value)}, not {describe(hints[key])}; "
                                    f"put back the value mcsplat wrote there")
             elif key in ("data", "out") and value is not None:
                 value = Path(value)
@@ -357,5 +404,5 @@ def from_jsonable(data: dict) -> TrainConfig:
         try:
             return cls(**kwargs)
         except (ValueError, TypeError) as error:  # MCSplatError (TrainConfig's own checks) passes through
-            raise MCSplatError(f"config.json: {prefix}{error}; put back the value mcsplat wrote there") from None
+            raise MCSplatError(f"{source}: {prefix}{error}; put back the value mcsplat wrote there") from None
     return build(TrainConfig, data)

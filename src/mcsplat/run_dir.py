@@ -1,7 +1,7 @@
 """A run folder: its layout, how a training run starts in it (new, resumed or refused), and how every other command
 reads a trained run back (`load`).
 
-    RUN/config.json          the resolved configuration (what --resume continues with)
+    RUN/config.json          the resolved configuration (what --resume continues with), its scene's fingerprint
     RUN/checkpoint.pt        model, Adam state, strategy state, RNG states, step (written atomically, checksummed)
     RUN/checkpoint.prev.pt   the checkpoint before it (what to fall back to when checkpoint.pt is damaged)
     RUN/log.jsonl            a record every 100 steps and at each periodic evaluation
@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import json
 import math
 import os
 import shutil
+import warnings
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -31,6 +33,7 @@ import torch
 
 from .config import PROCESS_OPTIONS, TrainConfig, flat_options, options_given, process_options, to_jsonable
 from .data import Scene, detect_kind, load_scene
+from .data.attachments.depth import DepthOptions
 from .data.attachments.masks import MaskOptions
 from .errors import DataError, MCSplatError
 from .gaussians import DEAD_OPACITY, GaussianModel
@@ -41,6 +44,7 @@ from .io.lock import FolderLock
 from .io.ply import write_ply
 from .partition import block_scene
 from .planning import REPLANNED_KEYS, Plan, initial_plan, load_run_config, run_record, save_run_config
+from .planning.config_file import load_scene_entry, save_scene_entry
 
 CONFIG = "config.json"
 CHECKPOINT = "checkpoint.pt"
@@ -125,6 +129,11 @@ class RunDir:
             raise MCSplatError(f"{self.path}: not a run directory (no {CONFIG}); train one with `mcsplat train DATA`")
         return load_run_config(self.config_file)
 
+    def read_scene_fingerprint(self) -> dict[str, Any] | None:
+        """The fingerprint of the scene the run trains on (config.json; `scene_fingerprint`), or None in a folder
+        written before it."""
+        return load_scene_entry(self.config_file)
+
     def read_checkpoint(self) -> dict[str, Any]:
         try:
             return load_checkpoint(self.checkpoint_file)
@@ -166,18 +175,24 @@ class RunDir:
                                f"{self.path}` to write it again") from None
 
     # --------------------------------------------------------------------------------------------- writing
-    def write_config(self, config: TrainConfig, plan: Plan) -> None:
-        save_run_config(self.config_file, config, plan)
+    def write_config(self, config: TrainConfig, plan: Plan, scene: dict[str, Any] | None = None) -> None:
+        """config.json, with the fingerprint of the run's scene: `scene`, or else the one the file holds (--budget
+        writes its plan again as the run goes)."""
+        if scene is None and self.config_file.is_file():
+            scene = self.read_scene_fingerprint()
+        save_run_config(self.config_file, config, plan, scene)
 
-    def begin(self, config: TrainConfig, plan: Plan, step: int) -> None:
-        """The run's files as training starts at `step`, once its set-up has succeeded. A new run writes its
-        configuration and empties the log; with --overwrite it also removes the old run's checkpoints, which a
-        --resume of the new configuration must not continue from. A resumed run cuts the log back to its
-        checkpoint's step (a run killed between two checkpoints logged steps that will now be trained again)."""
+    def begin(self, config: TrainConfig, plan: Plan, step: int, scene: dict[str, Any]) -> None:
+        """The run's files as training starts at `step`, once its set-up has succeeded, on the scene of fingerprint
+        `scene`. A new run writes its configuration and empties the log; with --overwrite it also removes the old
+        run's checkpoints, which a --resume of the new configuration must not continue from. A resumed run cuts the
+        log back to its checkpoint's step (a run killed between two checkpoints logged steps that will now be
+        trained again), and config.json names its scene where it is now."""
         if config.resume:
             self.cut_log(step)
+            save_scene_entry(self.config_file, config.data, scene)
             return
-        self.write_config(config, plan)
+        self.write_config(config, plan, scene)
         self.cut_log(0)
         for old in (self.checkpoint_file, self.previous_checkpoint_file):
             old.unlink(missing_ok=True)
@@ -262,13 +277,11 @@ def prepare(config: TrainConfig, lock: FolderLock, world_size: int = 1) -> tuple
     if run.path.exists() and not run.path.is_dir():
         raise MCSplatError(f"--out {run.path}: exists and is not a directory")
     if config.resume:
-        if not run.checkpoint_file.is_file():
-            raise MCSplatError(f"--resume: {run.path} has no {CHECKPOINT} to continue from")
+        refuse_resume_without_checkpoint(run)
     else:
         refuse_scene_folder(run.path, Path(config.data))
         if run.holds_run() and not config.overwrite:
-            raise MCSplatError(f"{run.path} already holds a run; pass --resume to continue it, --overwrite to "
-                               f"replace its files, or --out to choose another directory")
+            refuse_folder_holding_a_run(run)
     with writing_into(run.path.parent):
         run.path.mkdir(parents=True, exist_ok=True)
     lock.acquire()
@@ -283,6 +296,25 @@ def prepare(config: TrainConfig, lock: FolderLock, world_size: int = 1) -> tuple
     refuse_options_resume_ignores(config, given, saved, plan, run.config_file)
     # This command line's process options; where the run is now (the folder may have been moved).
     return dataclasses.replace(saved, **process_options(config), out=run.path, resume=True), plan
+
+
+def refuse_resume_without_checkpoint(run: RunDir) -> None:
+    if run.checkpoint_file.is_file():
+        return
+    if not run.holds_run():
+        raise MCSplatError(f"--resume: {run.path} holds no run to continue (no {CHECKPOINT}); train without --resume "
+                           f"to start one")
+    # A run stopped (or killed) before its first checkpoint: nothing to continue from, only to start again.
+    raise MCSplatError(f"--resume: {run.path} has no {CHECKPOINT} to continue from (its run stopped before writing "
+                       f"one); start it again with --overwrite instead of --resume")
+
+
+def refuse_folder_holding_a_run(run: RunDir) -> None:
+    if run.checkpoint_file.is_file():
+        raise MCSplatError(f"{run.path} already holds a run; pass --resume to continue it, --overwrite to replace its "
+                           f"files, or --out to choose another directory")
+    raise MCSplatError(f"{run.path} already holds a run with no {CHECKPOINT} to continue from (it stopped before "
+                       f"writing one); pass --overwrite to start it again, or --out to choose another directory")
 
 
 def refuse_options_resume_ignores(config: TrainConfig, given: frozenset[str], saved: TrainConfig, plan: Plan,
@@ -340,18 +372,30 @@ def remove_if_empty(folders: list[Path]) -> None:
             return
 
 
+def scene_holding(path: Path) -> tuple[Path, str] | None:
+    """The nearest folder at or above `path` that holds a scene, and its kind; None where none does
+    (OTHER/images/a/b/x.ply lies inside the scene OTHER as well)."""
+    for folder in (path, *path.parents):
+        if folder.is_dir():
+            try:
+                return folder, detect_kind(folder)
+            except DataError:
+                continue
+    return None
+
+
 def refuse_scene_folder(out: Path, data: Path) -> None:
-    """A run folder is never a scene folder, nor inside the scene it trains on: mcsplat writes nothing there."""
+    """A run folder is never a scene folder, nor inside the scene it trains on or any other: mcsplat writes nothing
+    there."""
     out, data = out.resolve(), data.resolve()
     if out == data or out.is_relative_to(data):
         raise MCSplatError(f"--out {out} is inside the scene folder {data}, which mcsplat never writes into; give "
                            f"a run folder elsewhere (the default is runs/{data.name} in the current folder)")
-    if out.is_dir():
-        try:
-            kind = detect_kind(out)
-        except DataError:
-            return
-        raise MCSplatError(f"--out {out} holds a {kind} scene, which mcsplat never writes into; give another run "
+    held = scene_holding(out)
+    if held is not None:
+        folder, kind = held
+        where = "holds" if folder == out else f"is inside {folder}, which holds"
+        raise MCSplatError(f"--out {out} {where} a {kind} scene, which mcsplat never writes into; give another run "
                            f"folder")
 
 
@@ -362,14 +406,10 @@ def refuse_writing_into_scene(path: Path, config: TrainConfig) -> None:
     if target == data or target.is_relative_to(data):
         raise MCSplatError(f"--out {path} is inside the scene folder {data} the run trained on, which mcsplat never "
                            f"writes into; write it elsewhere (leave --out out to write into the run folder)")
-    for folder in (target, target.parent):
-        if folder.is_dir():
-            try:
-                kind = detect_kind(folder)
-            except DataError:
-                continue
-            raise MCSplatError(f"--out {path} is inside the scene folder {folder} (a {kind} scene), which mcsplat "
-                               f"never writes into; write it elsewhere")
+    held = scene_holding(target)
+    if held is not None:
+        raise MCSplatError(f"--out {path} is inside the scene folder {held[0]} (a {held[1]} scene), which mcsplat "
+                           f"never writes into; write it elsewhere")
 
 
 def check_resumable(plan: Plan, world_size: int) -> None:
@@ -384,8 +424,69 @@ def scene_of(config: TrainConfig) -> Scene:
     """The scene a run trains on, loaded as the run loads it (a block's run: the part of it its block trains on)."""
     scene = load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
                        background=None if config.background == "auto" else config.background,
-                       masks=MaskOptions(config.masks, config.invert_masks))
+                       masks=MaskOptions(config.masks, config.invert_masks),
+                       attachments=[DepthOptions(config.depths, config.depth_encoding, config.depth_measure,
+                                                 config.depth_png_step)])
     return scene if config.block is None else block_scene(scene, config.block, config.run_dir)
+
+
+def absolute(path: str | Path) -> Path:
+    """`path` from the root, as config.json names a scene: a command run from another folder still finds it (the
+    path as typed, not resolved: a link to a scene stays one)."""
+    return Path(os.path.abspath(path))
+
+
+def scene_fingerprint(scene: Scene) -> dict[str, Any]:
+    """What tells a scene from another wherever its folder is (config.json's "scene"): its kind, its training and
+    test views' counts, and a digest of their names and image sizes."""
+    digest = hashlib.sha256()
+    for split, views in (("train", scene.train), ("test", scene.test)):
+        for view in views:
+            digest.update(f"{split}|{view.name}|{view.camera.width}x{view.camera.height}\n".encode())
+    return {"kind": scene.kind, "train_views": len(scene.train), "test_views": len(scene.test),
+            "views": digest.hexdigest()[:16]}
+
+
+def scene_to_resume(config: TrainConfig, named: Path, run: RunDir) -> tuple[Scene, str | None]:
+    """The scene a resumed run continues on: the one given (`config.data`) when it is the scene the run trained on
+    (config.json's fingerprint of it), wherever it is now, with a note when it is not where config.json names it
+    (`named`); another scene is refused, saying where each path came from. A folder written before the fingerprint
+    takes the scene config.json names, or, when that is gone, the one given, with a warning that it is unchecked."""
+    given, saved = Path(config.data), run.read_scene_fingerprint()
+    moved = given.resolve() != named.resolve()
+    if saved is None and moved and named.exists():
+        raise MCSplatError(f"--resume: this run trained on {named} ({run.config_file} names it), not on {given}; give "
+                           f"that scene (this run folder is older than the fingerprint that would tell whether "
+                           f"{given} holds the same scene)")
+    scene = scene_of(config)
+    if saved is None:
+        if moved:
+            warnings.warn(f"--resume: {run.config_file} names the scene {named}, which is gone; resuming on {given} "
+                          f"without checking that it is the same scene (this run folder is older than the "
+                          f"fingerprint that would tell)", stacklevel=3)
+        return scene, None
+    found = scene_fingerprint(scene)
+    if found != saved:
+        differs = scene_difference(found, saved)
+        if not moved:
+            raise MCSplatError(f"--resume: {given} is not the scene this run trained on: it has {differs} (the scene "
+                               f"changed, or the path in {run.config_file} was edited); give the scene the run trained "
+                               f"on, or start a new run with --overwrite or another --out")
+        raise MCSplatError(f"--resume: {given} (given on the command line) is not the scene this run trained on, "
+                           f"{named} ({run.config_file} names it): it has {differs}; give that scene, or train "
+                           f"{given} in another --out")
+    return scene, (f"on the scene given, {given} ({run.config_file} named {named}: the same views)" if moved
+                   else None)
+
+
+def scene_difference(found: dict[str, Any], saved: dict[str, Any]) -> str:
+    """How the scene of fingerprint `found` differs from the one of `saved`, in words."""
+    if found["kind"] != saved["kind"]:
+        return f"the format {found['kind']}, where the run's scene is {saved['kind']}"
+    if (found["train_views"], found["test_views"]) != (saved["train_views"], saved["test_views"]):
+        return (f"{found['train_views']} training and {found['test_views']} test views, where the run's scene has "
+                f"{saved['train_views']} and {saved['test_views']}")
+    return "other view names or image sizes than the run's scene"
 
 
 def background_of(config: TrainConfig, scene: Scene) -> Background:

@@ -45,10 +45,10 @@ def set_up(config: TrainConfig, team: Team, lock: FolderLock) -> RunSetup:
     team.check_same_setup(setup_of(config))
     own = config
     config, saved_plan = team.on_main(lambda: run_dir.prepare(own, lock, team.world_size))
-    # This process's own options. The data path is its own too (it may differ between machines; the scenes are
-    # compared below), except that a resumed run in one process trains on the data it started with.
-    data = {} if config.resume and team.is_main else {"data": own.data}
-    config = dataclasses.replace(config, **process_options(own), **data)
+    named = config.data  # where a resumed run's config.json says its scene is
+    # This process's own options, and the scene given to it, from the root (it may differ between machines: the
+    # scenes are compared below; a resumed run's with the one it trained on).
+    config = dataclasses.replace(config, **process_options(own), data=run_dir.absolute(own.data))
     if config.resume:
         run_dir.check_resumable(saved_plan, team.world_size)
     plan = saved_plan or initial_plan(config, team.world_size)
@@ -58,14 +58,19 @@ def set_up(config: TrainConfig, team: Team, lock: FolderLock) -> RunSetup:
     if threads is not None:
         torch.set_num_threads(threads)
     set_cpu_threads(threads)
-    scene = run_dir.scene_of(config)
+    if config.resume and team.is_main:
+        scene, scene_note = run_dir.scene_to_resume(config, named, folder)
+    else:
+        scene, scene_note = run_dir.scene_of(config), None
     team.check_same_setup(scene_summary(scene))
     if not scene.test and config.eval_every and team.is_main:
         warnings.warn(f"--eval-every {config.eval_every} is ignored: the scene has no test views to evaluate "
                       f"(--test-every {config.test_every})", stacklevel=3)
     checkpoint = team.on_main(lambda: folder.read_checkpoint_of(config, plan)) if config.resume else None
     state, note = start(config, plan, scene, device, team, checkpoint, progress=not config.quiet and team.is_main)
+    if scene_note:
+        note = f"{note} {scene_note}"
     planner = planner_for(config, plan, scene, state, resumed=config.resume)
     if team.is_main:
-        folder.begin(config, planner.plan, state.step)
+        folder.begin(config, planner.plan, state.step, run_dir.scene_fingerprint(scene))
     return RunSetup(config, folder, device, scene, run_dir.background_of(config, scene), state, note, planner)

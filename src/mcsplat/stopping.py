@@ -1,13 +1,48 @@
-"""How a training run is asked to stop, or to write a checkpoint: Ctrl-C and SIGTERM (what `kill`, `timeout`, docker,
-SLURM and Kubernetes send), and, with several processes, the requests agreed between them at each step."""
+"""How a command is asked to stop: Ctrl-C, SIGTERM (what `kill`, `timeout`, docker, SLURM and Kubernetes send) and
+SIGHUP (a closed terminal). Every command stops as Ctrl-C stops it (`signals_interrupt`); a training run's steps stop
+at the end of a step with a checkpoint, or write one when asked (with several processes, the requests agreed between
+them at each step)."""
 
 from __future__ import annotations
 
+import contextlib
 import signal
+from typing import Iterator
 
 from .distributed import Team
 from .events import Control
 from .gaussians import GaussianModel
+
+
+# Ctrl-C raises KeyboardInterrupt already; these others end the process without a word unless handled.
+TERMINATING = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+@contextlib.contextmanager
+def signals_interrupt() -> Iterator[None]:
+    """Within the block, SIGTERM and SIGHUP raise KeyboardInterrupt as Ctrl-C does: the command stops with one line
+    and its clean-up (a lock released, the folders a refused run made removed) runs, where the default would end the
+    process on the spot. Every command runs in it (cli.main); a training run's steps answer the signals their own way
+    (StopSignals)."""
+    # Importing pycolmap installs glog's handler of SIGTERM, which prints a C++ stack and ends the process: imported
+    # first, it is replaced by ours here instead of replacing ours when a loader imports it.
+    import pycolmap  # noqa: F401
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = {}
+    try:
+        for number in TERMINATING:
+            previous[number] = signal.signal(number, interrupt)
+    except ValueError:  # not the main thread: the signals are not ours to handle
+        pass
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            if handler is not None:  # None: a handler set outside Python, which cannot be put back
+                signal.signal(number, handler)
 
 
 class StopSignals:
@@ -15,7 +50,7 @@ class StopSignals:
     checkpoint (a second signal stops at once). Once the last step's checkpoint is written (`stop_at_once`), a
     signal stops at once: --resume makes what the end of the run makes."""
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    SIGNALS = (signal.SIGINT, *TERMINATING)
 
     def __init__(self, control: Control) -> None:
         self.control = control

@@ -54,15 +54,15 @@ def merge_blocks(folder: BlocksFolder, device: str = "auto", quiet: bool = False
     config = dataclasses.replace(plan.training, out=folder.merged, cap_max=plan.total_cap, block=None, named=None,
                                  resume=False, overwrite=False)
     merged_plan = _with_cap(block_plan, plan.total_cap)
+    scene = run_dir.scene_of(config)  # before anything is written: a scene that has moved writes nothing
     target = run_dir.RunDir(folder.merged)
     target.path.mkdir(parents=True, exist_ok=True)
     with FolderLock(target.lock_file, "mcsplat blocks merge").acquire():
+        remove_previous_merge(target)
         target.write_config(config, merged_plan)
         save_checkpoint(target.checkpoint_file, {"model": model.state_dict(), "step": steps,
                                                  "merged_from": [str(folder.block_run(b.index)) for b in plan.blocks]})
-        target.previous_checkpoint_file.unlink(missing_ok=True)  # an older merge's, of other Gaussians
         target.export_splats(model)
-        scene = run_dir.scene_of(config)
         record = {"num_gaussians": model.num_gaussians, "steps": steps, "blocks": counts}
         if scene.test:
             render_file = (lambda name: target.render_file("test", name)) if config.save_renders else None
@@ -75,6 +75,13 @@ def merge_blocks(folder: BlocksFolder, device: str = "auto", quiet: bool = False
         score = f"PSNR {record['psnr']:.3f} dB on {record['test_views']} test views, " if scene.test else ""
         print(f"merged {len(plan.blocks)} blocks: {score}{model.num_gaussians:,} Gaussians in {target.path}")
     return record
+
+
+def remove_previous_merge(target: run_dir.RunDir) -> None:
+    """An older merge's scores and Gaussians go before the new checkpoint lands: a merge stopped on the way leaves
+    the new model without scores, never beside the old model's."""
+    for old in (target.metrics_file, target.splats_file, target.previous_checkpoint_file):
+        old.unlink(missing_ok=True)
 
 
 def _with_cap(plan: Plan, cap: int) -> Plan:

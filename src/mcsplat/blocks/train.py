@@ -14,11 +14,22 @@ from ..config import TrainConfig
 from ..distributed import SingleProcess, threads_per_process
 from ..errors import MCSplatError
 from ..events import Listener
-from ..partition import BlockPlan, BlocksFolder, read_plan
-from ..run_dir import RunDir
+from ..io.checkpoint import DamagedCheckpoint
+from ..partition import BlockPlan, BlocksFolder, PlanError, read_plan
+from ..partition.scene import block_views
+from ..run_dir import RunDir, scene_of
 from ..train import train
 from .merge import merge_blocks
 from .workers import join_workers
+
+
+class BlockRefused(MCSplatError):
+    """A block that running `mcsplat blocks train` again would not train until its folder is changed (the message
+    says how)."""
+
+
+# Failures that only a change fixes (the plan, a block's folder): no advice to run the command again after them.
+NEEDS_A_CHANGE = (PlanError, BlockRefused)
 
 
 def block_config(plan: BlockPlan, folder: BlocksFolder, index: int, **process: Any) -> TrainConfig:
@@ -32,25 +43,79 @@ def block_config(plan: BlockPlan, folder: BlocksFolder, index: int, **process: A
                                resume=resume, overwrite=run.holds_run() and not resume, named=None, **process)
 
 
+def check_block(plan: BlockPlan, folder: BlocksFolder, index: int) -> None:
+    """Refuse, before anything is written, a block whose run is estimated not to fit the memory the plan gives each
+    block, and one whose run would resume with another cap than the plan's (a checkpoint continues with the cap it
+    was trained to)."""
+    plan.check_fits(index)
+    run = RunDir(folder.block_run(index))
+    if not run.checkpoint_file.is_file() or run.metrics_file.is_file():
+        return
+    cap, trained = plan.block(index).cap, run.read_config().cap_max
+    if trained != cap:
+        raise PlanError(f"{folder.plan_file}: block {index}'s cap is {cap:,}, but its run {run.path} was begun with "
+                        f"cap {trained} and resumes with it; put {trained} back as its cap, or delete {run.path} to "
+                        f"train the block from its start with the new cap")
+
+
+def check_views(plan: BlockPlan, folder: BlocksFolder, indices: Sequence[int]) -> None:
+    """Refuse, before any block starts, a block whose views the scene lacks, or that trains on a test view (each
+    block's run checks its own again as it loads the scene)."""
+    scene = scene_of(dataclasses.replace(plan.training, block=None))
+    for index in indices:
+        block_views(scene, plan.block(index), folder.plan_file)
+
+
 def train_block(folder: BlocksFolder, index: int, subscribers: Sequence[Listener] = (), **process: Any
                 ) -> dict[str, Any] | None:
     """Train block `index` to its end (its metrics), or None when it has been trained already. Refused before
-    anything is written when its run does not fit the memory the plan gives each block."""
+    anything is written when its run does not fit the memory the plan gives each block, or would resume with
+    another cap than the plan's."""
     plan = read_plan(folder.plan_file)
-    plan.check_fits(index)
+    check_block(plan, folder, index)
     run = RunDir(folder.block_run(index))
+    block = plan.block(index)
     quiet = process.get("quiet", False)
     if run.metrics_file.is_file():
         if not quiet:
-            print(f"block {index}: trained already ({run.path})")
+            print(f"block {index}: trained already ({run.path}){_trained_cap_note(run, block.cap)}")
         return None
     config = block_config(plan, folder, index, **process)
-    block = plan.block(index)
     if not quiet:
         how = "resumed" if config.resume else "training"
         print(f"block {index} of {len(plan.blocks)}: {how} in {run.path} ({len(block.train_views)} views, cap "
-              f"{block.cap:,})")
-    return train(config, subscribers, team=SingleProcess())
+              f"{config.cap_max:,})")
+    try:
+        return train(config, subscribers, team=SingleProcess())
+    except MCSplatError as error:
+        damage = _damaged_checkpoint(error)
+        if damage is None:
+            raise
+        raise BlockRefused(f"{damage}; {_damage_advice(run, folder, index)}") from None
+
+
+def _trained_cap_note(run: RunDir, cap: int) -> str:
+    """What a finished block's run was trained to, when the plan has since given it another cap."""
+    trained = run.read_config().cap_max
+    if trained == cap:
+        return ""
+    return f", with cap {trained}, not the plan's {cap:,}: delete {run.path} to train it with the plan's cap"
+
+
+def _damaged_checkpoint(error: BaseException) -> DamagedCheckpoint | None:
+    """The damaged checkpoint behind `error` (the run's own message advises --overwrite, which blocks do not take)."""
+    while error is not None and not isinstance(error, DamagedCheckpoint):
+        error = error.__cause__ or error.__context__
+    return error
+
+
+def _damage_advice(run: RunDir, folder: BlocksFolder, index: int) -> str:
+    again = f"then run `mcsplat blocks train {folder.path}` again"
+    if run.previous_checkpoint_file.is_file():
+        return (f"go back to the checkpoint before it with `mv {run.previous_checkpoint_file} {run.checkpoint_file}`, "
+                f"or delete {run.checkpoint_file} to train block {index} from its start; {again}")
+    return (f"there is no older checkpoint to go back to: delete {run.checkpoint_file} to train block {index} from "
+            f"its start; {again}")
 
 
 def train_blocks(folder: BlocksFolder, indices: Sequence[int] | None = None, device: str = "auto",
@@ -60,7 +125,8 @@ def train_blocks(folder: BlocksFolder, indices: Sequence[int] | None = None, dev
     plan = read_plan(folder.plan_file)
     chosen = list(range(len(plan.blocks))) if indices is None else list(indices)
     for index in chosen:
-        plan.check_fits(index)  # every block refused before any starts
+        check_block(plan, folder, index)  # every block refused before any starts
+    check_views(plan, folder, chosen)
     workers = join_workers()
     try:
         if workers.world_size > 1 and resolve_device(device).type == "cuda":
@@ -74,16 +140,26 @@ def train_blocks(folder: BlocksFolder, indices: Sequence[int] | None = None, dev
             except Exception as error:  # a stop, or a block that cannot train: this rank trains no more
                 # The others still hear of it (they would wait for this rank's word otherwise).
                 what = "" if isinstance(error, MCSplatError) else f"{type(error).__name__}: "
-                failed = f"block {index}: {what}{error}"
+                failed = (f"block {index}: {what}{error}", isinstance(error, NEEDS_A_CHANGE))
                 break
         failures = [failure for failure in workers.gather(failed) if failure]
         if not workers.is_main:
             if failed:
-                raise MCSplatError(failed)
+                raise (BlockRefused if failed[1] else MCSplatError)(failed[0])
             return None
         if failures:
-            raise MCSplatError("; ".join(failures) + f"; run `mcsplat blocks train {folder.path}` again to go on "
-                               f"(trained blocks are kept, stopped ones resume)")
+            raise blocks_failed(failures, folder)
         return merge_blocks(folder, device=device, quiet=quiet) if indices is None else None
     finally:
         workers.close()
+
+
+def blocks_failed(failures: list[tuple[str, bool]], folder: BlocksFolder) -> MCSplatError:
+    """One error for the blocks that failed ((message, whether only a change fixes it) each). Running the command
+    again goes on after a stop; after a failure that needs a change of the plan or a block's folder, each message
+    says what to change instead."""
+    message = "; ".join(text for text, _ in failures)
+    if any(needs_change for _, needs_change in failures):
+        return BlockRefused(message)
+    return MCSplatError(f"{message}; run `mcsplat blocks train {folder.path}` again to go on (trained blocks are "
+                        f"kept, stopped ones resume)")

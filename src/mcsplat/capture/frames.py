@@ -10,11 +10,16 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from mcsplat.data import images
+from mcsplat.data import images, repeats
 from mcsplat.errors import DataError
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
+# Image formats a folder of photos may hold that SfM's reader (pycolmap's) does not take, or that process does not
+# hand to it: named as not read, never skipped in silence.
+OTHER_IMAGE_SUFFIXES = (".webp", ".heic", ".heif", ".avif", ".jxl", ".gif", ".bmp", ".tif", ".tiff", ".jp2",
+                        ".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2")
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm")
+BROKEN, COPY = "cannot be decoded whole", "a byte-identical copy of"  # how two of Photos.left_out's reasons begin
 
 
 @dataclass
@@ -22,7 +27,8 @@ class Photos:
     folder: Path
     names: list[str]  # relative to folder, sorted
     sizes: list[tuple[int, int]]
-    left_out: dict[str, str] = field(default_factory=dict)  # name -> why it cannot be used (it does not decode whole)
+    # name -> why it is not used: it does not decode whole, it is a copy of another photo, or SfM does not read it
+    left_out: dict[str, str] = field(default_factory=dict)
 
 
 def is_video(path: Path) -> bool:
@@ -32,26 +38,42 @@ def is_video(path: Path) -> bool:
 def list_photos(folder: Path, workers: int | None = None) -> Photos:
     """The jpg/png files of `folder` (any names, sub-folders included), each decoded whole; one that does not is
     left out (Photos.left_out says why). A truncated JPEG opens and its header reads, but SfM and the scene's copy
-    would get its missing rows as flat grey."""
-    names = sorted(str(p.relative_to(folder)) for p in folder.rglob("*")
-                   if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES and not p.name.startswith("."))
+    would get its missing rows as flat grey. So are the byte-identical copies of a photo (one view twice: a copy
+    could be a test view of a photo that is trained on) and the images of other formats, each named."""
+    files = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file() and not p.name.startswith("."))
+    names = [name for name in files if Path(name).suffix.lower() in PHOTO_SUFFIXES]
+    others = {name: _not_read(name) for name in files if Path(name).suffix.lower() in OTHER_IMAGE_SUFFIXES}
     if not names:
-        raise DataError(f"no images in {folder}: put the photos (.jpg or .png) in it, or give a video file")
+        what = f"{_count_by_suffix(others)} not read (SfM reads .jpg and .png): convert the photos to .jpg or .png" \
+            if others else "put the photos (.jpg or .png) in it"
+        raise DataError(f"no images in {folder}: {what}, or give a video file")
     workers = workers or min(8, os.cpu_count() or 1)
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="mcsplat-photos") as pool:
         checked = list(pool.map(lambda name: _decoded_size(folder / name), names))
-    photos = Photos(folder, [], [])
-    for name, (size, reason) in zip(names, checked):
-        if size is None:
-            photos.left_out[name] = reason
-        else:
-            photos.names.append(name)
-            photos.sizes.append(size)
-    if not photos.names:
-        name, reason = next(iter(photos.left_out.items()))
+    broken = {name: reason for name, (size, reason) in zip(names, checked) if size is None}
+    if len(broken) == len(names):
+        name, reason = next(iter(broken.items()))
         raise DataError(f"none of the {len(names)} images in {folder} can be read ({name}: {reason}); replace them "
                         "and run again")
-    return photos
+    whole = [(name, size) for name, (size, _) in zip(names, checked) if size is not None]
+    kept, copies = repeats.first_copies([folder / name for name, _ in whole])
+    left_out = {**{name: f"{BROKEN} ({reason}): replace it to use it" for name, reason in broken.items()},
+                **{whole[copy][0]: f"{COPY} {whole[original][0]}: one view twice" for copy, original in copies.items()},
+                **others}
+    return Photos(folder, [whole[i][0] for i in kept], [whole[i][1] for i in kept], dict(sorted(left_out.items())))
+
+
+def _not_read(name: str) -> str:
+    return f"a {Path(name).suffix.lower()} file, which SfM does not read: convert it to .jpg or .png to use it"
+
+
+def _count_by_suffix(names: dict[str, str]) -> str:
+    """'1 .webp file is' / '3 .heic and 2 .webp files are'."""
+    counts: dict[str, int] = {}
+    for name in names:
+        counts[Path(name).suffix.lower()] = counts.get(Path(name).suffix.lower(), 0) + 1
+    kinds = " and ".join(f"{count} {suffix}" for suffix, count in sorted(counts.items()))
+    return f"{kinds} file{'s are' if len(names) > 1 else ' is'}"
 
 
 def _decoded_size(path: Path) -> tuple[tuple[int, int] | None, str]:

@@ -28,6 +28,7 @@ from mcsplat.io.disk import writing_into
 MIN_SFM_SIZE = 1000  # long side in pixels under which SIFT starts to fragment the model (the cup at 200x150 did)
 SCENE_MARKERS = ("images", "sparse", "transforms.json", "transforms_train.json", "poses_bounds.npy")
 MANIFEST = "process.json"  # the summary of the run that made the scene, with the files it wrote
+SHOWN_LEFT_OUT = 5  # input photos not used that the summary names (process.json has them all)
 # Disk space the work takes, roughly (the undistorted copies and a video's frames; the features' database): what
 # the error of a full disk says is needed.
 SPACE_PER_INPUT_BYTE, SPACE_PER_IMAGE = 3, 100_000
@@ -64,7 +65,8 @@ class ProcessSummary:
     image_sizes: dict[str, int] = field(default_factory=dict)  # "WxH" -> how many input images have that size
     seconds: dict[str, float] = field(default_factory=dict)
     masks: int = 0  # masks written to the scene's masks/ (with --masks)
-    left_out: list[str] = field(default_factory=list)  # input photos that do not decode whole, not used
+    # The input photos not used, each with why (frames.Photos.left_out): broken, a copy of another, not read by SfM.
+    left_out: dict[str, str] = field(default_factory=dict)
     # The photos SfM did not register, each with its likeliest reason and figures (registration.LeftOut), the
     # sizes of the models not kept, the capture's median figures, and one suggestion for the commonest reason.
     not_registered: list[dict] = field(default_factory=list)
@@ -79,7 +81,7 @@ class ProcessSummary:
                 f"{'s' if self.models != 1 else ''} found, the largest kept; {self.matcher} matching)",
                 *([f"sizes:      the images come in {len(self.image_sizes)} sizes ({sizes}): one camera per size"]
                   if len(self.image_sizes) > 1 else []),
-                *([f"left out:   {', '.join(self.left_out)} (cannot be decoded whole)"] if self.left_out else []),
+                *([f"left out:   {_named_with_reasons(self.left_out, SHOWN_LEFT_OUT)}"] if self.left_out else []),
                 *self._not_registered_lines(),
                 f"points:     {self.points:,}, mean reprojection error {self.mean_reprojection_error:.2f} px",
                 f"camera:     {self.camera} -> {self.undistorted_camera}",
@@ -142,11 +144,14 @@ def process(source: str | os.PathLike, out: str | os.PathLike, options: ProcessO
 
 
 def _left_out_warning(left_out: dict[str, str]) -> str:
-    shown = "; ".join(f"{name} ({reason})" for name, reason in list(left_out.items())[:3])
-    more = f" and {len(left_out) - 3} more" if len(left_out) > 3 else ""
-    return (f"left out {len(left_out)} image{'s' if len(left_out) > 1 else ''} that cannot be decoded whole: "
-            f"{shown}{more}; replace {'them' if len(left_out) > 1 else 'it'} and run again to use "
-            f"{'them' if len(left_out) > 1 else 'it'}")
+    return (f"left out {len(left_out)} image{'s' if len(left_out) > 1 else ''} of the input: "
+            f"{_named_with_reasons(left_out, 3)}")
+
+
+def _named_with_reasons(left_out: dict[str, str], shown: int) -> str:
+    """'a.jpg (why); b.webp (why) and 2 more (all in process.json)'."""
+    named = "; ".join(f"{name} ({reason})" for name, reason in list(left_out.items())[:shown])
+    return named + (f" and {len(left_out) - shown} more (all in {MANIFEST})" if len(left_out) > shown else "")
 
 
 def _space_needed(source: Path, photos: frames.Photos | None, options: ProcessOptions) -> int:
@@ -228,7 +233,7 @@ def _process(source: Path, out: Path, work: Path, photos, from_video: bool, opti
         matcher=result["matcher"], models=result["models"], camera=result["camera"],
         undistorted_camera=describe_cameras(model), image_sizes=_count_sizes(photos.sizes),
         seconds={k: round(v, 2) for k, v in seconds.items()}, masks=result.get("masks", 0),
-        left_out=list(photos.left_out), not_registered=result["not_registered"],
+        left_out=dict(photos.left_out), not_registered=result["not_registered"],
         other_models=result["other_models"], capture_medians=result["capture_medians"],
         suggestion=result["suggestion"])
     # The summary, and the list of the files written: --overwrite replaces the scene only while that is all it holds.

@@ -2,8 +2,8 @@
 
 Runs in the SfM worker after mapping: the features' database gives each photo's SIFT features and its verified
 matches (two-view geometries) with every other photo, the models give who registered where, and a small decoded
-copy of each photo its sharpness (variance of the Laplacian) and its brightness. A photo's figures are judged
-against the registered photos' median, so that a dim or soft capture as a whole is not blamed photo by photo.
+copy of each photo its sharpness (variance of the Laplacian), its brightness and its contrast. A photo's figures are
+judged against the registered photos' median, so that a dim or soft capture as a whole is not blamed photo by photo.
 """
 
 from __future__ import annotations
@@ -24,14 +24,18 @@ BLUR_SHARE = 0.25         # blurred: sharpness under this share of the registere
 FEW_FEATURES_SHARE = 0.25  # little texture: fewer SIFT features than this share of the median (or MIN_FEATURES)
 MIN_FEATURES = 100
 EXPOSURE_LEVELS = 60      # badly exposed: mean grey level this far (of 255) from the registered photos' median
+FLAT_SHARE = 0.1          # featureless: contrast under this share of the median (a blur keeps the contrast of shapes)
 ANALYSIS_SIZE = 640       # photos are measured on a copy at least this wide (JPEG draft decoding: fast)
 MEDIAN = "the registered photos' median"  # what a left-out photo's figures are held against
 EXIF_MAKE, EXIF_MODEL = 0x010F, 0x0110
 
 # The causes, most telling first: a photo's first cause is its reason; the capture's commonest gets the suggestion.
-# (A dark photo has little contrast, so a low sharpness too: exposure is judged first.)
+# (A flat frame has no sharpness and no features either, whatever its level: featureless is judged first. A dark
+# photo has little contrast, so a low sharpness too: exposure is judged before blur.)
 SUGGESTIONS = {
     "separate model": "take more photos between the parts, so that each overlaps its neighbours by about two thirds",
+    "featureless": "leave out frames that show nothing (a lens cap, a blank wall, sky or screen, a frame of the "
+                   "ground), or take them again with the scene in view",
     "exposure": "fix the exposure (lock it on the phone) so that every photo is lit alike",
     "blur": "hold the camera still or move it more slowly (in low light, add light)",
     "texture": "frame fewer plain or reflective surfaces (walls, glass, screens); keep some texture in every photo",
@@ -39,7 +43,8 @@ SUGGESTIONS = {
     "overlap": "take more photos with more overlap (each sharing about two thirds with the next), all of the scene",
     "pose": "take more photos with more overlap around the ones left out, from a little further apart",
 }
-LABELS = {"separate model": "in a separate model", "exposure": "badly exposed", "blur": "blurred",
+LABELS = {"separate model": "in a separate model", "featureless": "featureless", "exposure": "badly exposed",
+          "blur": "blurred",
           "texture": "with little texture", "camera": "from another camera", "overlap": "with no overlap",
           "pose": "with no pose"}
 
@@ -56,6 +61,7 @@ class PhotoFigures:
     brightness: float    # mean grey level, 0-255
     camera: str          # EXIF make and model (when the photo has them) and size
     other_model: int = 0  # the size of the other model that registered it (0: none)
+    contrast: float = 0.0  # spread of the grey levels over their mean (measure()): 0 for one flat tone
 
 
 @dataclass
@@ -69,14 +75,15 @@ class LeftOut:
     figures: dict
 
 
-def measure(path: Path) -> tuple[float, float]:
-    """(sharpness, brightness) of the photo at `path`, on a reduced copy: a JPEG is decoded at the nearest scale
-    at least ANALYSIS_SIZE wide, and frames.sharpness takes every n-th pixel of a wider one (640 to 1,280 px)."""
+def measure(path: Path) -> tuple[float, float, float]:
+    """(sharpness, brightness, contrast) of the photo at `path`, on a reduced copy: a JPEG is decoded at the nearest
+    scale at least ANALYSIS_SIZE wide, and frames.sharpness takes every n-th pixel of a wider one (640 to 1,280 px).
+    Contrast is the grey levels' standard deviation over their mean: a darker copy of a photo keeps it."""
     with Image.open(path) as im:
         im.draft("RGB", (ANALYSIS_SIZE, ANALYSIS_SIZE * im.size[1] // max(1, im.size[0])))
         pixels = np.asarray(im.convert("RGB"))
     grey = pixels.astype(np.float32) @ np.array([0.299, 0.587, 0.114], dtype=np.float32)
-    return sharpness(pixels), float(grey.mean())
+    return sharpness(pixels), float(grey.mean()), float(grey.std() / max(float(grey.mean()), 1.0))
 
 
 def camera_of(path: Path, size: tuple[int, int]) -> str:
@@ -96,7 +103,8 @@ def diagnose(photos: list[PhotoFigures], registered: set[str]) -> tuple[list[Lef
     reference = [p for p in photos if p.name in registered] or photos
     medians = {"features": float(np.median([p.features for p in reference])),
                "sharpness": float(np.median([p.sharpness for p in reference])),
-               "brightness": float(np.median([p.brightness for p in reference]))}
+               "brightness": float(np.median([p.brightness for p in reference])),
+               "contrast": float(np.median([p.contrast for p in reference]))}
     usual_camera = Counter(p.camera for p in reference).most_common(1)[0][0]
     left_out = []
     for photo in photos:
@@ -115,14 +123,18 @@ def _causes(photo: PhotoFigures, medians: dict[str, float], usual_camera: str) -
     if photo.other_model:
         causes.append(("separate model", f"in a separate model of {photo.other_model} photos that shares too "
                                          "little with the kept one"))
+    flat = photo.contrast < FLAT_SHARE * medians["contrast"]  # then no sharpness and no features say nothing more
+    if flat:
+        causes.append(("featureless", f"featureless: nearly one flat tone (contrast {photo.contrast:.3f}, {MEDIAN} "
+                                      f"{medians['contrast']:.3f}), nothing to match"))
     if abs(photo.brightness - medians["brightness"]) > EXPOSURE_LEVELS:
         light = "too dark" if photo.brightness < medians["brightness"] else "too bright"
         causes.append(("exposure", f"{light}: mean level {photo.brightness:.0f} of 255, {MEDIAN} "
                                    f"{medians['brightness']:.0f}"))
-    if photo.sharpness < BLUR_SHARE * medians["sharpness"]:
+    if photo.sharpness < BLUR_SHARE * medians["sharpness"] and not flat:
         causes.append(("blur", f"blurred: sharpness {photo.sharpness:.0f}, {MEDIAN} "
                                f"{medians['sharpness']:.0f}"))
-    if photo.features < max(MIN_FEATURES, FEW_FEATURES_SHARE * medians["features"]):
+    if photo.features < max(MIN_FEATURES, FEW_FEATURES_SHARE * medians["features"]) and not flat:
         causes.append(("texture", f"little texture: {photo.features} features, {MEDIAN} "
                                   f"{medians['features']:.0f}"))
     if photo.camera != usual_camera:
@@ -187,5 +199,6 @@ def figures_from_database(database: Path, folder: Path, names: list[str], sizes:
     with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1), thread_name_prefix="mcsplat-report") as pool:
         measured = list(pool.map(lambda name: measure(folder / name), names))
     return [PhotoFigures(name, features.get(name, 0), best.get(name, 0), best_any.get(name, 0), round(sharp, 1),
-                         round(bright, 1), camera_of(folder / name, size), other_model.get(name, 0))
-            for name, size, (sharp, bright) in zip(names, sizes, measured)]
+                         round(bright, 1), camera_of(folder / name, size), other_model.get(name, 0),
+                         round(contrast, 4))
+            for name, size, (sharp, bright, contrast) in zip(names, sizes, measured)]

@@ -147,9 +147,12 @@ def _facts_of(facts) -> tuple[int, float, float]:
 def implausible_points(xyz: np.ndarray, rgb: np.ndarray, views: Sequence[View]) -> str | None:
     """What makes `xyz`, `rgb` unlike a triangulation from `views` (too few, not finite, outside every view), or
     None."""
-    if xyz.ndim != 2 or xyz.shape[1:] != (3,) or xyz.dtype.kind != "f" or rgb.shape != xyz.shape \
-            or rgb.dtype != np.uint8:
-        return f"points of shape {xyz.shape} ({xyz.dtype}) and colours {rgb.shape} ({rgb.dtype}), not [P, 3]"
+    if xyz.ndim != 2 or xyz.shape[1:] != (3,) or rgb.shape != xyz.shape:
+        return f"points of shape {xyz.shape} and colours of shape {rgb.shape}, not [P, 3] both"
+    if xyz.dtype.kind != "f" or rgb.dtype != np.uint8:  # each named alone: a wrong type is no wrong shape
+        wrong = ([f"points of {xyz.dtype}, not floats"] if xyz.dtype.kind != "f" else []) + \
+            ([f"colours of {rgb.dtype}, not uint8 (0-255)"] if rgb.dtype != np.uint8 else [])
+        return " and ".join(wrong)
     if len(xyz) < MIN_POINTS:
         return f"{len(xyz)} points, fewer than the {MIN_POINTS} of a triangulation"
     finite = np.isfinite(xyz).all(axis=1)

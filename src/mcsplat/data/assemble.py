@@ -17,7 +17,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from mcsplat.data import images, undistort
+from mcsplat.data import images, repeats, undistort
 from mcsplat.data.image_store import ImageStore, store_note
 from mcsplat.data.poses import make_camera
 from mcsplat.data.scene import NAMED_BACKGROUNDS, Background, ImageSource, Scene, View, make_scene, split_every
@@ -49,9 +49,11 @@ class Points:
 def assemble(frames: Sequence[Frame], *, kind: str, root: Path, background: Background | None, test_every: int = 8,
              train_count: int | None = None, points: Points | None = None, notes: Sequence[str] = ()) -> Scene:
     """The Scene of `frames`: with `train_count`, the first train_count frames are the training views and the rest
-    the test views (a scene's own split); otherwise every `test_every`-th frame is a test view. Without a
-    `background`, images with an alpha channel (a synthetic object on a transparent background, NeRF-Synthetic's
-    convention) get white and the others black."""
+    the test views (a scene's own split); otherwise every `test_every`-th frame is a test view. A frame whose image
+    repeats one before it is left out, with a warning (repeats.py). Without a `background`, images with an alpha
+    channel (a synthetic object on a transparent background, NeRF-Synthetic's convention) get white and the others
+    black."""
+    frames, train_count = _distinct(frames, root, train_count)
     paths = [frame.path for frame in frames]
     alpha = any(images.has_alpha(path) for path in paths)
     if background is None:
@@ -78,6 +80,24 @@ def assemble(frames: Sequence[Frame], *, kind: str, root: Path, background: Back
     notes += store_note(store)
     xyz, rgb = _finite(points) if points is not None else (None, None)
     return make_scene(train, test, xyz, rgb, background, kind, root, notes=notes, alpha=alpha)
+
+
+def _distinct(frames: Sequence[Frame], root: Path, train_count: int | None) -> tuple[list[Frame], int | None]:
+    """The frames without those whose image repeats an earlier frame's (the training frames come first, so a test
+    frame that repeats a training image is the one left out), and the training frames' count among them."""
+    kept, repeated = repeats.first_copies([frame.path for frame in frames])
+    if repeated:
+        def shown(frame: Frame) -> str:
+            return str(frame.path.relative_to(root)) if frame.path.is_relative_to(root) else str(frame.path)
+
+        named = [repeats.describe(shown(frames[copy]), shown(frames[original])) for copy, original in repeated.items()]
+        count = f"{len(named)} images repeat" if len(named) > 1 else "1 image repeats"
+        more = " ..." if len(named) > 5 else ""
+        warnings.warn(f"{root}: {count} an image listed before ({', '.join(named[:5])}{more}); each image is used "
+                      "once, so that no view is trained on twice or both trained on and tested", stacklevel=4)
+    if train_count is not None:
+        train_count = sum(1 for index in kept if index < train_count)
+    return [frames[index] for index in kept], train_count
 
 
 def _finite(points: Points) -> tuple[torch.Tensor, torch.Tensor]:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import warnings
@@ -14,7 +13,7 @@ import numpy as np
 from mcsplat.data import images, undistort
 from mcsplat.data.assemble import Frame, assemble
 from mcsplat.data.poses import intrinsic_matrix, opengl_c2w_to_opencv_w2c, scale_intrinsics
-from mcsplat.data.scene import Background, Scene, split_every
+from mcsplat.data.scene import Background, Scene
 from mcsplat.errors import DataError
 
 SPLIT_FILES = ("transforms_train.json", "transforms_test.json", "transforms_val.json")
@@ -93,40 +92,6 @@ def _frames(path: Path, data: dict[str, Any], root: Path, skip_missing: bool) ->
     if not frames:
         raise DataError(f"{path} lists no frames")
     return frames
-
-
-def _distinct(frames: list[_ListedFrame], listing: str, root: Path) -> list[_ListedFrame]:
-    """The frames without those that repeat an image listed before them (the same file, or a byte-identical copy of
-    it), with a warning naming them: a repeat would weigh a view twice, or make a test view one that is trained on."""
-    identities = _image_identities([frame.path for frame in frames])
-    first: dict[object, _ListedFrame] = {}
-    kept, repeats = [], []
-    for frame, identity in zip(frames, identities):
-        if identity in first:
-            repeat, original = (str(f.path.relative_to(root)) if f.path.is_relative_to(root) else str(f.path)
-                                for f in (frame, first[identity]))
-            repeats.append(repeat if repeat == original else f"{repeat}, a copy of {original}")
-        else:
-            first[identity] = frame
-            kept.append(frame)
-    if repeats:
-        count = f"{len(repeats)} frames repeat" if len(repeats) > 1 else "1 frame repeats"
-        warnings.warn(f"{listing}: {count} an image listed before ({', '.join(repeats[:5])}"
-                      f"{' ...' if len(repeats) > 5 else ''}); each image is used once, so that no view is trained on "
-                      "twice or both trained on and tested", stacklevel=4)
-    return kept
-
-
-def _image_identities(paths: list[Path]) -> list[object]:
-    """What makes two image files one image: the file itself, or its bytes where another file has its size (only
-    those are read: files of different sizes differ)."""
-    files = [path.resolve() for path in paths]
-    by_size: dict[int, set[Path]] = {}
-    for file in files:
-        by_size.setdefault(file.stat().st_size, set()).add(file)
-    digests = {file: hashlib.sha256(file.read_bytes()).hexdigest()
-               for group in by_size.values() if len(group) > 1 for file in group}
-    return [digests.get(file, file) for file in files]
 
 
 def _distortion(frame: _ListedFrame, source: Path) -> tuple[str, list[float]] | None:
@@ -226,28 +191,24 @@ def load_blender(root: Path, downscale: int, background: Background | None, test
         train_file = root / SPLIT_FILES[0]
         test_file = next((root / f for f in SPLIT_FILES[1:] if (root / f).is_file()), None)
         train_frames = _frames(train_file, read_json(train_file), root, skip_missing=False)
+        test_frames = [] if test_file is None else _frames(test_file, read_json(test_file), root, skip_missing=False)
         if test_file is not None:
-            listed = _frames(test_file, read_json(test_file), root, skip_missing=False)
-            kept = _distinct(train_frames + listed, f"{train_file} and {test_file.name}", root)
-            trained = len(set(kept) & set(train_frames))  # the training frames come first and stay first
-            train_frames, test_frames = kept[:trained], kept[trained:]
             notes.append(f"splits from {train_file.name} and {test_file.name}")
+            train_count: int | None = len(train_frames)
         else:
-            train_frames, test_frames = split_every(_distinct(train_frames, str(train_file), root), test_every)
             notes.append(f"no transforms_test.json or transforms_val.json: every {test_every}th frame is a test view"
                          if test_every else "no test split")
+            train_count = None  # assemble splits, once the repeated images are out
         frames = train_frames + test_frames
-        sources = [train_file] * len(train_frames) + [test_file or train_file] * len(test_frames)
+        sources = [train_file] * len(train_frames) + [test_file] * len(test_frames)
     else:
         single = root / SINGLE_FILE
-        frames = _distinct(sorted(_frames(single, read_json(single), root, skip_missing=True),
-                                  key=lambda f: f.name), str(single), root)
+        frames = sorted(_frames(single, read_json(single), root, skip_missing=True), key=lambda f: f.name)
         sources = [single] * len(frames)
-        train_frames, test_frames = split_every(frames, test_every)
-        frames = train_frames + test_frames
+        train_count = None
         notes.append(f"frames from {single.name}; " + (f"every {test_every}th is a test view" if test_every
                                                          else "no test split"))
     if downscale > 1:
         notes.append(f"images resized to 1/{downscale}")
     return assemble(_resolved(frames, sources, downscale), kind="blender", root=root, background=background,
-                    train_count=len(train_frames), notes=notes)
+                    test_every=test_every, train_count=train_count, notes=notes)

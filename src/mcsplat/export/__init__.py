@@ -2,6 +2,7 @@
 
     formats.py    the table: every format, .ply and the mesh included, with its writer
     target.py     which format, which file (--format, --out), and what is refused
+    unread.py     an option the chosen format would ignore, refused
     from_run.py   export_run(path, options): the run read back, checked, written
     selection.py  which Gaussians a Gaussian format holds, and what leaving the others out costs on the test views
     gaussians.py  a Gaussian format's file (the byte layouts are io/formats/)

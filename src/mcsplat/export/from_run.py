@@ -9,6 +9,7 @@ from ..errors import MCSplatError
 from .job import ExportJob
 from .options import ExportOptions
 from .target import export_target
+from .unread import refuse_unread_options
 
 if TYPE_CHECKING:
     from ..run_dir import TrainedRun
@@ -23,6 +24,7 @@ def export_run(path: str | Path, options: ExportOptions = ExportOptions()) -> Pa
     folder = RunDir(path)
     folder.read_config()  # a run folder, or the one-line error, before any work
     chosen, target = export_target(folder, options.format, options.out)
+    refuse_unread_options(chosen, options)
     run = load(path, resolve_device(options.device))
     _refuse_non_finite(run)  # one check for every format, the mesh's included
     chosen.write(ExportJob(run, target, options))

@@ -31,3 +31,9 @@ class ExportOptions:
     truncation: float = 4.0           # voxels
     consistent_views: int = 4         # of the 6 nearest views, how many must confirm a pixel's depth
     device: str = "auto"              # "auto", "cpu" or "cuda"
+
+
+# The options only some formats read (export/formats.py's `reads`); format, out and device every format reads.
+SELECTION_OPTIONS = ("min_opacity", "max_gaussians", "prune", "max_scale", "max_distance")  # the Gaussian formats
+MESH_OPTIONS = ("voxel_size", "voxel_budget", "alpha_min", "min_component", "depth", "truncation",
+                "consistent_views")

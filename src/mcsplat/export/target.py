@@ -1,6 +1,7 @@
 """Which format `mcsplat export` writes, and to which file: --format, else the one --out's name ends with, else
 ply; --out, else the format's own file in the run folder. What it refuses, in one line each: an --out that is a
-folder, one of the run's own files or inside a scene folder, a name that says no format or another than --format."""
+folder, one of the run's own files or inside a scene folder, a name that says no format or another than --format;
+the same of each file written beside it (a .gltf's .bin), which moreover never replaces a file it did not write."""
 
 from __future__ import annotations
 
@@ -27,6 +28,8 @@ def export_target(folder: RunDir, format_name: str | None, out: Path | None) -> 
         path = _checked_out(folder, out)
         if chosen is None or chosen.ending is not None:
             chosen = _named_by(path, chosen)
+    for companion in chosen.companions(path):
+        _check_companion(folder, companion, path)
     if chosen.check_path is not None:
         chosen.check_path(path)
     return chosen, path
@@ -34,14 +37,26 @@ def export_target(folder: RunDir, format_name: str | None, out: Path | None) -> 
 
 def _checked_out(folder: RunDir, out: Path) -> Path:
     """--out, unless it is a folder, one of the run's own files or inside a scene folder."""
-    from ..run_dir import refuse_writing_into_scene
-
     if out.is_dir():
         raise MCSplatError(f"--out {out} is a folder; give the file to write")
-    if folder.is_own_file(out):
-        raise MCSplatError(f"--out {out} would replace the run's own {out.name}; choose another name")
-    refuse_writing_into_scene(out, folder.read_config())
+    _refuse_run_file_or_scene(folder, out, f"--out {out}")
     return out
+
+
+def _check_companion(folder: RunDir, companion: Path, path: Path) -> None:
+    """A file written beside `path` is held to --out's rules: the user named only `path`."""
+    what = f"{companion} (written beside {path.name})"
+    if companion.is_dir():
+        raise MCSplatError(f"{what} is a folder; export to another name")
+    _refuse_run_file_or_scene(folder, companion, what)
+
+
+def _refuse_run_file_or_scene(folder: RunDir, file: Path, what: str) -> None:
+    from ..run_dir import refuse_writing_into_scene
+
+    if folder.is_own_file(file):
+        raise MCSplatError(f"{what} would replace the run's own {file.name}; choose another name")
+    refuse_writing_into_scene(file, folder.read_config())
 
 
 def _named_by(out: Path, asked: ExportFormat | None) -> ExportFormat:

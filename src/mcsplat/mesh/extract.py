@@ -11,6 +11,7 @@ device.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Sequence
@@ -53,8 +54,8 @@ class MeshOptions:
     def __post_init__(self) -> None:
         if not 0.0 < self.alpha_min <= 1.0:
             raise MCSplatError(f"--alpha-min must be in (0, 1], got {self.alpha_min}")
-        if not self.truncation >= 1:
-            raise MCSplatError(f"--truncation must be at least 1 (voxels), got {self.truncation}")
+        if not 1 <= self.truncation < math.inf:
+            raise MCSplatError(f"--truncation must be at least 1 (voxels) and finite, got {self.truncation}")
         if self.depth not in SURFACE_DEPTHS:
             raise MCSplatError(f"--depth must be one of {', '.join(SURFACE_DEPTHS)}, got {self.depth!r}")
         if not 0 <= self.consistent_views <= NEIGHBOURS:

@@ -85,8 +85,8 @@ def choose_grid(low: torch.Tensor, high: torch.Tensor, voxel_size: float | None,
     cut off at the grid's edge, so that the grid does not depend on it)."""
     if voxel_budget < MIN_VOXELS_PER_SIDE ** 3:
         raise MCSplatError(f"--voxel-budget {voxel_budget:,} is too small; give at least {MIN_VOXELS_PER_SIDE ** 3:,}")
-    if voxel_size is not None and not voxel_size > 0:
-        raise MCSplatError(f"--voxel-size must be positive, got {voxel_size}")
+    if voxel_size is not None and not 0 < voxel_size < math.inf:
+        raise MCSplatError(f"--voxel-size must be a positive finite number, got {voxel_size}")
     extent = (high - low).double().clamp(min=1e-9).tolist()
     size = voxel_size if voxel_size is not None else _finest_size(extent, voxel_budget)
     margin = (TRUNCATION_VOXELS + 1) * size

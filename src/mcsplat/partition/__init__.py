@@ -14,8 +14,8 @@ from __future__ import annotations
 from .folder import BlocksFolder
 from .make import make_plan
 from .memory import estimated_bytes, format_bytes, parse_bytes
-from .plan import Block, BlockPlan, read_plan
+from .plan import Block, BlockPlan, PlanError, read_plan
 from .scene import block_scene
 
 __all__ = ["Block", "BlockPlan", "BlocksFolder", "block_scene", "estimated_bytes", "format_bytes", "make_plan",
-           "parse_bytes", "read_plan"]
+           "parse_bytes", "PlanError", "read_plan"]

@@ -26,13 +26,8 @@ MIN_TRAIN_VIEWS = 10  # a block trains on at least the views that see most of it
 def make_plan(scene: Scene, training: TrainConfig, count: int | None = None, memory: int | None = None,
               margin: float = 0.2, min_view_share: float = 0.25) -> BlockPlan:
     """The plan of `scene` in `count` blocks, or in as few as let each block's run fit in `memory` bytes."""
+    check_plan_options(training, count, memory, margin, min_view_share)
     total = total_cap(training)
-    if count is None and memory is None:
-        raise MCSplatError("give the number of blocks (--count) or the memory each block's run may hold (--memory)")
-    if count is not None and not 1 <= count <= MOST_BLOCKS:
-        raise MCSplatError(f"--count must be between 1 and {MOST_BLOCKS}")
-    if not margin >= 0 or not 0 <= min_view_share < 1:
-        raise MCSplatError("--margin must be 0 or more and --min-view-share within [0, 1)")
     pixels = max(view.camera.width * view.camera.height for view in scene.train)
     if memory is not None and gaussians_that_fit(memory, pixels) < 1:
         raise MCSplatError(f"--memory {format_bytes(memory)} holds no run at all: one that trains on images of "
@@ -59,6 +54,19 @@ def make_plan(scene: Scene, training: TrainConfig, count: int | None = None, mem
     raise MCSplatError(f"no cut into {MOST_BLOCKS} blocks or fewer fits each block in {format_bytes(memory)} (a run "
                        f"with images of {pixels / 1e6:.1f} MP holds {gaussians_that_fit(memory, pixels):,} Gaussians "
                        f"at most there); give more --memory or a lower --cap-max")
+
+
+def check_plan_options(training: TrainConfig, count: int | None, memory: int | None, margin: float,
+                       min_view_share: float) -> None:
+    """A one-line error for options no plan can be made with. None needs the scene, so `blocks plan` checks them
+    before loading it (whether --memory holds a run at all depends on its images: make_plan checks that)."""
+    total_cap(training)
+    if count is None and memory is None:
+        raise MCSplatError("give the number of blocks (--count) or the memory each block's run may hold (--memory)")
+    if count is not None and not 1 <= count <= MOST_BLOCKS:
+        raise MCSplatError(f"--count must be between 1 and {MOST_BLOCKS}")
+    if not margin >= 0 or not 0 <= min_view_share < 1:
+        raise MCSplatError("--margin must be 0 or more and --min-view-share within [0, 1)")
 
 
 def total_cap(training: TrainConfig) -> int:

@@ -12,10 +12,10 @@ from pathlib import Path
 import torch
 
 from ..capture.triangulate import triangulated_points
-from ..data import Scene
+from ..data import Scene, View
 from ..data.scene import camera_radius
 from ..errors import MCSplatError
-from .plan import read_plan
+from .plan import Block, PlanError, read_plan
 
 OUTSIDE_SHARE = 0.1  # the points kept beyond the region, as a share of those inside it
 
@@ -34,13 +34,7 @@ def block_scene(scene: Scene, spec: str, run_folder: Path) -> Scene:
     path = Path(os.path.normpath(run_folder / path))  # "block_03/../blocks.json", even before block_03 exists
     plan = read_plan(path)
     block = plan.block(index)
-    views = {view.name: view for view in scene.train + scene.test}
-    missing = [name for name in block.train_views + block.test_views if name not in views]
-    if missing:
-        raise MCSplatError(f"{path}: block {index} names the view {missing[0]!r}, which the scene {scene.root} does "
-                           f"not have (the scene changed since the plan was made?); make the plan again")
-    train = [views[name] for name in block.train_views]
-    test = [views[name] for name in block.test_views]
+    train, test = block_views(scene, block, path)
     points, colors = scene_points(scene)
     whole = None if points is None else points.shape[0]
     if points is not None:
@@ -51,6 +45,28 @@ def block_scene(scene: Scene, spec: str, run_folder: Path) -> Scene:
             + ("" if points is None else f", {points.shape[0]:,} of {whole:,} points"))
     return dataclasses.replace(scene, train=train, test=test, points=points, point_colors=colors,
                                radius=camera_radius([view.camera for view in train]), notes=[*scene.notes, note])
+
+
+def block_views(scene: Scene, block: Block, plan_file: Path) -> tuple[list[View], list[View]]:
+    """The scene's views that `block` trains and is scored on. A PlanError for a name the scene lacks, and for a
+    test view among its training views (or a training view among its test views): the blocks, and the merged model,
+    are scored on the scene's test views, which a block that trained on one would score too well."""
+    train_views = {view.name: view for view in scene.train}
+    test_views = {view.name: view for view in scene.test}
+    for name in block.train_views + block.test_views:
+        if name not in train_views and name not in test_views:
+            raise PlanError(f"{plan_file}: block {block.index} names the view {name!r}, which the scene {scene.root} "
+                            f"does not have (the scene changed since the plan was made?); make the plan again")
+    for name in block.train_views:
+        if name in test_views:
+            raise PlanError(f"{plan_file}: block {block.index} trains on {name!r}, one of the scene's test views, "
+                            f"which the blocks and the merged model are scored on; take it out of the block's "
+                            f"train_views")
+    for name in block.test_views:
+        if name in train_views:
+            raise PlanError(f"{plan_file}: block {block.index} is scored on {name!r}, one of the scene's training "
+                            f"views; take it out of the block's test_views")
+    return [train_views[name] for name in block.train_views], [test_views[name] for name in block.test_views]
 
 
 def scene_points(scene: Scene) -> tuple[torch.Tensor | None, torch.Tensor | None]:

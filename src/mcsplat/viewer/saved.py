@@ -56,6 +56,8 @@ def _tensor(values) -> torch.Tensor:
 def finite_gaussians(model: GaussianModel, source: Path) -> GaussianModel:
     """`model` without the Gaussians that have a NaN or infinite parameter (saying how many), which would render
     nothing useful and put the first camera nowhere; a one-line error when none is left."""
+    if model.num_gaussians == 0:  # a file of any format may hold none (an empty .splat, glTF accessors of count 0)
+        raise MCSplatError(f"{source}: holds no Gaussians, so there is nothing to show")
     finite = torch.ones(model.num_gaussians, dtype=torch.bool, device=model.means.device)
     for value in model.params.values():
         finite &= torch.isfinite(value.detach()).reshape(model.num_gaussians, -1).all(dim=1)

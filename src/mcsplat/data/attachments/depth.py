@@ -35,6 +35,7 @@ BESIDE_PHOTO = ("{stem}_depth.npy", "{stem}_depth.png", "{stem}_depth_0001.png")
 IN_FOLDER = ("{view}.npy", "{view}.png", "{stem}.npy", "{stem}.png")
 ENCODINGS = ("metric", "nerf-synthetic")
 MEASURES = ("z", "ray")
+REAL_KINDS = "iuf"  # numpy dtype kinds a .npy depth map may have: signed, unsigned integers, floats
 NERF_SYNTHETIC_FAR = 8.0  # R = 0 would be this far; the dataset's renders put 0 where there is no object instead
 
 
@@ -42,7 +43,8 @@ NERF_SYNTHETIC_FAR = 8.0  # R = 0 would be this far; the dataset's renders put 0
 class DepthOptions:
     """Where a scene's depth maps are and how their numbers read.
 
-    source: "auto" (beside each photo, or SCENE/depths/) or a folder of `<view name>.npy` / `.png`.
+    source: "auto" (beside each photo, or SCENE/depths/), a folder of `<view name>.npy` / `.png`, or "none" (no
+        depth maps: `mcsplat train`'s default, --depths).
     encoding: "metric" (`.npy` floats, or 16-bit PNG steps of `png_step`, in the capture's units) or
         "nerf-synthetic" (8-bit PNG, 8 (1 - R/255) along the ray, R = 0: no object).
     measure: what a metric file measures: "z" (along the optical axis) or "ray" (from the camera centre along the
@@ -57,7 +59,7 @@ class DepthOptions:
 
     def __post_init__(self) -> None:
         if not self.source.strip():
-            raise DataError(f"depth source {self.source!r} names no folder: give 'auto' or the folder that holds "
+            raise DataError(f"--depths {self.source!r} names no folder: give 'auto', 'none' or the folder that holds "
                             "one depth map per image")
         if self.encoding not in ENCODINGS:
             raise DataError(f"depth encoding {self.encoding!r} is not known: give one of {', '.join(ENCODINGS)}")
@@ -81,6 +83,8 @@ class DepthKind(Kind):
 
     def find(self, options: DepthOptions, scene: Any) -> Found | None:
         views = scene.train + scene.test
+        if options.source == "none":
+            return None
         if options.source == "auto":
             folder = scene.root / DEPTH_FOLDER
             folder = folder if folder.is_dir() else None
@@ -93,8 +97,8 @@ class DepthKind(Kind):
             return Found(files, " and ".join(places))
         folder = Path(options.source).expanduser()
         if not folder.is_dir():
-            raise DataError(f"depth maps: {options.source} is no folder; give the folder that holds one depth map "
-                            "per image, or 'auto' (beside the photos, or the scene's depths/)")
+            raise DataError(f"--depths {options.source}: no such folder; give the folder that holds one depth map "
+                            "per image, 'auto' (beside the photos, or the scene's depths/) or 'none'")
         files = [_in_folder(folder, view) for view in views]
         if not any(files):
             raise DataError(f"{folder} holds no depth map for any of the {len(views)} images; name each "
@@ -110,7 +114,7 @@ class DepthKind(Kind):
                                 "distance in front of the camera: write 0 (or NaN) where there is none")
         if options.along_ray:
             depth /= _ray_lengths(view, (depth.shape[1], depth.shape[0]))
-        return (depth * view.source.units).astype(np.float32)
+        return _as_float32(depth * view.source.units, file)
 
     def as_float(self, values: torch.Tensor, device: torch.device | str) -> torch.Tensor:
         return values.to(device, non_blocking=True)[:, :, None]
@@ -122,6 +126,18 @@ class DepthKind(Kind):
         span = f"{float(known.min()):.3g} to {float(known.max()):.3g} scene units" if known.numel() else "all empty"
         return (f"depth maps for {len(present)} of {len(values)} images from {found.where} ({options.encoding}): "
                 f"{span}, {100 * (1 - known.numel() / max(pixels, 1)):.1f}% of their pixels without one")
+
+
+def _as_float32(depth: np.ndarray, file: Path) -> np.ndarray:
+    """The depths as float32, which a view keeps; a depth beyond its range would become inf, a target no render
+    reaches, where the file meant a number (NaN and inf were made 0, no depth, before)."""
+    with np.errstate(over="ignore"):
+        single = depth.astype(np.float32)
+    if not np.isfinite(single).all():
+        raise DataError(f"depth map {file} holds depths up to {depth.max():.4g} scene units, beyond float32's range "
+                        f"({np.finfo(np.float32).max:.3g}); save the depths in the capture's units, with 0, NaN or inf "
+                        "where there is none")
+    return single
 
 
 def _beside(photo: Path) -> Path | None:
@@ -147,9 +163,11 @@ def _read(file: Path, options: DepthOptions) -> np.ndarray:
                             "with numpy.save") from None
         if array.ndim == 3 and array.shape[2] == 1:
             array = array[:, :, 0]
-        if array.ndim != 2 or not np.issubdtype(array.dtype, np.number) or min(array.shape) == 0:
+        # Real numbers only: a complex array would lose its imaginary part with a mere warning, a timedelta read
+        # as a count; numpy calls both numbers.
+        if array.ndim != 2 or array.dtype.kind not in REAL_KINDS or min(array.shape) == 0:
             raise DataError(f"depth map {file} holds an array of shape {list(array.shape)} ({array.dtype}); it must "
-                            "be [height, width] numbers, one depth per pixel")
+                            "be [height, width] real numbers (integers or floats), one depth per pixel")
         return array.astype(np.float64)
     try:
         with Image.open(file) as im:

@@ -39,6 +39,7 @@ class GaussianFormat:
     # drawn with the 2D filter), "spz_version".
     settings: tuple[str, ...] = ()
     companions: Callable[[Path], tuple[Path, ...]] = lambda path: ()  # the other files written beside it (a .bin)
+    check_path: Callable[[Path], None] | None = None  # refuses, in one line, a file it must not be written as
 
     @property
     def records_antialiasing(self) -> bool:
@@ -58,7 +59,8 @@ FORMATS: dict[str, GaussianFormat] = {entry.name: entry for entry in (
     GaussianFormat("glb", ".glb", "glTF binary, Khronos KHR_gaussian_splatting (three.js, Babylon.js, PlayCanvas), "
                    "full SH, float32.", gltf.write_glb, gltf.read_glb),
     GaussianFormat("gltf", ".gltf", "the same as glTF JSON with its buffer in a .bin beside it.",
-                   gltf.write_gltf, gltf.read_gltf, companions=lambda path: (gltf.bin_file_of(path),)),
+                   gltf.write_gltf, gltf.read_gltf, companions=lambda path: (gltf.bin_file_of(path),),
+                   check_path=gltf.check_buffer_file),
 )}
 EXTENSIONS = {name: entry.ending for name, entry in FORMATS.items()}
 

@@ -47,3 +47,7 @@ def read_bytes(path) -> bytes:
         return path.read_bytes()
     except FileNotFoundError:
         raise MCSplatError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise MCSplatError(f"{path}: a folder, not a file") from None
+    except OSError as error:  # unreadable (permissions, a device): the file's name and why, in one line
+        raise MCSplatError(f"{path}: cannot be read ({error.strerror or error})") from None

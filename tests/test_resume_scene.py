@@ -1,0 +1,125 @@
+"""--resume continues on the scene the run trained on: config.json names it from the root, with a fingerprint (its
+kind, its views' names and image sizes) by which the scene given on the command line is known wherever it is now;
+another scene is refused (issue 58: a lego model went on training on the cup, and `train cup --resume` on a lego
+run trained lego without a word)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from mcsplat import run_dir
+from mcsplat.cli import main
+
+DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
+
+LOUD = ["--steps", "3", "--model.num-init-points", "500", "--lpips-net", "alex", "--no-save-renders"]
+TRAIN = LOUD + ["--quiet"]
+
+
+def cut_scene(source: Path, root: Path, first: int, count: int) -> Path:
+    """A copy of the blender scene `source` (the mini demo) with the demo's training frames first .. first + count - 1
+    in place of its own (its test split kept)."""
+    shutil.copytree(source, root, copy_function=shutil.copyfile)
+    meta = json.loads((DEMO / "transforms_train.json").read_text())
+    meta["frames"] = meta["frames"][first:first + count]
+    for frame in meta["frames"]:
+        name = Path(frame["file_path"]).name + ".png"
+        shutil.copyfile(DEMO / "train" / name, root / "train" / name)
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+    return root
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, mini_demo) -> tuple[Path, Path]:
+    """(scene, run): a 3-step run of a copy of the mini demo, trained from the scene's parent folder with the scene
+    given as a relative path."""
+    root = tmp_path_factory.mktemp("resume_scene")
+    scene = Path(shutil.copytree(mini_demo, root / "lego", copy_function=shutil.copyfile))
+    with pytest.MonkeyPatch.context() as patch:
+        patch.chdir(root)
+        assert main(["train", "lego", "--out", "run"] + TRAIN) == 0
+    return scene, root / "run"
+
+
+@pytest.fixture
+def run_copy(trained, tmp_path) -> Path:
+    return Path(shutil.copytree(trained[1], tmp_path / "run"))
+
+
+def files_of(run: Path) -> dict[str, bytes]:
+    return {path.name: path.read_bytes() for path in run.iterdir() if path.is_file()}
+
+
+def test_config_json_names_the_scene_from_the_root_with_its_fingerprint(trained, tmp_path, monkeypatch):
+    scene, run = trained
+    config = json.loads((run / "config.json").read_text())
+    assert config["data"] == str(scene), "stored as typed (lego), another folder's commands did not find it"
+    assert config["scene"]["kind"] == "blender"
+    assert (config["scene"]["train_views"], config["scene"]["test_views"]) == (12, 3)
+    monkeypatch.chdir(tmp_path)
+    assert len(run_dir.load(run, torch.device("cpu")).scene.train) == 12
+
+
+def test_resume_refuses_another_scene_given_and_says_where_each_came_from(trained, run_copy, tmp_path, capsys):
+    scene, _ = trained
+    other = cut_scene(scene, tmp_path / "other", first=12, count=8)
+    before = files_of(run_copy)
+    assert main(["train", str(other), "--out", str(run_copy), "--resume"] + TRAIN) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and f"{other} (given on the command line) is not the scene" in error, error
+    assert f"{scene} ({run_copy / 'config.json'} names it)" in error and "8 training and 3 test views" in error
+    assert files_of(run_copy) == before, "nothing written"
+
+    # config.json's path edited to the other scene: the scene named there is not the one the run trained on.
+    config = json.loads((run_copy / "config.json").read_text())
+    (run_copy / "config.json").write_text(json.dumps({**config, "data": str(other)}))
+    assert main(["train", str(other), "--out", str(run_copy), "--resume"] + TRAIN) == 2
+    error = capsys.readouterr().err
+    assert f"--resume: {other} is not the scene this run trained on: it has 8 training" in error, error
+    assert f"the path in {run_copy / 'config.json'} was edited" in error, error
+
+    # Same counts, other views.
+    same_counts = cut_scene(scene, tmp_path / "same_counts", first=12, count=12)
+    assert main(["train", str(same_counts), "--out", str(run_copy), "--resume"] + TRAIN) == 2
+    assert "other view names or image sizes" in capsys.readouterr().err
+
+
+def test_resume_takes_the_scene_given_when_it_is_the_same_and_says_so(trained, run_copy, tmp_path, capsys):
+    """The scene moved (config.json's path is gone), or config.json's path edited to another scene: the scene given
+    is the one trained on, so the run goes on with it, saying so, and config.json names it from then on."""
+    scene, _ = trained
+    moved = Path(shutil.copytree(scene, tmp_path / "moved" / "lego", copy_function=shutil.copyfile))
+    config = json.loads((run_copy / "config.json").read_text())
+    (run_copy / "config.json").write_text(json.dumps({**config, "data": str(tmp_path / "gone")}))
+    assert main(["train", str(moved), "--out", str(run_copy), "--resume"] + LOUD) == 0
+    out = capsys.readouterr().out
+    assert f"on the scene given, {moved} ({run_copy / 'config.json'} named {tmp_path / 'gone'}: the same views)" \
+        in out, out
+    saved = json.loads((run_copy / "config.json").read_text())
+    assert saved["data"] == str(moved) and saved["scene"] == config["scene"]
+
+
+def test_an_old_run_folder_without_a_fingerprint_still_resumes(trained, run_copy, tmp_path, capsys):
+    scene, _ = trained
+    config = json.loads((run_copy / "config.json").read_text())
+    del config["scene"]
+    (run_copy / "config.json").write_text(json.dumps(config))
+    other = cut_scene(scene, tmp_path / "other", first=12, count=8)
+    assert main(["train", str(other), "--out", str(run_copy), "--resume"] + TRAIN) == 2
+    error = capsys.readouterr().err
+    assert f"this run trained on {scene} ({run_copy / 'config.json'} names it), not on {other}" in error, error
+    assert main(["train", str(scene), "--out", str(run_copy), "--resume"] + TRAIN) == 0
+    assert json.loads((run_copy / "config.json").read_text())["scene"]["train_views"] == 12, "fingerprinted now"
+
+
+def test_a_hand_edited_fingerprint_is_a_one_line_error(run_copy, trained, capsys):
+    config = json.loads((run_copy / "config.json").read_text())
+    (run_copy / "config.json").write_text(json.dumps({**config, "scene": {"kind": "blender"}}))
+    assert main(["train", str(trained[0]), "--out", str(run_copy), "--resume"] + TRAIN) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "config.json: scene is" in error, error
