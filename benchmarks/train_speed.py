@@ -38,6 +38,7 @@ import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see 
 import argparse
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -356,7 +357,7 @@ def run_one(cfg: dict) -> dict:
         "gaussians": b.model.num_gaussians, "image": f"{b.camera(0).width}x{b.camera(0).height}",
         "threads": cfg["threads"] if device == "cpu" else None,
         "scene_model": f"run {cfg['model_from']}" if cfg.get("model_from") else cfg["scene_model"],
-        "strategy": cfg["strategy"],
+        "strategy": cfg["strategy"], "build": cfg.get("build", "native"),
         "step_ms": round(C.median(plain) * 1000.0 + refine_extra_ms / REFINE_EVERY, 1) if plain else None,
         "instrumented_step_ms": round(ms["total"] + refine_extra_ms / REFINE_EVERY, 1),
         "baseline_step_ms": round(C.median(baseline) * 1000.0, 1) if baseline else None,
@@ -380,8 +381,19 @@ def run_one(cfg: dict) -> dict:
     return record
 
 
+def build_environment(build: str) -> dict[str, str]:
+    """The environment of a worker that runs the CPU kernels built as `build` says: "native" (this host's), or an
+    LLVM CPU name (znver3: AVX2, no AVX-512), optionally with ":LANES" (the SIMD kernels' vector width)."""
+    target, _, lanes = build.partition(":")
+    env = {**os.environ, "MCSPLAT_CPU_TARGET": target}
+    if lanes:
+        env["MCSPLAT_SIMD_LANES"] = lanes
+    return env
+
+
 def run_in_subprocess(cfg: dict) -> dict:
-    proc = subprocess.run([sys.executable, __file__, "--worker", json.dumps(cfg)], stdout=subprocess.PIPE, text=True)
+    proc = subprocess.run([sys.executable, __file__, "--worker", json.dumps(cfg)], stdout=subprocess.PIPE, text=True,
+                          env=build_environment(cfg.get("build", "native")))
     lines = [line for line in proc.stdout.splitlines() if line.startswith("{")]
     if proc.returncode != 0 or not lines:
         sys.exit(f"train_speed: the configuration {cfg} failed (exit {proc.returncode})")
@@ -390,11 +402,15 @@ def run_in_subprocess(cfg: dict) -> dict:
 
 # ------------------------------------------------------------------------------------------------ the reports
 def label(r: dict) -> str:
-    return C.human(r["gaussians"]) + (f" / {r['threads']}t" if r.get("threads") else "")
+    return (C.human(r["gaussians"]) + (f" / {r['threads']}t" if r.get("threads") else "")
+            + (f" / {r['build']}" if r.get("build", "native") != "native" else ""))
 
 
 def markdown(records: list[dict], info: dict, args) -> str:
-    cols = [("Gaussians", "gaussians", ""), ("threads", "threads", ""), ("step ms", "step_ms", ".1f")]
+    cols = [("Gaussians", "gaussians", ""), ("threads", "threads", "")]
+    if any(r.get("build", "native") != "native" for r in records):
+        cols += [("build", "build", "")]
+    cols += [("step ms", "step_ms", ".1f")]
     if records and records[0].get("baseline_step_ms"):
         cols += [("baseline ms", "baseline_step_ms", ".1f"), ("speed-up", "speedup_over_baseline", ".2f")]
     cols += [(p.replace("_", " "), p, lambda r, p=p: f"{r['phases_ms'][p]:.1f} ({100 * r['shares'][p]:.0f}%)")
@@ -465,6 +481,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--baseline", action="store_true",
                         help="also time plain steps through the pre-kernel render path, in the same process")
+    parser.add_argument("--builds", nargs="+", default=["native"],
+                        help="CPU kernel builds to time, each in its own processes: native (this host's), or an LLVM "
+                             "CPU name (znver3: AVX2 without AVX-512), optionally :LANES (4, 8, 16), e.g. znver3:8")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="times each configuration runs, the builds taking turns (medians over rounds: "
+                             "results.md shows each run)")
     parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/train_speed)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -479,19 +501,19 @@ def main() -> None:
     threads = sorted(set(args.threads)) if args.device == "cpu" else [None]
     records = []
     sizes = [0] if args.scene_model == "sfm" or args.model_from else args.sizes  # the points or the run fix it
-    for n in sizes:
-        for t in threads:
-            cfg = {"gaussians": n, "threads": t, "device": args.device, "scene_model": args.scene_model,
-                   "strategy": args.strategy, "warmup": args.warmup, "repeats": args.repeats, "plain": args.plain,
-                   "refines": args.refines, "seed": args.seed, "baseline": args.baseline,
-                   "downscale": args.downscale, "model_from": args.model_from,
-                   "data": str(C.scene_path(args.scene, args.data_root))}
-            started = time.perf_counter()
-            record = run_in_subprocess(cfg)
-            record.update(wall_seconds=round(time.perf_counter() - started, 1), load_average_before=load,
-                          machine=info, commit=C.git_commit(), date=C.timestamp())
-            C.emit(record)
-            records.append(record)
+    runs = [(n, t, build) for _ in range(args.rounds) for n in sizes for t in threads for build in args.builds]
+    for n, t, build in runs:
+        cfg = {"gaussians": n, "threads": t, "device": args.device, "scene_model": args.scene_model, "build": build,
+               "strategy": args.strategy, "warmup": args.warmup, "repeats": args.repeats, "plain": args.plain,
+               "refines": args.refines, "seed": args.seed, "baseline": args.baseline,
+               "downscale": args.downscale, "model_from": args.model_from,
+               "data": str(C.scene_path(args.scene, args.data_root))}
+        started = time.perf_counter()
+        record = run_in_subprocess(cfg)
+        record.update(wall_seconds=round(time.perf_counter() - started, 1), load_average_before=load,
+                      machine=info, commit=C.git_commit(), date=C.timestamp())
+        C.emit(record)
+        records.append(record)
     C.append_jsonl(out / "results.jsonl", records)
     C.write_text(out / "results.md", markdown(records, info, args))
     plotted = plot(records, out / "phases.png")

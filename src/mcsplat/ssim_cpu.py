@@ -28,6 +28,7 @@ import math
 import torch
 import warp as wp
 
+from .compute.cpu_target import kernel_flags
 from .compute.runtime import cpu_threads, ensure_warp, run_ranges
 from .ssim_warp import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
 
@@ -188,7 +189,7 @@ _BACKWARD = _HELPERS + """
 """
 
 # Fused multiply-add in the blur loops (Warp's default keeps a * b + c as two roundings).
-wp.set_module_options({"cpu_compiler_flags": "-march=native -ffp-contract=fast"})
+wp.set_module_options({"cpu_compiler_flags": kernel_flags("-ffp-contract=fast")})
 
 _floats = wp.array(dtype=wp.float32)
 

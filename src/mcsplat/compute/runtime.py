@@ -18,6 +18,8 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 import warp as wp
 
+from .cpu_target import with_target
+
 _init_lock = threading.Lock()
 _initialised = False
 _pool: ThreadPoolExecutor | None = None
@@ -63,6 +65,7 @@ def ensure_warp() -> None:
         # Launches with a block size above one run on the CPU as cooperative fibers, as CUDA blocks: the tile
         # kernels (render/tile_kernels.py) are checked on the CPU this way. Other launches name no block size.
         wp.config.enable_cpu_blocks = True
+        wp.config.cpu_compiler_flags = with_target(wp.config.cpu_compiler_flags)  # MCSPLAT_CPU_TARGET, if set
         if _cuda_driver_present():
             wp.init()
         else:

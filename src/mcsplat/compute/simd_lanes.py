@@ -1,7 +1,7 @@
-"""C++ snippets for SIMD kernels over clang vector types (`wp.func_native`), one item per lane of a 16-lane vector.
+"""C++ snippets for SIMD kernels over clang vector types (`wp.func_native`), one item per lane of a LANES-wide vector.
 
 The CPU's SIMD kernels (render/cpu/, geometry/covariance.py) take items in chunks of LANES: chunk c holds items
-[16 c, 16 c + 16) and a short last chunk repeats its last item in the spare lanes. Their per-item arrays are
+[LANES c, LANES (c + 1)) and a short last chunk repeats its last item in the spare lanes. Their per-item arrays are
 interleaved rows (x, y, z of one item, then the next), which lanes_in turns into one vector per component and
 lanes_out back: for a full chunk with whole-vector loads or stores and one shuffle per vector (clang picks the
 permutes), for a short one lane by lane. The snippets expect `first` (the chunk's first item) and `count` (its items)
@@ -10,26 +10,33 @@ in scope, and VECTOR_TYPES's typedefs.
 
 from __future__ import annotations
 
-LANES = 16
+import os
 
-# vf / vi: 16 floats / ints; the _u variants allow unaligned loads and stores (rows start anywhere).
-VECTOR_TYPES = """
-    typedef float vf __attribute__((ext_vector_type(16)));
-    typedef int vi __attribute__((ext_vector_type(16)));
-    typedef float vf_u __attribute__((ext_vector_type(16), aligned(4)));
-    typedef int vi_u __attribute__((ext_vector_type(16), aligned(4)));
+# 16 on every CPU: built for AVX2 (a 16-lane vector is two 256-bit registers), 8 lanes measured no faster
+# (benchmarks/README.md, "The CPU kernels built for AVX2", 2026-11-28). MCSPLAT_SIMD_LANES (4, 8 or 16) sets another
+# width, to measure it again.
+LANES = int(os.environ.get("MCSPLAT_SIMD_LANES", "16"))
+assert LANES in (4, 8, 16), "MCSPLAT_SIMD_LANES must be 4, 8 or 16"
+
+# vf / vi: LANES floats / ints; the _u variants allow unaligned loads and stores (rows start anywhere).
+VECTOR_TYPES = f"""
+    typedef float vf __attribute__((ext_vector_type({LANES})));
+    typedef int vi __attribute__((ext_vector_type({LANES})));
+    typedef float vf_u __attribute__((ext_vector_type({LANES}), aligned(4)));
+    typedef int vi_u __attribute__((ext_vector_type({LANES}), aligned(4)));
 """
 
 
 def concatenated(parts: list[str]) -> str:
-    """C++ for the vectors `parts` (16 lanes each) as one vector of 16 x len(parts) lanes, padded to 32 or 64."""
+    """C++ for the vectors `parts` (LANES lanes each, at most four) as one vector of LANES x len(parts) lanes, padded
+    to 2 or 4 x LANES."""
     if len(parts) == 1:
         return parts[0]
     pairs = [(parts[k], parts[min(k + 1, len(parts) - 1)]) for k in range(0, len(parts), 2)]
-    halves = [f"__builtin_shufflevector({a}, {b}, {', '.join(map(str, range(32)))})" for a, b in pairs]
+    halves = [f"__builtin_shufflevector({a}, {b}, {', '.join(map(str, range(2 * LANES)))})" for a, b in pairs]
     if len(halves) == 1:
         return halves[0]
-    return f"__builtin_shufflevector({halves[0]}, {halves[1]}, {', '.join(map(str, range(64)))})"
+    return f"__builtin_shufflevector({halves[0]}, {halves[1]}, {', '.join(map(str, range(4 * LANES)))})"
 
 
 def lanes_in(dst: str, src: str, stride: int, kind: str = "f") -> str:

@@ -11,6 +11,7 @@ import functools
 import torch
 import warp as wp
 
+from ..compute.cpu_target import kernel_flags
 from ..compute.runtime import ensure_warp, run_ranges, warp_scalar, warp_view
 from ..compute.simd_lanes import LANES, VECTOR_TYPES, lanes_in, lanes_out
 
@@ -73,7 +74,7 @@ _COVARIANCE_SIMD = VECTOR_TYPES + f"""
     for (int k = 0; k < 3; ++k) result[k] = r[k][0] * local[0] + r[k][1] * local[1] + r[k][2] * local[2];
 """ + lanes_out(["result[0]", "result[1]", "result[2]"], "out_")
 
-wp.set_module_options({"cpu_compiler_flags": "-march=native -mprefer-vector-width=512"})
+wp.set_module_options({"cpu_compiler_flags": kernel_flags("-mprefer-vector-width=512")})
 _float_array = wp.array(dtype=wp.float32)
 
 

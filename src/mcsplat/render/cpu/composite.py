@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ...compute.cpu_target import kernel_flags
 from ..constants import (ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, MEDIAN_TRANSMITTANCE, POWER_SKIP, TILE_SIZE,
                          TRANSMITTANCE_MIN)
 
@@ -312,7 +313,7 @@ _BACKWARD_BODY = _PRELUDE + """
 # 512-bit vectors where the CPU has them (clang otherwise splits a 16-lane vector into two 256-bit halves; on AVX2 the
 # 16 lanes take two registers each, and 8-lane vectors over half-blocks measured no faster there). Fused multiply-add
 # (Warp's default keeps a * b + c as two roundings) makes the kernels about 10% faster.
-wp.set_module_options({"cpu_compiler_flags": "-march=native -mprefer-vector-width=512 -ffp-contract=fast"})
+wp.set_module_options({"cpu_compiler_flags": kernel_flags("-mprefer-vector-width=512 -ffp-contract=fast")})
 
 _int_array = wp.array(dtype=wp.int32)
 _float_array = wp.array(dtype=wp.float32)

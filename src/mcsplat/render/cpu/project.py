@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ...compute.cpu_target import kernel_flags
 from ...compute.simd_lanes import LANES, VECTOR_TYPES, lanes_in, lanes_out
 from ...geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from ..constants import TILE_SIZE
@@ -427,7 +428,7 @@ def _with_constants(body: str) -> str:
 
 # Same options as the compositing kernels (render/cpu/composite.py): 512-bit vectors where the CPU has them, fused
 # multiply-add.
-wp.set_module_options({"cpu_compiler_flags": "-march=native -mprefer-vector-width=512 -ffp-contract=fast"})
+wp.set_module_options({"cpu_compiler_flags": kernel_flags("-mprefer-vector-width=512 -ffp-contract=fast")})
 
 _int_array = wp.array(dtype=wp.int32)
 _float_array = wp.array(dtype=wp.float32)
