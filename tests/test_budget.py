@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -298,11 +299,38 @@ def test_a_resumed_budget_run_keeps_the_ceiling_it_started_with():
     assert budget_planner(saved, plan, scene).ceiling == 120_000
 
 
+def test_a_budget_run_stopped_and_resumed_keeps_its_ceiling(tmp_path, mini_demo, monkeypatch):
+    """Issue 58 #3, end to end: a --budget run without --cap-max stopped by a signal, then resumed. config.json
+    holds the plan's cap at the stop in --mcmc.cap-max's place; the resumed run's ceiling is still the one it
+    started with, where it used to be that planned cap (a 40 s lego run stopped and resumed ended at 3,148
+    Gaussians and 21.5 dB; uninterrupted, 9,044 and 25.0 dB)."""
+    import signal
+
+    from test_run_folder import before_each_step
+
+    def stop(step: int) -> None:
+        if step == 12:
+            signal.raise_signal(signal.SIGTERM)
+
+    config = TrainConfig(data=mini_demo, out=tmp_path / "run", budget="4s", downscale=2, quiet=True,
+                         save_renders=False, lpips_net="alex")
+    with monkeypatch.context() as patch:
+        before_each_step(patch, stop)
+        with pytest.raises(MCSplatError, match="stopped at step 13.*--resume"):
+            train(config)
+    stopped = json.loads((tmp_path / "run" / "config.json").read_text())
+    ceiling = stopped["budget_plan"]["ceiling"]
+    assert stopped["cap_max"] is None and stopped["mcmc"]["cap_max"] == stopped["budget_plan"]["cap"] <= ceiling
+    metrics = train(replace(config, resume=True))
+    resumed = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert resumed["budget_plan"]["ceiling"] == ceiling, "the ceiling the run started with, not its planned cap"
+    assert metrics["steps"] > 13 and metrics["num_gaussians"] <= ceiling
+
+
 def test_the_planners_curves_give_numpy_no_warning_at_their_extremes():
     """A start size that underflowed to 0 and growth at a huge rate made numpy warn ("divide by zero encountered in
     power", "overflow encountered in power") on real captures' consoles; the curves now stay in range."""
     import warnings
-    from dataclasses import replace
     planner = _known_costs(pixels=0.010)
     planner.plan = replace(planner.plan, resolution_start=0.0, resolution_full_at=0.5)
     planner.scale_now = 0.0
