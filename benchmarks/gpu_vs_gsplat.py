@@ -47,11 +47,11 @@ class Setup:
 
     def __init__(self, args):
         self.config = TrainConfig(data=Path(args.data), steps=args.steps, cap_max=args.cap, device=args.device,
-                                  seed=args.seed, model=ModelConfig(num_init_points=args.init,
-                                                                    init=args.init_method))
+                                  seed=args.seed, downscale=getattr(args, "downscale", 1),
+                                  model=ModelConfig(num_init_points=args.init, init=args.init_method))
         self.plan = Plan.literal(self.config)  # the paper's schedules, taken as they are
         self.device = torch.device(args.device)
-        self.scene = load_scene(self.config.data)
+        self.scene = load_scene(self.config.data, downscale=self.config.downscale)
         self.background = background_of(self.config, self.scene)
         self.radius = self.scene.radius
 
@@ -228,7 +228,8 @@ def main() -> None:
         print(f"step time mcsplat / gsplat: {ratio:.2f}x; PSNR mcsplat - gsplat: "
               f"{by_arm['mcsplat']['psnr'] - by_arm['gsplat']['psnr']:+.2f} dB")
     table = C.markdown_table(records, [("arm", "arm", ""), ("Gaussians", "num_gaussians", ","),
-                                       ("median ms/step", "median_step_ms", ".2f"), ("peak GPU MB", "peak_gpu_mb", ".0f"),
+                                       ("median ms/step", "median_step_ms", ".2f"),
+                                       ("peak GPU MB", "peak_gpu_mb", ".0f"),
                                        ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"),
                                        ("train s", "train_seconds", ".1f")])
     print(table)

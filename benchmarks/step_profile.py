@@ -1,13 +1,20 @@
-"""Where a GPU training step goes: torch.profiler over steps of the trainer's own step (gpu_vs_gsplat's mcsplat arm).
+"""Where a training step goes: what it launches, counted, and torch.profiler over steps of the trainer's own step
+(gpu_vs_gsplat's mcsplat arm), on CUDA or the CPU.
 
     python benchmarks/step_profile.py --data PATH/lego [--cap 300000] [--warm 300] [--profiled 30]
+    .venv/bin/python benchmarks/step_profile.py --device cpu --data PATH/lego --cap 100000 --warm 20 --profiled 5
+    .venv/bin/python benchmarks/step_profile.py --device cpu --data PATH/lego --cap 1000 --downscale 6   # fixed cost
 
-After --warm steps (Warp's kernels compiled, the model grown past the start), --profiled steps run under the
-profiler. Printed: the wall time per step (slowed by the profiler's own host work); the GPU's busy time per step (the sum of
-the kernels' own device time, Warp's kernels included: CUPTI sees every launch of the process); the host time per step spent in torch operators;
-the number of kernel launches per step; and the operators and kernels that take the most device time and the most
-host time. Busy time well under the wall time means the step waits on the host (launch overhead, Python,
-synchronisations), not on the GPU. JSON on the last line.
+First, with no profiler, --profiled steps are counted: the torch operators dispatched (aten operators, the autograd
+backward's included: what the step asks of the framework), the Warp kernel launches (each launch of a CPU kernel
+across the thread pool's workers counts once per worker, as each is a launch), and the host's wall time per step.
+
+After --warm steps (Warp's kernels compiled, the model grown past the start) and the counted ones, --profiled steps
+run under the profiler. Printed: the wall time per step (slowed by the profiler's own host work); the GPU's busy time
+per step (the sum of the kernels' own device time, Warp's kernels included: CUPTI sees every launch of the process);
+the host time per step spent in torch operators; the number of kernel launches per step; and the operators and kernels
+that take the most device time and the most host time. Busy time well under the wall time means the step waits on the
+host (launch overhead, Python, synchronisations), not on the GPU. JSON on the last line.
 """
 
 from __future__ import annotations
@@ -15,13 +22,71 @@ from __future__ import annotations
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
 import argparse
+import contextlib
 import json
+import threading
 import time
 
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 import _common as C
 from gpu_vs_gsplat import McsplatArm, Setup
+
+
+class OperatorCount(TorchDispatchMode):
+    """Counts the aten operators dispatched while it is on (the autograd backward's among them)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.count += 1
+        return func(*args, **(kwargs or {}))
+
+
+@contextlib.contextmanager
+def warp_launches_counted():
+    """Counts wp.launch and wp.launch_tiled calls, from any thread, while it is on."""
+    import warp as wp
+    counter, lock = [0], threading.Lock()
+    originals = {name: getattr(wp, name) for name in ("launch", "launch_tiled")}
+
+    def counting(original):
+        def launch(*args, **kwargs):
+            with lock:
+                counter[0] += 1
+            return original(*args, **kwargs)
+        return launch
+
+    for name, original in originals.items():
+        setattr(wp, name, counting(original))
+    try:
+        yield counter
+    finally:
+        for name, original in originals.items():
+            setattr(wp, name, original)
+
+
+def count_step_work(step, first: int, steps: int, device: torch.device) -> dict:
+    """Torch operators and Warp launches per step, and the wall time per step, over `steps` steps without a
+    profiler (the operator count's hook slows the host a little: the wall time is an upper bound)."""
+    operators = OperatorCount()
+    with warp_launches_counted() as launches, operators:
+        started = time.perf_counter()
+        for k in range(first, first + steps):
+            step(k)
+        C.sync(device)
+        wall = (time.perf_counter() - started) / steps
+    return {"torch_ops_per_step": round(operators.count / steps, 1),
+            "warp_launches_per_step": round(launches[0] / steps, 1),
+            "counted_wall_ms_per_step": round(1000 * wall, 3)}
+
+
+def views_size(setup) -> str:
+    camera = setup.scene.train[0].camera
+    return f"{camera.width}x{camera.height}"
 
 
 def main() -> None:
@@ -34,15 +99,19 @@ def main() -> None:
     parser.add_argument("--profiled", type=int, default=30)
     parser.add_argument("--device", default="cuda", choices=["cuda", "cpu"])
     parser.add_argument("--top", type=int, default=15)
+    parser.add_argument("--downscale", type=int, default=1, help="load the images at 1/N of their size (a step's "
+                        "fixed cost: lego 400 at --downscale 6 is 66x66)")
     args = parser.parse_args()
     args.init = args.init or args.cap // 2
-    args.steps, args.seed = args.warm + args.profiled, 0
+    args.steps, args.seed = args.warm + 2 * args.profiled, 0  # warm, counted, profiled
     setup = Setup(args)
     arm = McsplatArm(setup)
     views = setup.views()
     for step in range(args.warm):
         arm.step(step, next(views))
     C.sync(setup.device)
+    counted = count_step_work(lambda step: arm.step(step, next(views)), args.warm, args.profiled, setup.device)
+    args.warm += args.profiled
     activities = [torch.profiler.ProfilerActivity.CPU]
     if setup.device.type == "cuda":
         activities.append(torch.profiler.ProfilerActivity.CUDA)
@@ -63,10 +132,11 @@ def main() -> None:
             continue
         print(f"--- by {sort}")
         print(events.table(sort_by=sort, row_limit=args.top, max_name_column_width=70))
-    record = {"gaussians": arm.count(), "wall_ms_per_step": round(1000 * wall, 3),
+    record = {"gaussians": arm.count(), "image": f"{views_size(setup)}", "wall_ms_per_step": round(1000 * wall, 3),
               "gpu_busy_ms_per_step": round(device_time / 1000 / args.profiled, 3),
               "host_op_ms_per_step": round(host_time / 1000 / args.profiled, 3),
               "kernel_launches_per_step": round(launches / args.profiled, 1), "profiled_steps": args.profiled,
+              **counted,
               **C.machine(args.device)}
     print(json.dumps(record), flush=True)
 
