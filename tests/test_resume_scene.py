@@ -123,3 +123,20 @@ def test_a_hand_edited_fingerprint_is_a_one_line_error(run_copy, trained, capsys
     assert main(["train", str(trained[0]), "--out", str(run_copy), "--resume"] + TRAIN) == 2
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and "config.json: scene is" in error, error
+
+
+def test_mask_and_depth_folders_are_named_from_the_root(tmp_path, monkeypatch, mini_demo):
+    """--masks and --depths folders given from the current folder are kept from the root, as the scene is: `eval`
+    or --resume run from elsewhere still finds them (their words, 'auto', 'none', 'alpha', stay words)."""
+    from mcsplat.config import TrainConfig
+
+    monkeypatch.chdir(tmp_path)
+    for masks, depths, expected in (("my-masks", "none", (str(tmp_path / "my-masks"), "none")),
+                                    ("alpha", "sensor/depths", ("alpha", str(tmp_path / "sensor" / "depths")))):
+        config = TrainConfig(data=mini_demo, out=Path("run") / masks, masks=masks, depths=depths)
+        lock = run_dir.train_lock(config)
+        try:
+            prepared, plan = run_dir.prepare(config, lock)
+        finally:
+            lock.release()
+        assert (prepared.masks, prepared.depths) == expected and plan is None

@@ -19,12 +19,10 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 import json
 import math
 import os
 import shutil
-import warnings
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -32,9 +30,7 @@ from typing import Any
 import torch
 
 from .config import PROCESS_OPTIONS, TrainConfig, flat_options, options_given, process_options, to_jsonable
-from .data import Scene, detect_kind, load_scene
-from .data.attachments.depth import DepthOptions
-from .data.attachments.masks import MaskOptions
+from .data import Scene, detect_kind
 from .errors import DataError, MCSplatError
 from .gaussians import DEAD_OPACITY, GaussianModel
 from .io.atomic import atomic_path, atomic_write_text, remove_stale_temporaries
@@ -42,9 +38,9 @@ from .io.checkpoint import DamagedCheckpoint, load_checkpoint, save_checkpoint
 from .io.disk import writing_into
 from .io.lock import FolderLock
 from .io.ply import write_ply
-from .partition import block_scene
 from .planning import REPLANNED_KEYS, Plan, initial_plan, load_run_config, run_record, save_run_config
 from .planning.config_file import load_scene_entry, save_scene_entry
+from .run_scene import Background, background_of, scene_of, with_folders_absolute
 
 CONFIG = "config.json"
 CHECKPOINT = "checkpoint.pt"
@@ -61,7 +57,6 @@ MARKERS = (CONFIG, CHECKPOINT, METRICS, SPLATS)  # any of them: the folder holds
 # What --resume may change: the process options, and where the scene and the run folder now are.
 RESUME_MAY_CHANGE = frozenset(PROCESS_OPTIONS) | {"data", "out", "resume", "overwrite"}
 
-Background = tuple[float, float, float]
 
 
 class RunDir:
@@ -269,6 +264,7 @@ def prepare(config: TrainConfig, lock: FolderLock, world_size: int = 1) -> tuple
     plan to continue: `config` itself and no plan for a new run; on --resume the run's saved configuration with this
     command line's process options, and its plan. A folder holding a run is refused without --resume or
     --overwrite, and a run resumed by another number of processes (`world_size`) than trained it."""
+    config = with_folders_absolute(config)
     run = RunDir(config.run_dir)
     given = options_given(config)
     if config.budget is not None and "steps" in given:
@@ -417,82 +413,6 @@ def check_resumable(plan: Plan, world_size: int) -> None:
         raise MCSplatError(f"this run was trained with {plan.world_size} process(es), its step schedules and "
                            f"learning rates scaled for {plan.world_size} views per step; resume it with the same "
                            f"number of processes (torchrun --nproc-per-node ... x --nnodes ...)")
-
-
-# ------------------------------------------------------------------------------------------- the run's scene
-def scene_of(config: TrainConfig) -> Scene:
-    """The scene a run trains on, loaded as the run loads it (a block's run: the part of it its block trains on)."""
-    scene = load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
-                       background=None if config.background == "auto" else config.background,
-                       masks=MaskOptions(config.masks, config.invert_masks),
-                       attachments=[DepthOptions(config.depths, config.depth_encoding, config.depth_measure,
-                                                 config.depth_png_step)])
-    return scene if config.block is None else block_scene(scene, config.block, config.run_dir)
-
-
-def absolute(path: str | Path) -> Path:
-    """`path` from the root, as config.json names a scene: a command run from another folder still finds it (the
-    path as typed, not resolved: a link to a scene stays one)."""
-    return Path(os.path.abspath(path))
-
-
-def scene_fingerprint(scene: Scene) -> dict[str, Any]:
-    """What tells a scene from another wherever its folder is (config.json's "scene"): its kind, its training and
-    test views' counts, and a digest of their names and image sizes."""
-    digest = hashlib.sha256()
-    for split, views in (("train", scene.train), ("test", scene.test)):
-        for view in views:
-            digest.update(f"{split}|{view.name}|{view.camera.width}x{view.camera.height}\n".encode())
-    return {"kind": scene.kind, "train_views": len(scene.train), "test_views": len(scene.test),
-            "views": digest.hexdigest()[:16]}
-
-
-def scene_to_resume(config: TrainConfig, named: Path, run: RunDir) -> tuple[Scene, str | None]:
-    """The scene a resumed run continues on: the one given (`config.data`) when it is the scene the run trained on
-    (config.json's fingerprint of it), wherever it is now, with a note when it is not where config.json names it
-    (`named`); another scene is refused, saying where each path came from. A folder written before the fingerprint
-    takes the scene config.json names, or, when that is gone, the one given, with a warning that it is unchecked."""
-    given, saved = Path(config.data), run.read_scene_fingerprint()
-    moved = given.resolve() != named.resolve()
-    if saved is None and moved and named.exists():
-        raise MCSplatError(f"--resume: this run trained on {named} ({run.config_file} names it), not on {given}; give "
-                           f"that scene (this run folder is older than the fingerprint that would tell whether "
-                           f"{given} holds the same scene)")
-    scene = scene_of(config)
-    if saved is None:
-        if moved:
-            warnings.warn(f"--resume: {run.config_file} names the scene {named}, which is gone; resuming on {given} "
-                          f"without checking that it is the same scene (this run folder is older than the "
-                          f"fingerprint that would tell)", stacklevel=3)
-        return scene, None
-    found = scene_fingerprint(scene)
-    if found != saved:
-        differs = scene_difference(found, saved)
-        if not moved:
-            raise MCSplatError(f"--resume: {given} is not the scene this run trained on: it has {differs} (the scene "
-                               f"changed, or the path in {run.config_file} was edited); give the scene the run trained "
-                               f"on, or start a new run with --overwrite or another --out")
-        raise MCSplatError(f"--resume: {given} (given on the command line) is not the scene this run trained on, "
-                           f"{named} ({run.config_file} names it): it has {differs}; give that scene, or train "
-                           f"{given} in another --out")
-    return scene, (f"on the scene given, {given} ({run.config_file} named {named}: the same views)" if moved
-                   else None)
-
-
-def scene_difference(found: dict[str, Any], saved: dict[str, Any]) -> str:
-    """How the scene of fingerprint `found` differs from the one of `saved`, in words."""
-    if found["kind"] != saved["kind"]:
-        return f"the format {found['kind']}, where the run's scene is {saved['kind']}"
-    if (found["train_views"], found["test_views"]) != (saved["train_views"], saved["test_views"]):
-        return (f"{found['train_views']} training and {found['test_views']} test views, where the run's scene has "
-                f"{saved['train_views']} and {saved['test_views']}")
-    return "other view names or image sizes than the run's scene"
-
-
-def background_of(config: TrainConfig, scene: Scene) -> Background:
-    if config.background == "auto":
-        return scene.background
-    return (1.0, 1.0, 1.0) if config.background == "white" else (0.0, 0.0, 0.0)
 
 
 # ------------------------------------------------------------------------------------------- a trained run

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
-from . import run_dir
+from . import run_dir, run_scene
 from .compute.device import resolve_device
 from .config import TrainConfig, process_options
 from .data import Scene
@@ -31,7 +31,7 @@ class RunSetup:
     folder: run_dir.RunDir
     device: torch.device
     scene: Scene
-    background: run_dir.Background
+    background: run_scene.Background
     state: TrainingState
     init_note: str  # where the state came from (the initialisation, or the step resumed at)
     planner: Planner
@@ -48,7 +48,7 @@ def set_up(config: TrainConfig, team: Team, lock: FolderLock) -> RunSetup:
     named = config.data  # where a resumed run's config.json says its scene is
     # This process's own options, and the scene given to it, from the root (it may differ between machines: the
     # scenes are compared below; a resumed run's with the one it trained on).
-    config = dataclasses.replace(config, **process_options(own), data=run_dir.absolute(own.data))
+    config = dataclasses.replace(config, **process_options(own), data=run_scene.absolute(own.data))
     if config.resume:
         run_dir.check_resumable(saved_plan, team.world_size)
     plan = saved_plan or initial_plan(config, team.world_size)
@@ -59,9 +59,10 @@ def set_up(config: TrainConfig, team: Team, lock: FolderLock) -> RunSetup:
         torch.set_num_threads(threads)
     set_cpu_threads(threads)
     if config.resume and team.is_main:
-        scene, scene_note = run_dir.scene_to_resume(config, named, folder)
+        scene, scene_note = run_scene.scene_to_resume(config, named, folder.read_scene_fingerprint(),
+                                                               folder.config_file)
     else:
-        scene, scene_note = run_dir.scene_of(config), None
+        scene, scene_note = run_scene.scene_of(config), None
     team.check_same_setup(scene_summary(scene))
     if not scene.test and config.eval_every and team.is_main:
         warnings.warn(f"--eval-every {config.eval_every} is ignored: the scene has no test views to evaluate "
@@ -72,5 +73,5 @@ def set_up(config: TrainConfig, team: Team, lock: FolderLock) -> RunSetup:
         note = f"{note} {scene_note}"
     planner = planner_for(config, plan, scene, state, resumed=config.resume)
     if team.is_main:
-        folder.begin(config, planner.plan, state.step, run_dir.scene_fingerprint(scene))
-    return RunSetup(config, folder, device, scene, run_dir.background_of(config, scene), state, note, planner)
+        folder.begin(config, planner.plan, state.step, run_scene.scene_fingerprint(scene))
+    return RunSetup(config, folder, device, scene, run_scene.background_of(config, scene), state, note, planner)

@@ -25,7 +25,7 @@ from .optim import make_optimizers
 from .per_image import PerImageModule
 from .planning import Plan, make_strategy
 from .pose_refinement import PoseRefinement
-from .run_dir import background_of
+from .run_scene import background_of
 from .strategy import Strategy
 
 

@@ -20,6 +20,7 @@ from ..io.lock import FolderLock
 from ..partition import BlockPlan, BlocksFolder, read_plan
 from ..planning import Plan
 from ..run_metrics import metrics
+from ..run_scene import background_of, scene_of
 
 
 def kept_in_core(plan: BlockPlan, index: int, model: GaussianModel) -> torch.Tensor:
@@ -54,7 +55,7 @@ def merge_blocks(folder: BlocksFolder, device: str = "auto", quiet: bool = False
     config = dataclasses.replace(plan.training, out=folder.merged, cap_max=plan.total_cap, block=None, named=None,
                                  resume=False, overwrite=False)
     merged_plan = _with_cap(block_plan, plan.total_cap)
-    scene = run_dir.scene_of(config)  # before anything is written: a scene that has moved writes nothing
+    scene = scene_of(config)  # before anything is written: a scene that has moved writes nothing
     target = run_dir.RunDir(folder.merged)
     target.path.mkdir(parents=True, exist_ok=True)
     with FolderLock(target.lock_file, "mcsplat blocks merge").acquire():
@@ -66,7 +67,7 @@ def merge_blocks(folder: BlocksFolder, device: str = "auto", quiet: bool = False
         record = {"num_gaussians": model.num_gaussians, "steps": steps, "blocks": counts}
         if scene.test:
             render_file = (lambda name: target.render_file("test", name)) if config.save_renders else None
-            result = evaluate(model, scene.test, run_dir.background_of(config, scene),
+            result = evaluate(model, scene.test, background_of(config, scene),
                               merged_plan.final_sh_degree(steps), where, lpips_net=config.lpips_net,
                               render_file=render_file, progress=not quiet)
             record = {**metrics(result, config.lpips_net, steps, model.num_gaussians), "blocks": counts}

@@ -17,7 +17,8 @@ from ..events import Listener
 from ..io.checkpoint import DamagedCheckpoint
 from ..partition import BlockPlan, BlocksFolder, PlanError, read_plan
 from ..partition.scene import block_views
-from ..run_dir import RunDir, scene_of
+from ..run_dir import RunDir
+from ..run_scene import scene_of
 from ..train import train
 from .merge import merge_blocks
 from .workers import join_workers

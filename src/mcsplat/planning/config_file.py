@@ -5,7 +5,7 @@ The file keeps the layout it has always had: the options with the plan's values 
 schedules fitted to them, the caps and the growth rate, the learning rates scaled for the processes: what the run
 trains with, and what the file's readers, the report and the benchmarks, look for there), then `world_size` and
 `budget_plan`, and `scene`: a fingerprint of the scene the run trains on (its kind, its views' counts, a digest of
-their names and image sizes; run_dir.scene_fingerprint), by which --resume knows it wherever it is now. Read back,
+their names and image sizes; run_scene.scene_fingerprint), by which --resume knows it wherever it is now. Read back,
 those values are the plan's (Plan.literal). A file written before the plan had a type of its own also holds
 `schedule_fitted` (whether its schedules were fitted: they always are now), which is left aside; one written before
 the fingerprint has no `scene`.
