@@ -22,6 +22,7 @@ from __future__ import annotations
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
 import argparse
+import collections
 import contextlib
 import json
 import threading
@@ -35,14 +36,18 @@ from gpu_vs_gsplat import McsplatArm, Setup
 
 
 class OperatorCount(TorchDispatchMode):
-    """Counts the aten operators dispatched while it is on (the autograd backward's among them)."""
+    """Counts the aten operators dispatched while it is on (the autograd backward's among them), by name."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.count = 0
+        self.names: collections.Counter = collections.Counter()
+
+    @property
+    def count(self) -> int:
+        return sum(self.names.values())
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.count += 1
+        self.names[func.overloadpacket.__name__] += 1
         return func(*args, **(kwargs or {}))
 
 
@@ -80,6 +85,7 @@ def count_step_work(step, first: int, steps: int, device: torch.device) -> dict:
         C.sync(device)
         wall = (time.perf_counter() - started) / steps
     return {"torch_ops_per_step": round(operators.count / steps, 1),
+            "torch_ops_most_per_step": {name: round(n / steps, 1) for name, n in operators.names.most_common(10)},
             "warp_launches_per_step": round(launches[0] / steps, 1),
             "counted_wall_ms_per_step": round(1000 * wall, 3)}
 
