@@ -210,8 +210,9 @@ def test_a_budget_run_stops_on_time_and_records_its_plan(tmp_path, mini_demo):
                                 save_every=0, save_renders=False, lpips_net="alex"))
     assert metrics["budget_seconds"] == 8.0 and abs(metrics["wall_seconds"] - 8.0) <= 0.05 * 8.0, metrics
     config = json.loads((tmp_path / "run" / "config.json").read_text())
-    plan = config["budget_plan"]
-    assert config["steps"] == metrics["steps"] and len(plan["history"]) >= 5
+    plan = config["plan"]["budget"]
+    assert config["plan"]["steps"] == metrics["steps"] and len(plan["history"]) >= 5
+    assert config["budget"] == "8s" and config["steps"] == TrainConfig(data=DEMO).steps, "the options as asked"
     assert plan["history"][-1]["at_seconds"] > 0.8 * 8.0, "planned again until near the end"
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert log[-1]["resolution"] == 1.0, "full size at the end"
@@ -281,10 +282,12 @@ def test_a_scene_without_points_starts_from_points_triangulated_from_its_poses(s
 
 
 def test_a_resumed_budget_run_keeps_the_ceiling_it_started_with():
-    """config.json holds the last plan's cap in --mcmc.cap-max's place; read back, the run's ceiling is still the
-    one it started with (before, a run stopped at a planned cap of 3,148 resumed capped there)."""
+    """config.json holds what was asked (--mcmc.cap-max's 1M) and the plan's cap beside it; read back, the run's
+    ceiling is the one it started with. A file of the older layout held the last plan's cap in --mcmc.cap-max's
+    place: the plan's record keeps the ceiling for it (before, a run stopped at a planned cap of 3,148 resumed capped
+    there)."""
     from types import SimpleNamespace
-    from mcsplat.planning import read_record, run_record
+    from mcsplat.planning import options_with_plan, read_record, run_record
     from mcsplat.planning.budget import budget_planner
     config = TrainConfig(data=DEMO, budget="120s", model=ModelConfig(num_init_points=1000))
     scene = SimpleNamespace(train_image_pixels=200 * 200)
@@ -295,14 +298,18 @@ def test_a_resumed_budget_run_keeps_the_ceiling_it_started_with():
     planner.start(0, 0.0, 1000)
     assert planner.plan.mcmc.cap_max < planner.ceiling
     saved, plan = read_record(json.loads(json.dumps(run_record(config, planner.plan))))
-    assert saved.mcmc.cap_max == planner.plan.mcmc.cap_max, "the option's place holds the plan's cap"
+    assert saved.mcmc.cap_max == 1_000_000 and plan.mcmc.cap_max == planner.plan.mcmc.cap_max
+    assert budget_planner(saved, plan, scene).ceiling == 120_000
+    older = json.loads(json.dumps(options_with_plan(config, planner.plan)))
+    saved, plan = read_record(older)
+    assert saved.mcmc.cap_max == planner.plan.mcmc.cap_max, "the older layout: the option's place held the plan's cap"
     assert budget_planner(saved, plan, scene).ceiling == 120_000
 
 
 def test_a_budget_run_stopped_and_resumed_keeps_its_ceiling(tmp_path, mini_demo, monkeypatch):
     """Issue 58 #3, end to end: a --budget run without --cap-max stopped by a signal, then resumed. config.json
-    holds the plan's cap at the stop in --mcmc.cap-max's place; the resumed run's ceiling is still the one it
-    started with, where it used to be that planned cap (a 40 s lego run stopped and resumed ended at 3,148
+    holds the plan's cap at the stop beside the options; the resumed run's ceiling is still the one it started
+    with, where it used to be that planned cap (a 40 s lego run stopped and resumed ended at 3,148
     Gaussians and 21.5 dB; uninterrupted, 9,044 and 25.0 dB)."""
     import signal
 
@@ -319,11 +326,12 @@ def test_a_budget_run_stopped_and_resumed_keeps_its_ceiling(tmp_path, mini_demo,
         with pytest.raises(MCSplatError, match="stopped at step 13.*--resume"):
             train(config)
     stopped = json.loads((tmp_path / "run" / "config.json").read_text())
-    ceiling = stopped["budget_plan"]["ceiling"]
-    assert stopped["cap_max"] is None and stopped["mcmc"]["cap_max"] == stopped["budget_plan"]["cap"] <= ceiling
+    ceiling = stopped["plan"]["budget"]["ceiling"]
+    assert stopped["cap_max"] is None and stopped["mcmc"]["cap_max"] == 1_000_000, "what was asked"
+    assert stopped["plan"]["mcmc"]["cap_max"] == stopped["plan"]["budget"]["cap"] <= ceiling
     metrics = train(replace(config, resume=True))
     resumed = json.loads((tmp_path / "run" / "config.json").read_text())
-    assert resumed["budget_plan"]["ceiling"] == ceiling, "the ceiling the run started with, not its planned cap"
+    assert resumed["plan"]["budget"]["ceiling"] == ceiling, "the ceiling the run started with, not its planned cap"
     assert metrics["steps"] > 13 and metrics["num_gaussians"] <= ceiling
 
 

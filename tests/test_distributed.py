@@ -88,9 +88,9 @@ def test_two_processes_train_one_model_and_rank_0_alone_writes(together, tmp_pat
     assert [r["step"] for r in log if "test_psnr" in r] == [600], "the periodic evaluation, split and gathered"
     renders = sorted(p.name for p in (run / "renders" / "test").rglob("*") if p.is_file())
     assert len(renders) == 25 and all(name.endswith(".png") for name in renders), "every test view, from both ranks"
-    saved = json.loads((run / "config.json").read_text())
-    assert saved["world_size"] == 2 and saved["steps"] == VIEWS // 2 and saved["mcmc"]["refine_every"] == 25
-    assert saved["optim"]["opacity_lr"] == pytest.approx(0.05 * math.sqrt(2))
+    plan = json.loads((run / "config.json").read_text())["plan"]
+    assert plan["world_size"] == 2 and plan["steps"] == VIEWS // 2 and plan["mcmc"]["refine_every"] == 25
+    assert plan["optim"]["opacity_lr"] == pytest.approx(0.05 * math.sqrt(2))
 
     alone = train(demo_config(tmp_path / "alone", threads=None))
     print(f"test PSNR: 2 processes x {VIEWS // 2} steps {metrics['psnr']:.2f} dB, 1 process x {VIEWS} steps "

@@ -23,8 +23,10 @@ LAYERS = [
     ("loop", ("trainer", "stopping", "subscribers")),
     ("run", ("run_setup", "state", "run_dir", "run_scene", "events", "run_metrics", "evaluation")),
     ("set-up", ("distributed", "initialization", "partition", "planning", "config", "config_types")),
-    ("method", ("surface", "loss_terms", "strategy", "mesh", "appearance", "pose_refinement", "visibility", "metrics", "optim")),
-    ("building blocks", ("render", "losses", "ssim_cpu", "ssim_warp", "capture", "data", "io", "camera_path", "per_image")),
+    ("method", ("surface", "depth_terms", "loss_terms", "strategy", "mesh", "appearance", "pose_refinement",
+                "visibility", "metrics", "optim")),
+    ("building blocks", ("render", "losses", "ssim_cpu", "ssim_warp", "adam_cpu", "capture", "data", "io",
+                         "camera_path", "per_image")),
     ("model", ("gaussians",)),
     ("foundation", ("geometry", "compute", "camera", "errors", "")),
 ]

@@ -13,11 +13,12 @@ import torch
 import tyro
 
 from mcsplat.cli import COMMANDS
-from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.config import ModelConfig, TrainConfig, to_jsonable
 from mcsplat.errors import MCSplatError
 from mcsplat.events import Subscriber
 from mcsplat.io.checkpoint import load_checkpoint
-from mcsplat.planning import Plan, initial_plan, load_run_config, make_strategy, read_record, run_record
+from mcsplat.planning import (Plan, initial_plan, load_run_config, make_strategy, options_with_plan, read_record,
+                              run_record)
 from mcsplat.strategy import MCMCSchedule
 from mcsplat.train import train
 
@@ -65,21 +66,42 @@ def test_the_strategy_follows_the_plan_and_the_options_stay():
     assert densifying.is_densify_step(60) and densifying.is_reset_step(300) and adc.adc.reset_every == 3000
 
 
-def test_config_json_keeps_the_plan_and_reads_it_back():
-    """The file has the layout it always had: the plan's values in the options' places, the processes and the
-    --budget record beside them. What is read back is the run's configuration and its plan."""
+def test_config_json_keeps_what_was_asked_and_the_plan_beside_it():
+    """The options as the user gave them, the plan beside them (with the processes and the --budget record). What
+    is read back is the configuration asked and the plan."""
     config = TrainConfig(data=DEMO, steps=3000, cap_max=5000)
     plan = dataclasses.replace(initial_plan(config, 2), budget={"history": [{"step": 1}]})
     record = json.loads(json.dumps(run_record(config, plan)))
-    assert (record["steps"], record["mcmc"]["refine_every"], record["sh_increase_every"]) == (1500, 5, 50)
-    assert record["world_size"] == 2 and record["budget_plan"] == {"history": [{"step": 1}]}
+    assert (record["steps"], record["mcmc"]["refine_every"], record["sh_increase_every"]) == (3000, 100, 1000)
+    assert record["optim"] == to_jsonable(config.optim), "the learning rates asked, not those scaled for 2 processes"
+    planned = record["plan"]
+    assert (planned["steps"], planned["mcmc"]["refine_every"], planned["sh_increase_every"]) == (1500, 5, 50)
+    assert planned["world_size"] == 2 and planned["budget"] == {"history": [{"step": 1}]}
+    assert planned["optim"]["means_lr"] == pytest.approx(config.optim.means_lr * 2 ** 0.5)
     saved, again = read_record(record)
-    assert again == plan and saved.steps == 1500 and saved.mcmc.cap_max == 5000
+    assert again == plan and saved == dataclasses.replace(config, named=saved.named)
+
+
+def test_a_hand_edited_plan_is_one_line_naming_the_value():
+    config = TrainConfig(data=DEMO, steps=3000)
+    record = json.loads(json.dumps(run_record(config, initial_plan(config))))
+    edits = [({**record["plan"], "steps": "many"}, 'config.json: plan.steps is "many", not a whole number'),
+             ({**record["plan"], "mcmc": {**record["plan"]["mcmc"], "cap_max": 1.5}},
+              "config.json: plan.mcmc.cap_max is 1.5, not a whole number"),
+             ({key: value for key, value in record["plan"].items() if key != "sh_degree"},
+              "config.json: plan lacks sh_degree"),
+             ({**record["plan"], "speed": 3}, "config.json: unknown option 'plan.speed'"),
+             ([], "config.json: plan must be an object")]
+    for edited, message in edits:
+        with pytest.raises(MCSplatError, match="put back|another mcsplat|must be an object") as refused:
+            read_record({**record, "plan": edited})
+        assert str(refused.value).startswith(message) and "\n" not in str(refused.value), str(refused.value)
 
 
 def old_layout(record: dict) -> dict:
     """config.json as mcsplat wrote it before the plan had a type of its own: the run's decisions were options,
     world_size, schedule_fitted and budget_plan between dist_timeout and model."""
+    record = options_with_plan(*read_record(record))
     decided = {"world_size": record["world_size"], "schedule_fitted": True, "budget_plan": record["budget_plan"]}
     old = {}
     for key, value in record.items():
@@ -104,7 +126,14 @@ class StopAt(Subscriber):
             self.run.control.stop()
 
 
-def test_a_run_folder_of_the_old_layout_resumes_bit_for_bit(tmp_path, mini_demo):
+def values_in_the_options_places(record: dict) -> dict:
+    """config.json as mcsplat wrote it until 2026-11-28: the plan's values in the options' places, world_size and
+    budget_plan beside them, the scene's fingerprint."""
+    return {**options_with_plan(*read_record(record)), "scene": record["scene"]}
+
+
+@pytest.mark.parametrize("layout", [old_layout, values_in_the_options_places])
+def test_a_run_folder_of_an_older_layout_resumes_bit_for_bit(tmp_path, mini_demo, layout):
     """A run stopped at step 20 whose config.json an older mcsplat wrote continues as the uninterrupted run: its
     fitted schedules are read back as the plan, not fitted a second time (which would stop refinement)."""
     def config(out: Path, **overrides) -> TrainConfig:
@@ -117,10 +146,10 @@ def test_a_run_folder_of_the_old_layout_resumes_bit_for_bit(tmp_path, mini_demo)
     with pytest.raises(MCSplatError, match="stopped at step 20"):
         train(config(run), subscribers=[StopAt(20)])
     written = json.loads((run / "config.json").read_text())
-    (run / "config.json").write_text(json.dumps(old_layout(written), indent=2))
+    (run / "config.json").write_text(json.dumps(layout(written), indent=2))
     saved, plan = load_run_config(run / "config.json")
     assert (plan.steps, plan.mcmc.refine_start, plan.mcmc.refine_every, plan.sh_increase_every) == (40, 1, 1, 1)
-    assert plan.mcmc.grow_rate == written["mcmc"]["grow_rate"] > 1.05, "the growth rate --cap-max planned"
+    assert plan.mcmc.grow_rate == written["plan"]["mcmc"]["grow_rate"] > 1.05, "the growth rate --cap-max planned"
     with pytest.raises(dataclasses.FrozenInstanceError):
         saved.steps = 80
     train(config(run, resume=True))

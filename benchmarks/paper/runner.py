@@ -15,6 +15,7 @@ import _common as C
 import mcsplat.run_dir as run_folders
 from budget import test_subset
 from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.planning import settings_of
 from mcsplat.strategy.adc import ADCConfig
 from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.train import train
@@ -119,7 +120,7 @@ def churn(run_dir: Path) -> dict:
     relocated = sum(int(line.get("relocated") or 0) for line in lines)
     count = lines[-1]["num_gaussians"] if lines else 0
     config = run_dir / "config.json"
-    mcmc = json.loads(config.read_text()).get("mcmc") if config.is_file() else None
+    mcmc = settings_of(json.loads(config.read_text())).get("mcmc") if config.is_file() else None  # the plan's
     moved = slots = 0
     for before, line in zip(lines, lines[1:] if mcmc else ()):
         if before["num_gaussians"] != count:  # still growing: relocations there are not a share of the cap

@@ -30,19 +30,49 @@ class Camera:
 
     @property
     def fx(self) -> float:
-        return float(self.K[0, 0])
+        return self.focal_and_centre[0]
 
     @property
     def fy(self) -> float:
-        return float(self.K[1, 1])
+        return self.focal_and_centre[1]
 
     @property
     def cx(self) -> float:
-        return float(self.K[0, 2])
+        return self.focal_and_centre[2]
 
     @property
     def cy(self) -> float:
-        return float(self.K[1, 2])
+        return self.focal_and_centre[3]
+
+    @property
+    def focal_and_centre(self) -> tuple[float, float, float, float]:
+        """(fx, fy, cx, cy) as Python numbers: read from K once per camera (the camera a camera was moved from by
+        `to` hands them over), not at every render, where reading a GPU tensor would wait for the queued kernels."""
+        numbers = self.__dict__.get("_focal_and_centre")
+        if numbers is None:
+            K = (self.on_host() or self).K.detach()
+            numbers = tuple(float(K[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2)))
+            object.__setattr__(self, "_focal_and_centre", numbers)
+        return numbers
+
+    @property
+    def pose_numbers(self) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
+        """(rotation row-major, translation, centre) of world_to_camera as Python numbers (the float32 values, the
+        centre computed in float32), read once per camera as focal_and_centre is."""
+        numbers = self.__dict__.get("_pose_numbers")
+        if numbers is None:
+            source = self.on_host() or self
+            w2c = source.world_to_camera.detach().to(dtype=torch.float64).cpu()
+            center = source.center.detach().to(dtype=torch.float64).cpu()
+            numbers = (tuple(w2c[:3, :3].reshape(-1).tolist()), tuple(w2c[:3, 3].tolist()), tuple(center.tolist()))
+            object.__setattr__(self, "_pose_numbers", numbers)
+        return numbers
+
+    def with_pose(self, world_to_camera: torch.Tensor) -> "Camera":
+        """This camera (its intrinsics, already read) at another pose."""
+        posed = Camera(K=self.K, world_to_camera=world_to_camera, width=self.width, height=self.height)
+        object.__setattr__(posed, "_focal_and_centre", self.focal_and_centre)
+        return posed
 
     @property
     def center(self) -> torch.Tensor:
@@ -52,18 +82,25 @@ class Camera:
         return -rotation.T @ translation
 
     def scaled(self, width: int, height: int) -> "Camera":
-        """The same camera for an image resized to width x height (intrinsics scaled per axis)."""
-        sx, sy = width / self.width, height / self.height
-        K = self.K.clone()
-        K[0, :] *= sx
-        K[1, :] *= sy
-        return Camera(K=K, world_to_camera=self.world_to_camera, width=width, height=height)
+        """The same camera for an image resized to width x height (intrinsics scaled per axis). Made once per size
+        (coarse to fine asks for the same few at every step), so that its numbers are read once."""
+        made = self.__dict__.setdefault("_scaled", {})
+        if (width, height) not in made:
+            sx, sy = width / self.width, height / self.height
+            K = self.K.clone()
+            K[0, :] *= sx
+            K[1, :] *= sy
+            made[(width, height)] = Camera(K=K, world_to_camera=self.world_to_camera, width=width, height=height)
+        return made[(width, height)]
 
     def to(self, device: torch.device | str) -> "Camera":
         """The camera with its tensors on `device`; it remembers the host copy it came from (see `on_host`)."""
         moved = Camera(K=self.K.to(device), world_to_camera=self.world_to_camera.to(device),
                        width=self.width, height=self.height)
         object.__setattr__(moved, "_host", self.on_host())
+        object.__setattr__(moved, "_focal_and_centre", self.focal_and_centre)
+        if not self.world_to_camera.requires_grad:  # a pose being learned is read where it is used
+            object.__setattr__(moved, "_pose_numbers", self.pose_numbers)
         return moved
 
     def on_host(self) -> "Camera | None":

@@ -8,7 +8,6 @@ its plan (mcsplat.planning), made from this and handed to the step and the strat
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import typing
 from dataclasses import dataclass, field
@@ -17,7 +16,7 @@ from typing import Annotated, Any, Literal, Sequence
 
 import tyro
 
-from .config_types import describe, fits, option_types
+from .config_types import checked_dataclass, option_types
 from .errors import MCSplatError
 from .optim import OptimConfig
 from .strategy.adc import ADCConfig
@@ -93,9 +92,9 @@ class TrainConfig:
     invert_masks: bool = False
     """Masks are white where the pixel is left out (and black where it is kept)."""
     depths: str = "none"
-    """Depth maps loaded onto the views, for a loss that reads them (none does yet: docs/extending.md): 'none',
-    'auto' (beside each photo as <photo stem>_depth.npy / .png, or the scene's depths/ folder) or a folder of
-    <image name>.npy / .png. A view without one has none."""
+    """Depth maps loaded onto the views, for --depth-loss: 'none', 'auto' (beside each photo as <photo
+    stem>_depth.npy / .png, or the scene's depths/ folder) or a folder of <image name>.npy / .png. A view without one
+    has none."""
     depth_encoding: Literal["metric", "nerf-synthetic"] = "metric"
     """metric: .npy floats, or 16-bit PNG steps of --depth-png-step, in the capture's units; nerf-synthetic: its
     8-bit renders (8 (1 - R/255) along the ray, R = 0: no object)."""
@@ -103,6 +102,24 @@ class TrainConfig:
     """What a metric depth map measures: z (along the optical axis) or ray (from the camera along the pixel's ray)."""
     depth_png_step: float = 0.001
     """A 16-bit PNG depth map's step in the capture's units (0.001: millimetres of a capture in metres)."""
+    depth_loss: Literal["none", "metric", "relative", "disparity"] = "none"
+    """Hold the rendered depth to the --depths maps: metric (a sensor's depths in the scene's units; maps in other
+    units are refused), relative (a monocular model's depth, its scale and shift fitted to the render in each view)
+    or disparity (the same for inverse depth: MiDaS, Depth Anything). The mean relative error where a map has a
+    depth (docs/training.md)."""
+    depth_weight: float = 0.1
+    """Weight of --depth-loss (on the mean relative depth error) ..."""
+    depth_from: float = 0.0
+    """... from this share of the steps on ..."""
+    depth_final: float = 1.0
+    """... going linearly to this share of itself at the last step."""
+    sparse_depth: float = 0.0
+    """Weight of sparse depth from the SfM points (COLMAP scenes): the rendered depth at the pixel of each point an
+    image saw held to the point's depth (mean relative error); 0: off. 0.1 is a start (docs/training.md) ..."""
+    sparse_depth_from: float = 0.0
+    """... from this share of the steps on ..."""
+    sparse_depth_final: float = 1.0
+    """... going linearly to this share of itself at the last step."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """auto: CUDA when available, else CPU."""
     seed: int = 0
@@ -218,6 +235,13 @@ class TrainConfig:
                   (self.dist_timeout > 0, "--dist-timeout must be positive"),
                   (self.depth_png_step > 0, "--depth-png-step must be positive (0.001: millimetres of a capture in "
                                             "metres)"),
+                  (self.depth_loss == "none" or self.depths != "none",
+                   f"--depth-loss {self.depth_loss} reads depth maps, and --depths is 'none': give --depths auto "
+                   "(beside the photos, or the scene's depths/) or the folder that holds them"),
+                  (min(self.depth_weight, self.depth_final, self.sparse_depth, self.sparse_depth_final) >= 0
+                   and 0 <= self.depth_from <= 1 and 0 <= self.sparse_depth_from <= 1,
+                   "--depth-weight, --depth-final, --sparse-depth and --sparse-depth-final must be >= 0, "
+                   "--depth-from and --sparse-depth-from within [0, 1]"),
                   (0.0 <= self.ssim_weight <= 1.0, "--ssim-weight must be in [0, 1]"),
                   (self.appearance_lr > 0 and self.appearance_lr_final > 0 and self.appearance_reg >= 0
                    and self.appearance_grid_tv >= 0,
@@ -249,6 +273,10 @@ class TrainConfig:
             raise MCSplatError(f"{', '.join(ignored)}: the --surface-* options shape the loss terms of --surface, "
                                f"which this run trains without, so they would be ignored; add --surface, or leave them "
                                f"out")
+        ignored = depth_options_ignored(self)
+        if ignored:
+            raise MCSplatError(f"{', '.join(ignored)}: these shape a depth term this run trains without (--depth-loss "
+                               f"none, --sparse-depth 0), so they would be ignored; add it, or leave them out")
         if self.budget is not None:
             budget_seconds(self.budget)  # a one-line error for a budget it cannot read
         # Coarse to fine under --budget; --cap-max goes to the strategy that takes it.
@@ -293,6 +321,16 @@ def surface_options_ignored(config: TrainConfig) -> list[str]:
     return [f"--{name.replace('_', '-')} {getattr(config, name)}" for name in SURFACE_OPTIONS if name in config.named]
 
 
+def depth_options_ignored(config: TrainConfig) -> list[str]:
+    """The options of a depth term the command line gave to a new run without that term, as surface_options_ignored
+    finds --surface's."""
+    if config.resume or not config.named:
+        return []
+    off = (DENSE_DEPTH_OPTIONS if config.depth_loss == "none" else ()) + \
+        (SPARSE_DEPTH_OPTIONS if config.sparse_depth == 0 else ())
+    return [f"--{name.replace('_', '-')} {getattr(config, name)}" for name in off if name in config.named]
+
+
 def non_finite_options(config: TrainConfig) -> list[str]:
     """The float options of `config` and of its model group that hold inf or nan, as the command line gives them (the
     groups optim, mcmc and adc check their own)."""
@@ -311,6 +349,8 @@ def process_options(config: TrainConfig) -> dict[str, Any]:
 
 
 SURFACE_OPTIONS = ("surface_flatten", "surface_normal", "surface_from", "surface_distortion")  # --surface's terms
+DENSE_DEPTH_OPTIONS = ("depth_weight", "depth_from", "depth_final")  # --depth-loss's
+SPARSE_DEPTH_OPTIONS = ("sparse_depth_from", "sparse_depth_final")  # --sparse-depth's
 # (init scale, init opacity) per strategy: the MCMC paper's code, and 3DGS's for its ADC.
 INITIAL_GAUSSIANS = {"mcmc": (0.1, 0.5), "adc": (1.0, 0.1)}
 BUDGET_RESOLUTION_START = 0.25  # --budget trains coarse to fine from a quarter of the image size
@@ -378,31 +418,12 @@ def to_jsonable(config: Any) -> Any:
     return config
 
 
+# The option groups config.json nests (--mcmc.cap-max is {"mcmc": {"cap_max": ...}}).
+NESTED_GROUPS = {"model": ModelConfig, "optim": OptimConfig, "mcmc": MCMCConfig, "adc": ADCConfig}
+
+
 def from_jsonable(data: dict, source: str = "config.json") -> TrainConfig:
     """Rebuild a TrainConfig from config.json (unknown keys are an error: the file belongs to another version; so is
     a value of the wrong type or out of range: the file was edited by hand). `source` names where the options were
     read in the errors (blocks.json keeps them as its "training")."""
-    def build(cls, values, prefix=""):
-        kwargs = {}
-        hints = option_types(cls)
-        if not isinstance(values, dict):
-            raise MCSplatError(f"{source}: {prefix.rstrip('.') or 'the file'} must be an object {{...}}")
-        for key, value in values.items():
-            if key not in hints or key == "named":
-                raise MCSplatError(f"{source}: unknown option {key!r} (written by another mcsplat version?)")
-            nested = {"model": ModelConfig, "optim": OptimConfig, "mcmc": MCMCConfig, "adc": ADCConfig}
-            if cls is TrainConfig and key in nested:
-                value = build(nested[key], value, f"{key}.")
-            elif not fits(value, hints[key]):
-                raise MCSplatError(f"{source}: {prefix}{key} is {json.dumps(value)}, not {describe(hints[key])}; "
-                                   f"put back the value mcsplat wrote there")
-            elif key in ("data", "out") and value is not None:
-                value = Path(value)
-            elif isinstance(value, list):
-                value = tuple(value)
-            kwargs[key] = value
-        try:
-            return cls(**kwargs)
-        except (ValueError, TypeError) as error:  # MCSplatError (TrainConfig's own checks) passes through
-            raise MCSplatError(f"{source}: {prefix}{error}; put back the value mcsplat wrote there") from None
-    return build(TrainConfig, data)
+    return checked_dataclass(TrainConfig, data, source, nested=NESTED_GROUPS)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import types
 import typing
 from pathlib import Path
@@ -60,3 +61,45 @@ def describe(hint: Any) -> str:
     names = {type(None): "null", bool: "true or false", int: "a whole number", float: "a number", str: "a string",
              Path: "a path"}
     return names.get(hint, getattr(hint, "__name__", str(hint)))
+
+
+def checked_dataclass(cls: type, values: Any, source: str, prefix: str = "", nested: dict[str, type] | None = None,
+                      complete: bool = False) -> Any:
+    """An instance of the dataclass `cls` made from the JSON object `values` that `source` (config.json) holds under
+    `prefix`, each value checked against its field's declared type: an unknown key, a value of another type, one the
+    class refuses, or (`complete`: a record mcsplat always writes whole) a missing key is a one-line error naming it.
+    `nested`: the fields that are dataclasses too, by name; lists become tuples, strings paths where a path is
+    declared. Fields not saved (metadata saved=False) are unknown keys here."""
+    from .errors import MCSplatError
+
+    where = prefix.rstrip(".") or "the file"
+    if not isinstance(values, dict):
+        raise MCSplatError(f"{source}: {where} must be an object {{...}}")
+    hints = {name: hint for name, hint in option_types(cls).items()
+             if next(f for f in dataclasses.fields(cls) if f.name == name).metadata.get("saved", True)}
+    missing = sorted(hints.keys() - values.keys()) if complete else []
+    if missing:
+        raise MCSplatError(f"{source}: {where} lacks {', '.join(missing)} (written by another mcsplat version?)")
+    kwargs = {}
+    for key, value in values.items():
+        if key not in hints:
+            raise MCSplatError(f"{source}: unknown option {prefix + key!r} (written by another mcsplat version?)")
+        hint = hints[key]
+        if nested and key in nested:
+            value = checked_dataclass(nested[key], value, source, f"{prefix}{key}.")
+        elif not fits(value, hint):
+            raise MCSplatError(f"{source}: {prefix}{key} is {json.dumps(value)}, not {describe(hint)}; put back the "
+                               f"value mcsplat wrote there")
+        elif isinstance(value, str) and _declares_path(hint):
+            value = Path(value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[key] = value
+    try:
+        return cls(**kwargs)
+    except (ValueError, TypeError) as error:  # MCSplatError (the class's own checks) passes through
+        raise MCSplatError(f"{source}: {prefix}{error}; put back the value mcsplat wrote there") from None
+
+
+def _declares_path(hint: Any) -> bool:
+    return hint is Path or Path in typing.get_args(hint)

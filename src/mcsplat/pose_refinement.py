@@ -49,7 +49,7 @@ class PoseRefinement(PerImageModule):
         """Training image `index`'s camera with its correction (differentiable in the correction)."""
         view = camera.world_to_camera
         corrected = correction_matrix(self.deltas[index], self.scene_radius).to(view) @ view
-        return Camera(K=camera.K, world_to_camera=corrected, width=camera.width, height=camera.height)
+        return camera.with_pose(corrected)
 
     def step(self, step: int = 0, plan: PlanSteps | None = None) -> None:
         """A constant learning rate: the step and the plan do not matter."""

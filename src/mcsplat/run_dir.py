@@ -38,7 +38,8 @@ from .io.checkpoint import DamagedCheckpoint, load_checkpoint, save_checkpoint
 from .io.disk import writing_into
 from .io.lock import FolderLock
 from .io.ply import write_ply
-from .planning import REPLANNED_KEYS, Plan, initial_plan, load_run_config, run_record, save_run_config
+from .planning import (REPLANNED_KEYS, Plan, initial_plan, load_run_config, options_with_plan, save_run_config,
+                       settings_of)
 from .planning.config_file import load_scene_entry, save_scene_entry
 from .run_scene import Background, background_of, scene_of, with_folders_absolute
 
@@ -147,7 +148,8 @@ class RunDir:
         if "optimizers" not in state:
             raise MCSplatError(f"{self.checkpoint_file} holds a model only (a merge of blocks), not the state a run "
                                f"continues from; it cannot be resumed")
-        trained, now = flat_options(state.get("config") or {}), flat_options(run_record(config, plan))
+        trained = flat_options(settings_of(state.get("config") or {}))
+        now = flat_options(options_with_plan(config, plan))
         # --budget plans these as it goes and plans them again on resume: config.json may be a plan behind.
         planned = REPLANNED_KEYS if config.budget is not None else ()
         for key in sorted(trained.keys() & now.keys()):
@@ -319,8 +321,8 @@ def refuse_options_resume_ignores(config: TrainConfig, given: frozenset[str], sa
     command line (`config`) was `given` with another value would be ignored, so it is refused. The values are
     compared as a new run would have started with them (schedules fitted to the steps, scaled for the processes);
     --budget's plan, and the growth rate a --cap-max plans, are left out."""
-    trained, typed = flat_options(run_record(saved, plan)), flat_options(to_jsonable(config))
-    now = flat_options(run_record(config, initial_plan(config, plan.world_size)))
+    trained, typed = flat_options(options_with_plan(saved, plan)), flat_options(to_jsonable(config))
+    now = flat_options(options_with_plan(config, initial_plan(config, plan.world_size)))
     if saved.budget is not None:
         planned = REPLANNED_KEYS - {"steps"}  # its --steps is said below
     else:

@@ -29,7 +29,7 @@ import torch
 import warp as wp
 
 from .compute.cpu_target import kernel_flags
-from .compute.runtime import cpu_threads, ensure_warp, run_ranges
+from .compute.runtime import cpu_threads, ensure_warp, flat_view, run_ranges
 from .ssim_warp import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
 
 # The window and constants are defined once, in ssim_warp.py.
@@ -216,7 +216,12 @@ def _forward(offset: int, parts: int, width: int, height: int, image: _floats, t
 
 @wp.kernel
 def _backward(offset: int, parts: int, width: int, height: int, partials: _floats, image: _floats, target: _floats,
-              scale: float, l1_scale: float, grad_image: _floats, scratch: _floats, scratch_floats: int):
+              grad_ssim: _floats, grad_l1: _floats, count: int, grad_image: _floats, scratch: _floats,
+              scratch_floats: int):
+    # The upstream gradients are read here, not on the host: each divided by the pixel count in double, then
+    # rounded to float (what `float(grad) / count` handed over as a float argument gave).
+    scale = wp.float32(wp.float64(grad_ssim[0]) / wp.float64(count))
+    l1_scale = wp.float32(wp.float64(grad_l1[0]) / wp.float64(count))
     _backward_rows(offset + wp.tid(), parts, width, height, partials, image, target, scale, l1_scale, grad_image,
                    scratch, scratch_floats)
 
@@ -242,8 +247,8 @@ def backward_scratch_floats(width: int) -> int:
     return _WINDOW * 3 * width + (width + 2 * (_WINDOW // 2)) + 6 * width
 
 
-def _flat(tensor: torch.Tensor):
-    return wp.from_torch(tensor.reshape(-1), requires_grad=False)
+_flat = flat_view
+_NO_GRADIENT = torch.zeros(1)  # the upstream gradient of an output the loss does not use
 
 
 class _FusedSSIMAndL1(torch.autograd.Function):
@@ -253,7 +258,7 @@ class _FusedSSIMAndL1(torch.autograd.Function):
     def forward(ctx, image: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         ensure_warp()
         height, width, _ = image.shape
-        image, target = image.detach().contiguous(), target.detach().contiguous()
+        image, target = image.contiguous(), target.contiguous()  # no detach: grad mode is off in a forward
         partials = torch.empty(9, height, width)
         row_sums = torch.empty(height, dtype=torch.float64)
         l1_sums = torch.empty(height, dtype=torch.float64)
@@ -271,15 +276,13 @@ class _FusedSSIMAndL1(torch.autograd.Function):
         image, target, partials = ctx.saved_tensors
         height, width, _ = image.shape
         grad_image = torch.empty_like(image)
-        count = 3 * height * width
-        scale = 0.0 if grad_ssim is None else float(grad_ssim) / count
-        l1_scale = 0.0 if grad_l1 is None else float(grad_l1) / count
+        upstream = [_NO_GRADIENT if g is None else g.contiguous() for g in (grad_ssim, grad_l1)]
         parts = _parts(height)
         room = backward_scratch_floats(width)
         scratch = torch.empty(parts * room)
         run_ranges(_backward, parts, image.device, [parts, width, height, _flat(partials), _flat(image),
-                                                    _flat(target), scale, l1_scale, _flat(grad_image), _flat(scratch),
-                                                    room], 1)
+                                                    _flat(target), *map(_flat, upstream), 3 * height * width,
+                                                    _flat(grad_image), _flat(scratch), room], 1)
         return grad_image, None
 
 

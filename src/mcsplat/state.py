@@ -19,6 +19,7 @@ from .data import Scene
 from .distributed import Team
 from .gaussians import GaussianModel
 from .initialization import initial_model
+from .depth_terms import Schedule, depth_terms
 from .loss_terms import LossTerm, standard_terms
 from .surface import surface_terms
 from .optim import make_optimizers
@@ -126,6 +127,11 @@ def start(config: TrainConfig, plan: Plan, scene: Scene, device: torch.device, t
     if config.surface:
         state.loss_terms += surface_terms(config.surface_flatten, config.surface_normal, config.surface_from, radius,
                                           config.surface_distortion)
+    if config.sparse_depth > 0 or config.depth_loss != "none":
+        state.loss_terms += depth_terms(
+            scene, model.means, device, mode=config.depth_loss,
+            sparse=Schedule(config.sparse_depth, config.sparse_depth_from, config.sparse_depth_final),
+            dense=Schedule(config.depth_weight, config.depth_from, config.depth_final))
     strategy.collective = team.collective
     return state, note
 

@@ -21,7 +21,7 @@ from typing import Any, Callable, Protocol, Sequence
 
 import torch
 
-from . import losses, render, run_dir
+from . import losses, optim, render, run_dir
 from .appearance import training_kernels as appearance_kernels
 from .compute.compile import compile_kernels, modules_to_compile
 from .config import TrainConfig
@@ -116,9 +116,7 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
         raise MCSplatError(f"step {step}: the loss became {loss_value}; lower the learning rates or the loss terms' "
                            f"weights (--surface-*, --appearance-*), or check the input images")
     lap("reduce")
-    for opt in optimizers.values():
-        opt.step()
-        opt.zero_grad(set_to_none=True)
+    optim.step_optimizers(optimizers)  # and the gradients dropped
     for module in modules:
         module.step(step, plan)
     lap("optimizer")
@@ -133,7 +131,8 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
 
 def step_kernels(device: torch.device, appearance: str = "none") -> list:
     """Every Warp kernel a training step launches on `device` (compiled before the first step)."""
-    return render.training_kernels(device) + losses.training_kernels(device) + appearance_kernels(appearance)
+    return (render.training_kernels(device) + losses.training_kernels(device) + optim.training_kernels(device)
+            + appearance_kernels(appearance))
 
 
 class TrainingRun:

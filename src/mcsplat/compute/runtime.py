@@ -15,6 +15,7 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
+import numpy as np
 import torch
 import warp as wp
 
@@ -97,11 +98,14 @@ def thread_pool(size: int) -> ThreadPoolExecutor:
 
 
 def _bands(tile_ranges: torch.Tensor, num_bands: int) -> list[tuple[int, int]]:
-    """Contiguous [first, last) tile ranges of roughly equal work (pairs to walk plus a fixed cost per tile)."""
-    work = (tile_ranges[:, 1] - tile_ranges[:, 0]).to(torch.float64) + 4.0
-    cumulative = torch.cumsum(work, 0)
-    targets = cumulative[-1] * torch.arange(1, num_bands, dtype=torch.float64) / num_bands
-    cuts = torch.searchsorted(cumulative, targets).tolist()
+    """Contiguous [first, last) tile ranges of roughly equal work (pairs to walk plus a fixed cost per tile). In numpy,
+    on the host tensor's memory: a dozen small torch operators twice a step before (the sums are of whole numbers,
+    exact either way, so the cuts are the same)."""
+    ranges = tile_ranges.numpy()
+    work = (ranges[:, 1] - ranges[:, 0]).astype(np.float64) + 4.0
+    cumulative = np.cumsum(work)
+    targets = cumulative[-1] * np.arange(1, num_bands, dtype=np.float64) / num_bands
+    cuts = np.searchsorted(cumulative, targets).tolist()
     edges = [0] + cuts + [tile_ranges.shape[0]]
     return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
@@ -142,8 +146,34 @@ def launch_on_cuda(kernel, dim, inputs: list, device: torch.device, block_dim: i
 
 def warp_view(tensor: torch.Tensor, dtype=None):
     """The tensor's memory as a Warp kernel argument (no copy): Warp's bare array descriptor, several times cheaper
-    to make than a wp.array (about 80 per training step; on a GPU their making is time the step waits for)."""
-    return wp.from_torch(tensor.detach(), dtype=dtype, requires_grad=False, return_ctype=True)
+    to make than a wp.array (about 80 per training step; on a GPU their making is time the step waits for). It
+    reads the tensor's address, shape and strides only: no torch operator (a `detach` first was one per view)."""
+    return wp.from_torch(tensor, dtype=dtype, requires_grad=False, return_ctype=True)
+
+
+# Warp's bare array descriptor, what wp.from_torch(..., return_ctype=True) makes (wp.types.array_t before Warp 1.10).
+array_t = type(wp.from_torch(torch.empty(0), return_ctype=True))
+
+
+def flat_view(tensor: torch.Tensor):
+    """`warp_view(tensor.reshape(-1))` of a contiguous tensor (a 1-d array of its elements) without the reshape's
+    operator: the descriptor made from the address and the element count alone."""
+    if not tensor.is_contiguous():
+        raise ValueError(f"flat_view needs a contiguous tensor, got strides {tensor.stride()}")
+    scalar = wp.dtype_from_torch(tensor.dtype)
+    view = array_t(tensor.data_ptr(), 0, 1, (tensor.numel(),), (ctypes.sizeof(scalar._type_),))
+    view._ref = tensor  # the memory stays alive as long as the descriptor, as warp_view's does
+    return view
+
+
+def numpy_view(array: np.ndarray):
+    """A contiguous 1-d numpy array as a Warp kernel argument (no copy, no torch operator): a small table the host
+    fills before a launch (addresses, sizes, learning rates)."""
+    if array.ndim != 1 or not array.flags.c_contiguous:
+        raise ValueError(f"numpy_view needs a contiguous 1-d array, got shape {array.shape}")
+    view = array_t(array.ctypes.data, 0, 1, (array.shape[0],), (array.itemsize,))
+    view._ref = array
+    return view
 
 
 def run_bands(kernel, inputs_for_worker, num_tiles: int, tile_ranges: torch.Tensor, device: torch.device,

@@ -103,9 +103,8 @@ def check_images_bin(path: Path, camera_ids: set[int]) -> int:
     return count
 
 
-def read_points3d_bin(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Walk and read points3D.bin: xyz float64 [P, 3] and rgb uint8 [P, 3], in file order."""
-    data = _read(path)
+def _point_offsets(data: bytes, path: Path) -> np.ndarray:
+    """Where each point of points3D.bin's bytes starts, the file walked to its end."""
     count = _count(data, path, _POINT_HEADER.itemsize, "points")
     offsets = np.empty(count, dtype=np.int64)
     offset, size, header = 8, len(data), _POINT_HEADER.itemsize
@@ -117,14 +116,27 @@ def read_points3d_bin(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if offset != size:
         where = "ends inside the last points" if offset > size else f"has {size - offset} unexpected bytes at the end"
         raise DataError(f"{path} {where}; {_CORRUPT_HINT}")
-    # Gather the 27 bytes of xyz + rgb of each point, in chunks so the index array stays small.
-    raw, columns = np.frombuffer(data, dtype=np.uint8), np.arange(8, 35)
+    return offsets
+
+
+def read_points3d_bin(path: Path, ids: bool = False):
+    """Walk and read points3D.bin: xyz float64 [P, 3] and rgb uint8 [P, 3], in file order; with `ids`, also the
+    points' ids, int64 [P] (what the images' tracks name them by), after them."""
+    data = _read(path)
+    offsets = _point_offsets(data, path)
+    count = len(offsets)
+    # Gather the 27 bytes of xyz + rgb of each point (and its 8-byte id), in chunks so the index array stays small.
+    raw, columns, id_columns = np.frombuffer(data, dtype=np.uint8), np.arange(8, 35), np.arange(8)
     xyz, rgb = np.empty((count, 3), dtype=np.float64), np.empty((count, 3), dtype=np.uint8)
+    point_ids = np.empty(count, dtype=np.int64)
     for start in range(0, count, 65536):
         chunk = raw[offsets[start:start + 65536, None] + columns].reshape(-1).view(_XYZ_RGB)
         xyz[start:start + len(chunk)] = chunk["xyz"]
         rgb[start:start + len(chunk)] = chunk["rgb"]
-    return xyz, rgb
+        if ids:
+            point_ids[start:start + len(chunk)] = raw[offsets[start:start + 65536, None] + id_columns].reshape(-1) \
+                .view("<u8").astype(np.int64)
+    return (xyz, rgb, point_ids) if ids else (xyz, rgb)
 
 
 def read_points3d_text(path: Path) -> tuple[np.ndarray, np.ndarray]:

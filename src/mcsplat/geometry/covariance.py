@@ -12,7 +12,7 @@ import torch
 import warp as wp
 
 from ..compute.cpu_target import kernel_flags
-from ..compute.runtime import ensure_warp, run_ranges, warp_scalar, warp_view
+from ..compute.runtime import ensure_warp, flat_view, run_ranges, warp_scalar, warp_view
 from ..compute.simd_lanes import LANES, VECTOR_TYPES, lanes_in, lanes_out
 
 
@@ -94,11 +94,11 @@ def covariance_times(quats: torch.Tensor, scales: torch.Tensor, vectors: torch.T
     """Sigma_i @ vectors_i for quaternions [N, 4] (normalised here), activated scales [N, 3], vectors [N, 3]."""
     ensure_warp()
     scalar = warp_scalar(quats.dtype)
-    quats, scales, vectors = (t.detach().contiguous() for t in (quats, scales, vectors))
+    quats, scales, vectors = (t.contiguous() for t in (quats, scales, vectors))  # the kernels read the memory
     out = torch.empty_like(vectors)
     n = quats.shape[0]
     if quats.device.type == "cpu" and quats.dtype == torch.float32:
-        views = [warp_view(t.reshape(-1)) for t in (quats, scales, vectors, out)]
+        views = [flat_view(t) for t in (quats, scales, vectors, out)]
         run_ranges(covariance_times_simd, -(-n // LANES), quats.device, [n, *views], 4096 // LANES)
         return out
     views = [warp_view(t, wp.types.vector(t.shape[1], scalar)) for t in (quats, scales, vectors, out)]

@@ -18,7 +18,7 @@ from __future__ import annotations
 from ..config import TrainConfig
 from ..data import Scene
 from .budget import BudgetPlanner, budget_planner
-from .config_file import load_run_config, read_record, run_record, save_run_config
+from .config_file import load_run_config, options_with_plan, read_record, run_record, save_run_config, settings_of
 from .fixed import FixedSteps, initial_plan, with_growth
 from .plan import REPLANNED_KEYS, SCHEDULE_KEYS, Plan
 from .processes import for_processes
@@ -26,8 +26,8 @@ from .seam import Planner, RunState
 from .strategy import make_strategy
 
 __all__ = ["BudgetPlanner", "FixedSteps", "Plan", "Planner", "REPLANNED_KEYS", "SCHEDULE_KEYS", "for_processes",
-           "initial_plan", "load_run_config", "make_strategy", "planner_for", "read_record", "run_record",
-           "save_run_config"]
+           "initial_plan", "load_run_config", "make_strategy", "options_with_plan", "planner_for", "read_record",
+           "run_record", "save_run_config", "settings_of"]
 
 
 def planner_for(config: TrainConfig, plan: Plan, scene: Scene, state: RunState, resumed: bool) -> Planner:

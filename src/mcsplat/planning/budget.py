@@ -133,8 +133,8 @@ def budget_planner(config: TrainConfig, plan: Plan, scene: Scene) -> BudgetPlann
     if plan.world_size > 1:
         raise MCSplatError("--budget does not work with several training processes yet (each would plan its own "
                            "steps); give --steps instead")
-    # A resumed run's config.json holds the last plan's cap in --mcmc.cap-max's place: the ceiling the user set is
-    # the record's (a run stopped at a planned cap of 3,148 resumed capped there, and ended 3.5 dB lower).
+    # The ceiling the run started with is the record's: a config.json of the older layout holds the last plan's cap
+    # in --mcmc.cap-max's place (a run stopped at a planned cap of 3,148 resumed capped there, 3.5 dB lower).
     ceiling = (plan.budget or {}).get("ceiling")
     if ceiling is None:
         cap = config.max_gaussians or config.mcmc.cap_max  # ADC without a budget: MCMC's ceiling
@@ -239,7 +239,7 @@ class BudgetPlanner:
         return step >= self.plan.steps or wall_seconds >= self.budget_seconds
 
     def _record(self, plan: Plan) -> dict:
-        """What config.json (budget_plan) and the report keep of the planning."""
+        """What config.json (plan.budget) and the report keep of the planning."""
         return {"budget_seconds": self.budget_seconds, "steps": plan.steps, "cap": plan.mcmc.cap_max,
                 "ceiling": self.ceiling,
                 "resolution_start": plan.resolution_start, "resolution_first": self.first_size,

@@ -1,14 +1,17 @@
-"""config.json: the configuration a run trains with and its plan, written as the run starts (and as --budget plans
-again) and read back by --resume and by every command on a trained run.
+"""config.json: what the user asked and the run's plan beside it, written as the run starts (and as --budget plans
+again), read back by --resume and by every command on a trained run.
 
-The file keeps the layout it has always had: the options with the plan's values in their places (the steps and the
-schedules fitted to them, the caps and the growth rate, the learning rates scaled for the processes: what the run
-trains with, and what the file's readers, the report and the benchmarks, look for there), then `world_size` and
-`budget_plan`, and `scene`: a fingerprint of the scene the run trains on (its kind, its views' counts, a digest of
-their names and image sizes; run_scene.scene_fingerprint), by which --resume knows it wherever it is now. Read back,
-those values are the plan's (Plan.literal). A file written before the plan had a type of its own also holds
-`schedule_fitted` (whether its schedules were fitted: they always are now), which is left aside; one written before
-the fingerprint has no `scene`.
+The file holds the options as the command line (or the Python API) gave them, then `plan`: what the run decided
+(the steps and the schedules fitted to them, the cap and the growth rate, the coarse-to-fine resolution, the
+learning rates scaled for the processes, `world_size`, and --budget's record of how it planned: Plan.record), and
+`scene`: a fingerprint of the scene the run trains on (its kind, its views' counts, a digest of their names and image
+sizes; run_scene.scene_fingerprint), by which --resume knows it wherever it is now.
+
+Files written until 2026-11-28 have no `plan`: the plan's values stood in the options' places, with `world_size`
+and `budget_plan` beside them (and, before the plan had a type, `schedule_fitted`, left aside). Read back, those
+values are taken as the plan (Plan.literal), and as the options too, since what the user asked was not kept. That
+older layout is also the form in which two sets of settings are compared (`options_with_plan`): a value there is the
+one the run trains with.
 """
 
 from __future__ import annotations
@@ -23,7 +26,8 @@ from ..errors import MCSplatError
 from ..io.atomic import atomic_write_text
 from .plan import Plan
 
-PLAN_ENTRIES = ("world_size", "budget_plan")  # the plan's own keys, beside the options
+PLAN_ENTRY = "plan"  # the run's plan, beside the options
+OLD_PLAN_ENTRIES = ("world_size", "budget_plan")  # the plan's own keys beside the options, in the older layout
 SCENE_ENTRY = "scene"  # the fingerprint of the run's scene, beside the options
 SCENE_FIELDS = {"kind": str, "train_views": int, "test_views": int, "views": str}
 CAP_MAX_SETS = ("mcmc.cap_max", "adc.cap_max", "mcmc.auto_cap")  # the keys TrainConfig derives from cap_max
@@ -31,14 +35,29 @@ RETIRED_ENTRIES = ("schedule_fitted",)  # older files' keys that say nothing any
 
 
 def run_record(config: TrainConfig, plan: Plan, scene: dict[str, Any] | None = None) -> dict[str, Any]:
-    """config.json's content (and, without the `scene` fingerprint, the checkpoint's copy of it)."""
+    """config.json's content (and, without the `scene` fingerprint, the checkpoint's copy of it): the options as
+    asked, the plan beside them."""
+    record = {**to_jsonable(config), PLAN_ENTRY: plan.record()}
+    return record if scene is None else {**record, SCENE_ENTRY: scene}
+
+
+def options_with_plan(config: TrainConfig, plan: Plan) -> dict[str, Any]:
+    """The options with the plan's values in their places (steps, schedules, caps, learning rates), `world_size` and
+    `budget_plan` beside them: the older layout of config.json, and the form in which the settings of a checkpoint,
+    a config.json and a command line are compared, each value being what the run trains with."""
     record = to_jsonable(config)
     for key, value in plan.entries().items():
         group, _, name = key.rpartition(".")
         (record[group] if group else record)[name] = value
     record["optim"] = to_jsonable(plan.optim)
-    record = {**record, "world_size": plan.world_size, "budget_plan": plan.budget}
-    return record if scene is None else {**record, SCENE_ENTRY: scene}
+    return {**record, "world_size": plan.world_size, "budget_plan": plan.budget}
+
+
+def settings_of(record: dict[str, Any]) -> dict[str, Any]:
+    """A config.json's content or a checkpoint's copy of it, of either layout, as options_with_plan gives it."""
+    if PLAN_ENTRY not in record:
+        return {key: value for key, value in record.items() if key not in RETIRED_ENTRIES + (SCENE_ENTRY,)}
+    return options_with_plan(*read_record(record))
 
 
 def read_record(data: Any) -> tuple[TrainConfig, Plan]:
@@ -46,8 +65,12 @@ def read_record(data: Any) -> tuple[TrainConfig, Plan]:
     a one-line error: the file was edited by hand, or written by another version)."""
     if not isinstance(data, dict):
         from_jsonable(data)  # its one-line error
+    if PLAN_ENTRY in data:
+        config = from_jsonable({key: value for key, value in data.items() if key not in (PLAN_ENTRY, SCENE_ENTRY)})
+        refuse_what_cap_max_overrides(data, config)
+        return config, Plan.from_record(data[PLAN_ENTRY])
     config = from_jsonable({key: value for key, value in data.items()
-                            if key not in PLAN_ENTRIES + RETIRED_ENTRIES + (SCENE_ENTRY,)})
+                            if key not in OLD_PLAN_ENTRIES + RETIRED_ENTRIES + (SCENE_ENTRY,)})
     refuse_what_cap_max_overrides(data, config)
     world_size = data.get("world_size", 1)
     if not fits(world_size, int):
@@ -59,7 +82,8 @@ def read_record(data: Any) -> tuple[TrainConfig, Plan]:
 def refuse_what_cap_max_overrides(data: dict[str, Any], config: TrainConfig) -> None:
     """`cap_max` sets `mcmc.cap_max`, `adc.cap_max` and `mcmc.auto_cap` as the configuration is made (`config`, from
     the file's content `data`): a file holding other values there (edited by hand) would have them ignored without a
-    word. A --budget run's file holds its plan's cap in the caps' places, which is at most the configuration's."""
+    word. A --budget run's file of the older layout holds its plan's cap in the caps' places, which is at most the
+    configuration's."""
     written, made = flat_options(data), flat_options(to_jsonable(config))
     for key in CAP_MAX_SETS:
         value = written.get(key, made[key])  # a key left out: an older file's default, which cap_max sets too

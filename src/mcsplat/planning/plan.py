@@ -4,7 +4,7 @@ The plan holds the run's number of steps, every step schedule fitted to it (refi
 opacity resets, the SH increase, the parameter noise's decay), the cap and the growth rate, the coarse-to-fine
 resolution, the number of processes with the learning rates scaled for them, and --budget's record of how it planned.
 A planner makes it (fixed.py for --steps, budget.py for --budget); the step reads it, the strategy follows its part
-of it, and config.json and the checkpoint keep it (config_file.py), so that --resume continues it.
+of it, and config.json and the checkpoint keep it beside the options (config_file.py), so that --resume continues it.
 """
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any, Mapping
 
-from ..config import RESOLUTION_FULL_AT, TrainConfig
+from ..config import RESOLUTION_FULL_AT, TrainConfig, to_jsonable
+from ..config_types import checked_dataclass
 from ..optim import OptimConfig
 from ..strategy import ADCSchedule, MCMCSchedule
 
@@ -40,7 +41,7 @@ class Plan:
     adc: ADCSchedule
     optim: OptimConfig  # the learning rates, scaled for the processes
     world_size: int = 1  # processes training together, a view each per step
-    budget: dict[str, Any] | None = None  # --budget: how it planned (config.json's budget_plan)
+    budget: dict[str, Any] | None = None  # --budget: how it planned (config.json's plan.budget)
 
     @classmethod
     def literal(cls, config: TrainConfig, world_size: int = 1, budget: dict[str, Any] | None = None) -> Plan:
@@ -51,6 +52,16 @@ class Plan:
                    resolution_start=config.resolution_start, resolution_full_at=full_at,
                    mcmc=MCMCSchedule.of(config.mcmc), adc=ADCSchedule.of(config.adc), optim=config.optim,
                    world_size=world_size, budget=budget)
+
+    def record(self) -> dict[str, Any]:
+        """The plan as config.json keeps it, beside the options (`plan`)."""
+        return to_jsonable(self)
+
+    @classmethod
+    def from_record(cls, record: Any, source: str = "config.json") -> Plan:
+        """The plan that `record()` wrote (a value of another type, a key missing or unknown: one line naming it)."""
+        return checked_dataclass(cls, record, source, "plan.", complete=True,
+                                 nested={"mcmc": MCMCSchedule, "adc": ADCSchedule, "optim": OptimConfig})
 
     def schedule_entries(self) -> dict[str, Any]:
         """The SCHEDULE_KEYS values of the plan."""
@@ -72,7 +83,8 @@ class Plan:
         return replace(self, sh_increase_every=e["sh_increase_every"], mcmc=mcmc, adc=adc)
 
     def entries(self) -> dict[str, Any]:
-        """The plan's values in config.json, under its keys ("mcmc.cap_max"): the options' places they take."""
+        """The plan's values under the options' keys ("mcmc.cap_max"): the places they take in the older layout of
+        config.json, and in the settings compared on resume (config_file.options_with_plan)."""
         return {"steps": self.steps, **self.schedule_entries(), "resolution_start": self.resolution_start,
                 "resolution_full_at": self.resolution_full_at, "mcmc.cap_max": self.mcmc.cap_max,
                 "adc.cap_max": self.adc.cap_max}

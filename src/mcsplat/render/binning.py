@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ..compute.runtime import cpu_threads, ensure_warp, run_ranges, warp_view
+from ..compute.runtime import cpu_threads, ensure_warp, flat_view, run_ranges, warp_view
 from .constants import ALL_BLOCKS, BLOCK_SIZE, TILE_SIZE
 from .cpu import binning as cpu_binning
 from .kernel_choice import cpu_kernels
@@ -160,7 +160,7 @@ def bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.
     n = depths.shape[0]
     use_masks = means2d is not None and alpha_extent is not None
     if use_masks:
-        spans = [means2d.detach().float().contiguous(), alpha_extent.detach().float().contiguous()]
+        spans = [means2d.float().contiguous(), alpha_extent.float().contiguous()]  # read by the kernels only
     else:
         spans = [torch.zeros(1, 2, device=device)] * 2
     rectangles = [t.contiguous() for t in (tile_min, tile_max)] + spans
@@ -203,7 +203,7 @@ def _bin_on_cpu(rectangles: list[torch.Tensor], use_masks: int, depths: torch.Te
                 tiles_x: int, tiles_y: int) -> TileBins:
     """bin_gaussians with the CPU's C++ loops (cpu/binning.py) around the same two radix sorts: the same lists."""
     n, num_tiles = depths.shape[0], tiles_x * tiles_y
-    views = [warp_view(t.reshape(-1)) for t in rectangles] + [use_masks]
+    views = [flat_view(t) for t in rectangles] + [use_masks]
     parts = max(1, min(cpu_threads(), n // 4096))  # each thread a range of Gaussians; ranges write their own
     counts = torch.empty(n, dtype=torch.int32)
     offsets = torch.empty(n, dtype=torch.int32)
@@ -213,7 +213,7 @@ def _bin_on_cpu(rectangles: list[torch.Tensor], use_masks: int, depths: torch.Te
         order = _depth_order(depths, radii > 0)
         wp.launch(cpu_binning.slot_offsets_cpu, dim=1, inputs=[n, *map(warp_view, (order, counts, offsets, total))],
                   device="cpu")
-    count = int(total[0])
+    count = total.item()  # read on the host: it sizes the pair lists and the sort (on the CPU, no wait)
     tiles, pairs = _pair_room(count, torch.device("cpu"))
     if count:
         run_ranges(cpu_binning.write_pairs_cpu, parts, depths.device,
@@ -222,5 +222,5 @@ def _bin_on_cpu(rectangles: list[torch.Tensor], use_masks: int, depths: torch.Te
     gaussian_ids, pair_masks = torch.empty(count, dtype=torch.int32), torch.empty(count, dtype=torch.int32)
     tile_ranges = torch.empty(num_tiles, 2, dtype=torch.int32)
     wp.launch(cpu_binning.split_pairs_cpu, dim=1, device="cpu", inputs=[
-        count, num_tiles, *(warp_view(t.reshape(-1)) for t in (tiles, pairs, gaussian_ids, pair_masks, tile_ranges))])
+        count, num_tiles, *map(flat_view, (tiles, pairs, gaussian_ids, pair_masks, tile_ranges))])
     return TileBins(gaussian_ids, tile_ranges, pair_masks, tiles_x, tiles_y)

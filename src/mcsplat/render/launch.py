@@ -7,6 +7,8 @@ threads per tile, batches of Gaussians in shared memory). The choice's functions
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from ..compute.runtime import (cpu_threads, ensure_warp, num_workers_for, run_bands, run_tiled, set_cpu_threads,
@@ -33,8 +35,10 @@ class CompositeFunction(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, colors, depths, background, bins: TileBins, width: int,
                 height: int, cpu_kernels: str | None = None, median_gaussian: bool = False):
         ensure_warp()
+        ctx.set_materialize_grads(False)  # the backward takes None (no zeros made for the outputs without gradient)
         ctx.kernels = kernels_for(means2d, cpu_kernels)
-        inputs = [t.detach().contiguous() for t in (means2d, conics, opacities, colors, depths, background)]
+        # No detach: the forward runs without grad mode, and the kernels take the memory (compute.runtime's views).
+        inputs = [t.contiguous() for t in (means2d, conics, opacities, colors, depths, background)]
         if ctx.kernels == "simd":
             records = simd.pack_records(*inputs[:5])
             rgb, transmittance, depth, last, contributed, median = simd.forward(records, inputs[5], bins, width,
@@ -54,12 +58,11 @@ class CompositeFunction(torch.autograd.Function):
     def backward(ctx, grad_rgb, grad_alpha, grad_depth, _grad_contributed, *_grad_median):
         bins, width, height = ctx.bins, ctx.width, ctx.height
         saved = ctx.saved_tensors
-        like = saved[-1]  # an [H, W] tensor of the right dtype and device
+        zeros = functools.partial(torch.zeros, dtype=saved[0].dtype, device=saved[0].device)  # the inputs' dtype
         grads_in = [
-            torch.zeros(height, width, 3, dtype=like.dtype, device=like.device) if grad_rgb is None
-            else grad_rgb.contiguous(),
-            torch.zeros_like(like) if grad_alpha is None else grad_alpha.contiguous(),
-            torch.zeros_like(like) if grad_depth is None else grad_depth.contiguous(),
+            zeros(height, width, 3) if grad_rgb is None else grad_rgb.contiguous(),
+            zeros(height, width) if grad_alpha is None else grad_alpha.contiguous(),
+            zeros(height, width) if grad_depth is None else grad_depth.contiguous(),
         ]
         if ctx.kernels == "simd":
             records, background, transmittance, last, rgb, depth = saved

@@ -419,10 +419,11 @@ class _ProjectFunction(torch.autograd.Function):
     def forward(ctx, means, quats, scales, sh_dc, sh_rest, opacities, camera_args: tuple, sh_degree: int,
                 opacity_aware_radius: bool, antialiased: bool, world_to_camera: torch.Tensor | None):
         ensure_warp()
+        ctx.set_materialize_grads(False)  # the backward takes None (no zeros made for the outputs without gradient)
         ctx.together = sh_rest is None
-        means, quats, scales, sh_dc, opacities = (t.detach().contiguous()
-                                                  for t in (means, quats, scales, sh_dc, opacities))
-        sh_rest = sh_dc if ctx.together else sh_rest.detach().contiguous()
+        # No detach (an operator each): the forward runs without grad mode and saves its inputs as they came.
+        means, quats, scales, sh_dc, opacities = (t.contiguous() for t in (means, quats, scales, sh_dc, opacities))
+        sh_rest = sh_dc if ctx.together else sh_rest.contiguous()
         ctx.simd = kernels_for(means) == "simd"
         ctx.packed_camera = _packed_camera(camera_args) if ctx.simd else None
         if ctx.simd:
@@ -512,15 +513,10 @@ def _scalar_backward(means, quats, scales, sh_dc, sh_rest, together: bool, camer
 
 def _camera_arguments(camera: Camera, near: float, far: float, eps2d: float) -> tuple:
     """(rotation row-major, translation, centre, fx, fy, cx, cy, width, height, tiles_x, tiles_y, near, far, eps2d) as
-    Python numbers, read from the camera's host copy where it has one (a pose being refined has none: it is read
-    from the device)."""
-    camera = camera.on_host() or camera
-    w2c = camera.world_to_camera.detach().to(dtype=torch.float64).cpu()
-    center = camera.center.detach().to(dtype=torch.float64).cpu()
-    return (tuple(w2c[:3, :3].reshape(-1).tolist()), tuple(w2c[:3, 3].tolist()), tuple(center.tolist()),
-            float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), int(camera.width),
-            int(camera.height), -(-camera.width // TILE_SIZE), -(-camera.height // TILE_SIZE), float(near),
-            float(far), float(eps2d))
+    Python numbers, read once per camera (Camera.pose_numbers, focal_and_centre: from its host copy where it has one;
+    a pose being refined has none: it is read from the device)."""
+    return (*camera.pose_numbers, *camera.focal_and_centre, int(camera.width), int(camera.height),
+            -(-camera.width // TILE_SIZE), -(-camera.height // TILE_SIZE), float(near), float(far), float(eps2d))
 
 
 def _warp_camera(camera_args: tuple, scalar) -> tuple:

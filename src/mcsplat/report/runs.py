@@ -12,6 +12,7 @@ import torch
 
 from ..errors import MCSplatError
 from ..gaussians import DEAD_OPACITY
+from ..planning import settings_of
 from ..run_dir import RunDir
 
 
@@ -19,7 +20,7 @@ from ..run_dir import RunDir
 class RunRecord:
     path: Path
     name: str
-    config: dict
+    config: dict  # config.json's settings, each the value the run trained with (its plan's: settings_of)
     metrics: dict
     log: list[dict]
     opacities: np.ndarray  # of the final Gaussians
@@ -58,6 +59,7 @@ def load_run(path: Path) -> RunRecord:
     model = run.read_checkpoint()["model"]  # GaussianModel.state_dict(): "params.<name>"
     opacities = torch.sigmoid(model["params.opacity_logits"].float()).numpy()
     max_scales = torch.exp(model["params.log_scales"].float().max(dim=1).values).numpy()
-    return RunRecord(path=run.path, name=run.path.resolve().name, config=json.loads(run.config_file.read_text()),
-                     metrics=metrics, log=read_log(run.log_file), opacities=opacities, max_scales=max_scales,
+    settings = settings_of(json.loads(run.config_file.read_text()))
+    return RunRecord(path=run.path, name=run.path.resolve().name, config=settings, metrics=metrics,
+                     log=read_log(run.log_file), opacities=opacities, max_scales=max_scales,
                      per_view_psnr=metrics.get("per_view_psnr", {}))

@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 
 from ..binning import TileBins
-from ...compute.runtime import num_workers_for, run_bands, run_ranges, warp_view
+from ...compute.runtime import flat_view, num_workers_for, run_bands, run_ranges
 from .composite import (RECORD_WIDTH, composite_backward_simd, composite_forward_median_simd,
                         composite_forward_simd)
 from .project import LANES, project_backward_simd, project_simd
@@ -18,8 +18,7 @@ def pack_records(means2d, conics, opacities, colors, depths) -> torch.Tensor:
     return torch.cat([means2d, conics, opacities[:, None], colors, depths[:, None]], dim=1).contiguous()
 
 
-def _flat(tensor: torch.Tensor):
-    return warp_view(tensor.reshape(-1))
+_flat = flat_view  # the kernels take every array as a flat run of elements
 
 
 def forward(records: torch.Tensor, background: torch.Tensor, bins: TileBins, width: int, height: int,

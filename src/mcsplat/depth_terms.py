@@ -1,0 +1,230 @@
+"""Depth supervision as loss terms: the rendered depth held to the SfM points each image saw, or to depth maps.
+
+    sparse     --sparse-depth W: for each training view, the SfM points its image observed (COLMAP's tracks,
+               data/sfm_tracks.py) projected with the step's camera; the rendered depth sampled bilinearly at their
+               pixels against their z
+    metric     --depth-loss metric: the depth map (data/attachments/depth.py; a sensor's, LiDAR's) against the
+               rendered depth where the map has one
+    relative   --depth-loss relative: a monocular model's depth, known up to scale and shift: the scale and shift
+               that bring the map closest to the render (least squares, no gradient) make the target
+    disparity  --depth-loss disparity: the same for inverse depth (what MiDaS and Depth Anything give): the map's
+               scale and shift fitted to the render's 1/z, the target the inverse of the fitted map
+
+Every term is the mean relative error |D - T| / T of the rendered depth D against its target depth T, so that a far
+point does not outweigh a near one (a depth's noise grows with it) and a weight means the same in any scene's units.
+D is render()'s expected depth, the alpha-weighted mean z (already divided by alpha: RenderResult.depth); it is
+read only where alpha is at least MIN_ALPHA, for where the render is nearly empty its mean depth is of a few faint
+Gaussians and its gradient grows as 1 / alpha. A term gives None for a view without its input (no map, no point in
+front of the camera and inside the image). Each weight starts at a share of the run (--*-from) and goes linearly to
+a share of itself (--*-final) at the end.
+
+Metric depth maps are checked once at set-up against the scene (check_metric_scale): maps in other units than the
+scene's (millimetres of a scene in metres) are refused with what to set.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+
+from .camera import Camera
+from .data import Scene
+from .data.sfm_tracks import points_seen
+from .errors import MCSplatError
+from .loss_terms import StepContext
+
+MIN_ALPHA = 0.5  # the render's depth is read where it is at least this opaque
+MIN_PIXELS = 16  # a scale-and-shift fit needs this many pixels with both depths
+SCALE_TOLERANCE = 10.0  # metric maps whose depths are this many times the scene's (or this share of them) are refused
+CHECK_VIEWS, CHECK_POINTS = 16, 20_000  # what the scale check looks at: a few views, a sample of the Gaussians
+DENSE_MODES = ("metric", "relative", "disparity")
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """A term's weight over the run: 0 before `start` (a share of the steps), then from `weight` linearly to
+    `weight * final` at the last step."""
+
+    weight: float
+    start: float = 0.0
+    final: float = 1.0
+
+    def at(self, step: int, steps: int) -> float:
+        begin = self.start * steps
+        if self.weight == 0 or step < begin:
+            return 0.0
+        progress = min(1.0, (step - begin) / max(steps - 1 - begin, 1.0))
+        return self.weight * (1.0 + (self.final - 1.0) * progress)
+
+
+def relative_error(rendered: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor | None:
+    """The weighted mean of |rendered - target| / target, or None when no weight is positive."""
+    total = weights.sum()
+    if not bool(total > 0):
+        return None
+    safe = torch.where(weights > 0, target, torch.ones_like(target))
+    return (weights * (rendered - target).abs() / safe).sum() / total
+
+
+def sample_depth(depth: torch.Tensor, alpha: torch.Tensor, u: torch.Tensor, v: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(expected depth, alpha) [k] at pixel positions (u, v) (centres at +0.5), bilinear in depth * alpha and in
+    alpha: so that a point near an object's edge is not averaged with the zero depth of the empty pixels beside it."""
+    height, width = depth.shape
+    grid = torch.stack([2 * u / width - 1, 2 * v / height - 1], dim=-1).to(depth.dtype)[None, None]
+    maps = torch.stack([depth * alpha, alpha])[None]
+    sampled = F.grid_sample(maps, grid, mode="bilinear", padding_mode="border", align_corners=False)[0, :, 0]
+    weighted, opacity = sampled[0], sampled[1]
+    return weighted / opacity.clamp_min(1e-10), opacity
+
+
+def project(points: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(u, v, z) of the world points [k, 3] that lie in front of `camera` and inside its image (no gradient: a
+    target, not something the loss moves)."""
+    with torch.no_grad():
+        local = camera.to_camera_space(points)
+        u, v, inside = camera.pixels_of(local)
+    return u[inside], v[inside], local[inside, 2]
+
+
+class SparseDepth:
+    """The rendered depth at the pixels of the SfM points each training view saw, against the points' depths."""
+
+    def __init__(self, points: dict[str, torch.Tensor], schedule: Schedule):
+        self.points, self.schedule = points, schedule
+
+    def __call__(self, ctx: StepContext) -> torch.Tensor | None:
+        weight = self.schedule.at(ctx.step, ctx.steps)
+        points = self.points.get(ctx.view.name)
+        if weight == 0 or points is None:
+            return None
+        u, v, z = project(points, ctx.camera)
+        if z.numel() == 0:
+            return None
+        depth, alpha = sample_depth(ctx.result.depth, ctx.result.alpha, u, v)
+        error = relative_error(depth, z, (alpha >= MIN_ALPHA).to(depth.dtype))
+        return None if error is None else weight * error
+
+
+def fit_scale_shift(prior: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
+                    ) -> tuple[float, float] | None:
+    """(s, t) minimising sum weights * (s prior + t - target)^2 (in float64, no gradient), or None when the pixels
+    cannot fix both (fewer than MIN_PIXELS, or a flat prior)."""
+    with torch.no_grad():
+        w, m, d = (x.double().reshape(-1) for x in (weights, prior, target))
+        if int((w > 0).sum()) < MIN_PIXELS:
+            return None
+        sw, sm, sd = w.sum(), (w * m).sum(), (w * d).sum()
+        smm, smd = (w * m * m).sum(), (w * m * d).sum()
+        determinant = sw * smm - sm * sm
+        if not bool(determinant > 1e-12 * sw * smm):
+            return None
+        return float((sw * smd - sm * sd) / determinant), float((smm * sd - sm * smd) / determinant)
+
+
+def target_depth(mode: str, prior: torch.Tensor, rendered: torch.Tensor, weights: torch.Tensor
+                 ) -> torch.Tensor | None:
+    """The depth the render is held to, from the map `prior` [H, W] (0: none) as `mode` reads it, 0 where there is
+    none; None when a fit fails."""
+    if mode == "metric":
+        return prior
+    fitted_to = rendered if mode == "relative" else 1.0 / rendered.clamp_min(1e-10)  # depth, or inverse depth
+    fit = fit_scale_shift(prior, fitted_to.detach(), weights)
+    if fit is None:
+        return None
+    scale, shift = fit
+    mapped = scale * prior + shift
+    if mode == "disparity":
+        mapped = torch.where(mapped > 0, 1.0 / mapped.clamp_min(1e-10), torch.zeros_like(mapped))
+    return torch.where((prior > 0) & (mapped > 0), mapped, torch.zeros_like(mapped))
+
+
+class DenseDepth:
+    """The rendered depth against the view's depth map (metric, or up to scale and shift: relative, disparity)."""
+
+    def __init__(self, mode: str, schedule: Schedule):
+        if mode not in DENSE_MODES:
+            raise ValueError(f"depth loss mode {mode!r} is not one of {DENSE_MODES}")
+        self.mode, self.schedule = mode, schedule
+
+    def __call__(self, ctx: StepContext) -> torch.Tensor | None:
+        weight = self.schedule.at(ctx.step, ctx.steps)
+        if weight == 0:
+            return None
+        prior = ctx.view.attachment("depth", ctx.target.device, (ctx.camera.width, ctx.camera.height))
+        if prior is None:
+            return None
+        prior, rendered = prior[..., 0], ctx.result.depth
+        weights = ((prior > 0) & (ctx.result.alpha.detach() >= MIN_ALPHA)).to(rendered.dtype)
+        if ctx.keep is not None:
+            weights = weights * ctx.keep[..., 0]
+        target = target_depth(self.mode, prior, rendered, weights)
+        if target is None:
+            return None
+        error = relative_error(rendered, target, weights * (target > 0))
+        return None if error is None else weight * error
+
+
+def sparse_points(scene: Scene, device: torch.device | str) -> dict[str, torch.Tensor]:
+    """{training view name: the SfM points [k, 3] its image saw} on `device`; refuses a scene without tracks."""
+    seen = points_seen(scene.root) if scene.kind == "colmap" else None
+    if seen is None:
+        raise MCSplatError(f"--sparse-depth needs a COLMAP scene, whose model says which points each image saw; "
+                           f"{scene.root} is a {scene.kind} scene (for depth maps: --depths with --depth-loss)")
+    points = {view.name: torch.from_numpy(seen[view.name]).to(device, torch.float32)
+              for view in scene.train if view.name in seen}
+    if not points:
+        raise MCSplatError(f"--sparse-depth: none of the {len(scene.train)} training views saw a point of the COLMAP "
+                           f"model in {scene.root}; train without --sparse-depth")
+    return points
+
+
+def check_metric_scale(views: Sequence, means: torch.Tensor) -> None:
+    """Refuse metric depth maps whose depths are not in the scene's units: the median of each map (over its known
+    pixels) against the median z of the Gaussians `means` [N, 3] (the run's first, or its checkpoint's) inside the
+    same view, over a few views; off by more than SCALE_TOLERANCE either way is one line saying what to set."""
+    generator = torch.Generator().manual_seed(0)
+    means = means.detach().float().cpu()
+    if means.shape[0] > CHECK_POINTS:
+        means = means[torch.randperm(means.shape[0], generator=generator)[:CHECK_POINTS]]
+    ratios, maps, scene = [], [], []
+    for view in [view for view in views if "depth" in view.attachments][:CHECK_VIEWS]:
+        known = view.attachments["depth"].values
+        known = known[known > 0]
+        _, _, z = project(means, view.camera)
+        if known.numel() and z.numel():
+            maps.append(float(known.median()))
+            scene.append(float(z.median()))
+            ratios.append(maps[-1] / scene[-1])
+    if not ratios:
+        return
+    ratio = float(torch.tensor(ratios).median())
+    if 1 / SCALE_TOLERANCE <= ratio <= SCALE_TOLERANCE:
+        return
+    looks = "millimetres of a scene in metres" if 300 < ratio < 3000 else \
+        "metres of a scene in millimetres" if 1 / 3000 < ratio < 1 / 300 else "in other units than the scene"
+    raise MCSplatError(f"--depth-loss metric: the depth maps' depths are {ratio:.3g} times the scene's (median "
+                       f"{float(torch.tensor(maps).median()):.3g} against {float(torch.tensor(scene).median()):.3g} "
+                       f"scene units in the same views): they look like {looks}; set --depth-png-step to the scene "
+                       f"units of a 16-bit PNG's step, save .npy maps in the scene's units, or use --depth-loss "
+                       f"relative")
+
+
+def depth_terms(scene: Scene, means: torch.Tensor, device: torch.device | str, *, sparse: Schedule,
+                mode: str, dense: Schedule) -> list:
+    """The depth terms the options ask for (sparse when its weight is positive, dense unless `mode` is "none"), in
+    the order they are added after the standard ones; refuses what they cannot read."""
+    terms: list = []
+    if sparse.weight > 0:
+        terms.append(SparseDepth(sparse_points(scene, device), sparse))
+    if mode != "none":
+        if not any("depth" in view.attachments for view in scene.train):
+            raise MCSplatError(f"--depth-loss {mode}: none of the {len(scene.train)} training views has a depth map; "
+                               f"give --depths auto (beside the photos, or the scene's depths/) or their folder")
+        if mode == "metric":
+            check_metric_scale(scene.train, means)
+        terms.append(DenseDepth(mode, dense))
+    return terms
