@@ -171,6 +171,28 @@ def test_a_band_narrower_than_the_views_disagreement_moves_the_surface_inward():
     assert heights[4] < -0.02 and abs(heights[24]) < 0.003, heights
 
 
+def test_views_that_see_through_a_surface_carve_it_unless_their_empty_space_weighs_less():
+    """Ten views from above of the plane z = 0; four see it, six see through it (a semi-transparent surface whose
+    median depth lands on a floor 0.5 below). Every observation counting alike, the six say "empty" at the plane and
+    carve it away; with their empty space weighing a tenth, the plane stays where the four put it, and a second sheet
+    appears a band behind it (where the four's band ends and only the six's empty space is left)."""
+    camera = look_at(torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), 64)
+    grid = VoxelGrid(origin=(-0.2, -0.2, -0.7), voxel_size=0.01, shape=(41, 41, 91))
+    surfaces = {}
+    for free_weight in (1.0, 0.1):
+        volume = TSDFVolume(grid, torch.device("cpu"), free_weight)
+        for seen_through in [False] * 4 + [True] * 6:
+            depth = torch.full((64, 64), 3.5 if seen_through else 3.0)
+            volume.integrate(camera, depth, torch.full((64, 64, 3), 0.5))
+        vertices = zero_surface(volume)[0]
+        surfaces[free_weight] = vertices[:, 2]
+    assert (np.abs(surfaces[1.0]) < 0.1).sum() == 0
+    on_plane, behind = np.abs(surfaces[0.1]) < 0.01, np.abs(surfaces[0.1] + 0.045) < 0.01
+    assert on_plane.sum() > 1000 and behind.sum() > 1000 and (on_plane | behind | (surfaces[0.1] < -0.4)).all()
+    with pytest.raises(MCSplatError, match="free_weight"):
+        MeshOptions(free_weight=0.0)
+
+
 def test_a_depth_that_the_neighbouring_views_do_not_confirm_is_left_out():
     """Seven views of the plane z = 0 from above; in the first, a patch of pixels shows a floater 0.3 nearer. Its
     neighbours see the plane there, so the patch is left out and the rest of the view, which they confirm, stays;

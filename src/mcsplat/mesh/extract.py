@@ -39,6 +39,10 @@ SURFACE_DEPTHS = ("median", "planar")
 # (consistency.py); 0 fuses every pixel. 4 of 6 was the best of 2..5 on the generated scene and the cup
 # (docs/outputs.md, "Consistent depths").
 CONSISTENT_VIEWS = 4
+# A view whose depth lies a band or more behind a grid point says only that the point is empty; it counts this much
+# beside an observation within the band. Below 1, a surface that some views see through (semi-transparent, so their
+# median depth lands behind it) is not carved away by them (docs/outputs.md, "Where MCMC's depth was lost").
+FREE_WEIGHT = 1.0
 
 
 @dataclass(frozen=True)
@@ -50,6 +54,7 @@ class MeshOptions:
     depth: str = "median"                     # which depth is fused: SURFACE_DEPTHS
     truncation: float = TRUNCATION_VOXELS     # half-width of the signed distance band, in voxels
     consistent_views: int = CONSISTENT_VIEWS  # of the NEIGHBOURS nearest views, how many must confirm a depth
+    free_weight: float = FREE_WEIGHT          # weight of a view's "empty here" (a grid point a band or more in front)
 
     def __post_init__(self) -> None:
         if not 0.0 < self.alpha_min <= 1.0:
@@ -61,6 +66,8 @@ class MeshOptions:
         if not 0 <= self.consistent_views <= NEIGHBOURS:
             raise MCSplatError(f"--consistent-views must be between 0 (fuse every pixel) and {NEIGHBOURS} (the "
                                f"nearest views a depth is checked against), got {self.consistent_views}")
+        if not 0.0 < self.free_weight <= 1.0:
+            raise MCSplatError(f"free_weight must be in (0, 1], got {self.free_weight}")
         if not 0.0 <= self.min_component <= 1.0:
             raise MCSplatError(f"--min-component must be in [0, 1] (a share of the largest piece's faces), got "
                                f"{self.min_component}")
@@ -89,7 +96,7 @@ def extract(model: GaussiansLike, views: Sequence, options: MeshOptions = MeshOp
     neighbours = nearest_views(cameras) if checking else [[] for _ in cameras]
     seconds["depths"] = time.perf_counter() - started
     started = time.perf_counter()
-    volume = TSDFVolume(grid, device)
+    volume = TSDFVolume(grid, device, options.free_weight)
     surface_pixels = fused_pixels = 0
     for index, camera in enumerate(tqdm(cameras, desc="fusing views", unit="view", disable=not progress,
                                         leave=False)):

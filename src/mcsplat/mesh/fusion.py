@@ -2,9 +2,11 @@
 device.
 
 A grid point seen by a view at camera depth z, in front of the pixel's depth d or at most the truncation t behind it,
-takes the observation min(1, (d - z) / t) into its running mean; farther behind it is hidden and left alone. The
-running mean of the pixel's colour goes with it. Pixels without a surface (depth -inf) update nothing. The volume is
-walked in slabs of the first axis, so that the temporaries stay small whatever the grid.
+takes the observation min(1, (d - z) / t) into its running mean; farther behind it is hidden and left alone. An
+observation of 1 (the point is a band or more in front: the view says only that it is empty) counts `free_weight`
+(1 by default) beside one within the band. The running mean of the pixel's colour goes with it. Pixels without a
+surface (depth -inf) update nothing. The volume is walked in slabs of the first axis, so that the temporaries stay
+small whatever the grid.
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ GAP_WEIGHT = 1e-3      # fill_gaps: the weight a filled point gets (observed, bu
 
 
 class TSDFVolume:
-    def __init__(self, grid: VoxelGrid, device: torch.device):
-        self.grid, self.device = grid, device
+    def __init__(self, grid: VoxelGrid, device: torch.device, free_weight: float = 1.0):
+        self.grid, self.device, self.free_weight = grid, device, free_weight
         self.tsdf = torch.ones(grid.shape, dtype=torch.float32, device=device)   # in units of the truncation
         self.weight = torch.zeros(grid.shape, dtype=torch.float32, device=device)  # observations so far
         self.color = torch.zeros((*grid.shape, 3), dtype=torch.float16, device=device)
@@ -68,14 +70,15 @@ class TSDFVolume:
                 continue
             in_volume = ids + x0 * ny * nz
             weight = self.weight.view(-1)[in_volume]
-            new_weight = weight + 1.0
             observed = (sdf.reshape(-1)[ids] / truncation).clamp_(max=1.0)
+            this = torch.where(observed >= 1.0, self.free_weight, 1.0)
+            new_weight = weight + this
             tsdf = self.tsdf.view(-1)
-            tsdf[in_volume] = (tsdf[in_volume] * weight + observed) / new_weight
+            tsdf[in_volume] = (tsdf[in_volume] * weight + observed * this) / new_weight
             self.weight.view(-1)[in_volume] = new_weight
             color = self.color.view(-1, 3)
             old = color[in_volume].float()
-            color[in_volume] = (old + (framed_rgb[pixel.reshape(-1)[ids]] - old) / new_weight[:, None]).half()
+            color[in_volume] = (old + (framed_rgb[pixel.reshape(-1)[ids]] - old) * (this / new_weight)[:, None]).half()
 
     @torch.no_grad()
     def fill_gaps(self, passes: int = GAP_PASSES, least_neighbours: int = GAP_NEIGHBOURS) -> int:
