@@ -66,9 +66,10 @@ STRATEGY_OPTIONS = {
 STRATEGY_OPTIONS["mcmc-antialiased"] = STRATEGY_OPTIONS["mcmc"] + ["--antialiased"]
 STRATEGY_OPTIONS["mcmc-surface-antialiased"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--antialiased"]
 STRATEGY_OPTIONS["adc-surface"] = STRATEGY_OPTIONS["adc"] + ["--surface"]
-# Depth supervision from the SfM points each image saw (COLMAP scenes only: cup, bird, DTU's MonoSDF cameras are not)
-STRATEGY_OPTIONS["mcmc-sparse-depth"] = STRATEGY_OPTIONS["mcmc"] + ["--sparse-depth", "0.1"]
-STRATEGY_OPTIONS["mcmc-surface-sparse-depth"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--sparse-depth", "0.1"]
+# Depth supervision from the SfM points each image saw, from the first step (COLMAP scenes only: cup and bird)
+SPARSE_DEPTH = ["--sparse-depth", "0.1", "--sparse-depth-from", "0"]
+STRATEGY_OPTIONS["mcmc-sparse-depth"] = STRATEGY_OPTIONS["mcmc"] + SPARSE_DEPTH
+STRATEGY_OPTIONS["mcmc-surface-sparse-depth"] = STRATEGY_OPTIONS["mcmc-surface"] + SPARSE_DEPTH
 NEAR_VOXELS = 3           # "on the surface": within this many voxels of the mesh
 COMPLETE = 0.01           # completeness threshold, in units of R
 AGREEMENT = 0.01          # depth agreement threshold, relative to the depth
