@@ -95,3 +95,10 @@ def pytest_collection_modifyitems(config, items):
         name = item.path.name
         return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
     items.sort(key=rank)  # stable: the order within a file, and of the other files, is kept
+    if config.getoption("--device") == "cuda":
+        # On a GPU machine only the tests that take the device: the others are the CPU's, which CI runs, and a lent
+        # GPU's minutes are few (16 of the 108 tests of gpu_session.py's tests phase).
+        cpu_only = [item for item in items if "device" not in getattr(item, "fixturenames", ())]
+        if cpu_only:
+            config.hook.pytest_deselected(items=cpu_only)
+            items[:] = [item for item in items if "device" in getattr(item, "fixturenames", ())]

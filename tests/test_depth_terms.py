@@ -123,6 +123,32 @@ def test_the_sparse_term_moves_the_depth_at_its_points_onto_the_plane():
     assert term(context(model, view_with(None, name="no points"))) is None
 
 
+def test_the_sparse_term_leaves_out_the_points_a_mask_leaves_out():
+    """A point on pixels the view's mask leaves out (a passer-by, the sky) says nothing about the depth there."""
+    model = sheet(3.0)
+    near = torch.tensor([[-0.5, 0.0, 2.0], [0.5, 0.0, 2.5]])  # the left point on kept pixels, the right one masked
+    keep = torch.ones(H, W, 1)
+    keep[:, W // 2:] = 0.0
+    term = SparseDepth({"v": near}, Schedule(1.0))
+    ctx = context(model, view_with(None))
+    masked = StepContext(ctx.step, ctx.view, 0, ctx.camera, ctx.rgb, ctx.target, keep, model, ctx.result, ctx.steps)
+    alone = SparseDepth({"v": near[:1]}, Schedule(1.0))(ctx)
+    torch.testing.assert_close(term(masked), alone)
+    assert abs(float(term(ctx).detach()) - float(alone.detach())) > 0.05, "unmasked, the right point counts"
+    keep[:] = 0.0
+    assert term(masked) is None, "every point masked: nothing to say"
+
+
+def test_a_map_that_fits_only_inverted_is_left_out_with_a_warning():
+    """Disparity maps given as relative depth fit the render only with a negative scale: the term says so and adds
+    nothing, rather than training toward the inverted shape."""
+    model = sheet(3.0, tilt=0.4)
+    rendered = context(model, view_with(None)).result.depth.detach()
+    disparity = torch.where(rendered > 0, 1.0 / rendered.clamp_min(1e-6), torch.zeros_like(rendered))
+    with pytest.warns(RuntimeWarning, match="only inverted.*--depth-loss disparity"):
+        assert DenseDepth("relative", Schedule(1.0))(context(model, view_with(disparity))) is None
+
+
 def test_relative_and_disparity_maps_are_read_up_to_scale_and_shift():
     model = sheet(3.0, tilt=0.4)
     ctx = context(model, view_with(None))

@@ -91,6 +91,8 @@ def test_a_hand_edited_plan_is_one_line_naming_the_value():
              ({key: value for key, value in record["plan"].items() if key != "sh_degree"},
               "config.json: plan lacks sh_degree"),
              ({**record["plan"], "speed": 3}, "config.json: unknown option 'plan.speed'"),
+             ({**record["plan"], "mcmc": {k: v for k, v in record["plan"]["mcmc"].items() if k != "grow_rate"}},
+              "config.json: plan.mcmc lacks grow_rate"),
              ([], "config.json: plan must be an object")]
     for edited, message in edits:
         with pytest.raises(MCSplatError, match="put back|another mcsplat|must be an object") as refused:

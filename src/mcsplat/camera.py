@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import torch
 
+SCALED_KEPT = 4  # the sizes of a camera `scaled` keeps
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -82,14 +84,16 @@ class Camera:
         return -rotation.T @ translation
 
     def scaled(self, width: int, height: int) -> "Camera":
-        """The same camera for an image resized to width x height (intrinsics scaled per axis). Made once per size
-        (coarse to fine asks for the same few at every step), so that its numbers are read once."""
+        """The same camera for an image resized to width x height (intrinsics scaled per axis). The last few sizes
+        asked for are kept, so that a run at full size (or its coarse phase's last sizes) reads their numbers once."""
         made = self.__dict__.setdefault("_scaled", {})
         if (width, height) not in made:
             sx, sy = width / self.width, height / self.height
             K = self.K.clone()
             K[0, :] *= sx
             K[1, :] *= sy
+            if len(made) >= SCALED_KEPT:  # coarse to fine asks for a new size at many steps: keep the newest
+                made.pop(next(iter(made)))
             made[(width, height)] = Camera(K=K, world_to_camera=self.world_to_camera, width=width, height=height)
         return made[(width, height)]
 

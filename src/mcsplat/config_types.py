@@ -86,7 +86,7 @@ def checked_dataclass(cls: type, values: Any, source: str, prefix: str = "", nes
             raise MCSplatError(f"{source}: unknown option {prefix + key!r} (written by another mcsplat version?)")
         hint = hints[key]
         if nested and key in nested:
-            value = checked_dataclass(nested[key], value, source, f"{prefix}{key}.")
+            value = checked_dataclass(nested[key], value, source, f"{prefix}{key}.", complete=complete)
         elif not fits(value, hint):
             raise MCSplatError(f"{source}: {prefix}{key} is {json.dumps(value)}, not {describe(hint)}; put back the "
                                f"value mcsplat wrote there")

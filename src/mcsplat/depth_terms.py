@@ -24,6 +24,7 @@ scene's (millimetres of a scene in metres) are refused with what to set.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -73,12 +74,15 @@ def sample_depth(depth: torch.Tensor, alpha: torch.Tensor, u: torch.Tensor, v: t
                  ) -> tuple[torch.Tensor, torch.Tensor]:
     """(expected depth, alpha) [k] at pixel positions (u, v) (centres at +0.5), bilinear in depth * alpha and in
     alpha: so that a point near an object's edge is not averaged with the zero depth of the empty pixels beside it."""
-    height, width = depth.shape
-    grid = torch.stack([2 * u / width - 1, 2 * v / height - 1], dim=-1).to(depth.dtype)[None, None]
-    maps = torch.stack([depth * alpha, alpha])[None]
-    sampled = F.grid_sample(maps, grid, mode="bilinear", padding_mode="border", align_corners=False)[0, :, 0]
-    weighted, opacity = sampled[0], sampled[1]
+    weighted, opacity = sample_maps(torch.stack([depth * alpha, alpha]), u, v)
     return weighted / opacity.clamp_min(1e-10), opacity
+
+
+def sample_maps(maps: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """The maps [C, H, W] sampled bilinearly at pixel positions (u, v) (centres at +0.5): [C, k]."""
+    height, width = maps.shape[-2:]
+    grid = torch.stack([2 * u / width - 1, 2 * v / height - 1], dim=-1).to(maps.dtype)[None, None]
+    return F.grid_sample(maps[None], grid, mode="bilinear", padding_mode="border", align_corners=False)[0, :, 0]
 
 
 def project(points: torch.Tensor, camera: Camera) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -105,7 +109,10 @@ class SparseDepth:
         if z.numel() == 0:
             return None
         depth, alpha = sample_depth(ctx.result.depth, ctx.result.alpha, u, v)
-        error = relative_error(depth, z, (alpha >= MIN_ALPHA).to(depth.dtype))
+        weights = (alpha >= MIN_ALPHA).to(depth.dtype)
+        if ctx.keep is not None:  # a point on pixels the mask leaves out says nothing, as the photo there does not
+            weights = weights * sample_maps(ctx.keep.detach().permute(2, 0, 1), u, v)[0]
+        error = relative_error(depth, z, weights)
         return None if error is None else weight * error
 
 
@@ -136,6 +143,11 @@ def target_depth(mode: str, prior: torch.Tensor, rendered: torch.Tensor, weights
     if fit is None:
         return None
     scale, shift = fit
+    if scale <= 0:  # nearer in the map is farther in the render: a map of the other kind (depth for disparity)
+        warnings.warn(f"--depth-loss {mode}: a depth map fits the render only inverted (scale {scale:.3g}); it is "
+                      f"left out. Maps of {'disparity' if mode == 'relative' else 'depth'} want --depth-loss "
+                      f"{'disparity' if mode == 'relative' else 'relative'}", RuntimeWarning, stacklevel=2)
+        return None
     mapped = scale * prior + shift
     if mode == "disparity":
         mapped = torch.where(mapped > 0, 1.0 / mapped.clamp_min(1e-10), torch.zeros_like(mapped))

@@ -1,7 +1,7 @@
 """A run folder: its layout, how a training run starts in it (new, resumed or refused), and how every other command
 reads a trained run back (`load`).
 
-    RUN/config.json          the resolved configuration (what --resume continues with), its scene's fingerprint
+    RUN/config.json          the options as given and the plan (what --resume continues with), the scene's fingerprint
     RUN/checkpoint.pt        model, Adam state, strategy state, RNG states, step (written atomically, checksummed)
     RUN/checkpoint.prev.pt   the checkpoint before it (what to fall back to when checkpoint.pt is damaged)
     RUN/log.jsonl            a record every 100 steps and at each periodic evaluation

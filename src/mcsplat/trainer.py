@@ -114,7 +114,7 @@ def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view
     loss_value, train_psnr = reduce(model, [loss.item(), psnr(rgb.detach(), target)])
     if not math.isfinite(loss_value):  # checked after the reduce, so that every process stops at the same step
         raise MCSplatError(f"step {step}: the loss became {loss_value}; lower the learning rates or the loss terms' "
-                           f"weights (--surface-*, --appearance-*), or check the input images")
+                           f"weights (--surface-*, --appearance-*, --*depth*), or check the input images")
     lap("reduce")
     optim.step_optimizers(optimizers)  # and the gradients dropped
     for module in modules:

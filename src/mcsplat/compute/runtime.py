@@ -157,7 +157,10 @@ array_t = type(wp.from_torch(torch.empty(0), return_ctype=True))
 
 def flat_view(tensor: torch.Tensor):
     """`warp_view(tensor.reshape(-1))` of a contiguous tensor (a 1-d array of its elements) without the reshape's
-    operator: the descriptor made from the address and the element count alone."""
+    operator: the descriptor made from the address and the element count alone. For CPU launches: Warp checks
+    neither the device nor the dtype of such a descriptor."""
+    if tensor.device.type != "cpu":
+        raise ValueError(f"flat_view is for CPU launches, got a tensor on {tensor.device}")
     if not tensor.is_contiguous():
         raise ValueError(f"flat_view needs a contiguous tensor, got strides {tensor.stride()}")
     scalar = wp.dtype_from_torch(tensor.dtype)
@@ -168,7 +171,7 @@ def flat_view(tensor: torch.Tensor):
 
 def numpy_view(array: np.ndarray):
     """A contiguous 1-d numpy array as a Warp kernel argument (no copy, no torch operator): a small table the host
-    fills before a launch (addresses, sizes, learning rates)."""
+    fills before a CPU launch (addresses, sizes, learning rates)."""
     if array.ndim != 1 or not array.flags.c_contiguous:
         raise ValueError(f"numpy_view needs a contiguous 1-d array, got shape {array.shape}")
     view = array_t(array.ctypes.data, 0, 1, (array.shape[0],), (array.itemsize,))

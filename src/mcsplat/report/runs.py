@@ -59,7 +59,11 @@ def load_run(path: Path) -> RunRecord:
     model = run.read_checkpoint()["model"]  # GaussianModel.state_dict(): "params.<name>"
     opacities = torch.sigmoid(model["params.opacity_logits"].float()).numpy()
     max_scales = torch.exp(model["params.log_scales"].float().max(dim=1).values).numpy()
-    settings = settings_of(json.loads(run.config_file.read_text()))
+    saved = json.loads(run.config_file.read_text())
+    try:
+        settings = settings_of(saved)
+    except MCSplatError:  # edited by hand, or another version's: the report shows what it can read as it is
+        settings = saved
     return RunRecord(path=run.path, name=run.path.resolve().name, config=settings, metrics=metrics,
                      log=read_log(run.log_file), opacities=opacities, max_scales=max_scales,
                      per_view_psnr=metrics.get("per_view_psnr", {}))
