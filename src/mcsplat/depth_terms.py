@@ -144,9 +144,11 @@ def target_depth(mode: str, prior: torch.Tensor, rendered: torch.Tensor, weights
         return None
     scale, shift = fit
     if scale <= 0:  # nearer in the map is farther in the render: a map of the other kind (depth for disparity)
-        warnings.warn(f"--depth-loss {mode}: a depth map fits the render only inverted (scale {scale:.3g}); it is "
-                      f"left out. Maps of {'disparity' if mode == 'relative' else 'depth'} want --depth-loss "
-                      f"{'disparity' if mode == 'relative' else 'relative'}", RuntimeWarning, stacklevel=2)
+        # One message for every view and step (a warning is shown once per text): no number in it.
+        other = "disparity" if mode == "relative" else "relative"
+        warnings.warn(f"--depth-loss {mode}: a depth map fits the render only inverted; it is left out. Maps of "
+                      f"{'disparity' if mode == 'relative' else 'depth'} want --depth-loss {other}", RuntimeWarning,
+                      stacklevel=2)
         return None
     mapped = scale * prior + shift
     if mode == "disparity":
