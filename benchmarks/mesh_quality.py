@@ -66,6 +66,8 @@ STRATEGY_OPTIONS = {
 STRATEGY_OPTIONS["mcmc-antialiased"] = STRATEGY_OPTIONS["mcmc"] + ["--antialiased"]
 STRATEGY_OPTIONS["mcmc-surface-antialiased"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--antialiased"]
 STRATEGY_OPTIONS["adc-surface"] = STRATEGY_OPTIONS["adc"] + ["--surface"]
+# --surface's normal term from half way instead of 0.23 of the run (its PSNR cost, issue 59)
+STRATEGY_OPTIONS["mcmc-surface-late"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--surface-from", "0.5"]
 # Depth supervision from the SfM points each image saw, from the first step (COLMAP scenes only: cup and bird)
 SPARSE_DEPTH = ["--sparse-depth", "0.1", "--sparse-depth-from", "0"]
 STRATEGY_OPTIONS["mcmc-sparse-depth"] = STRATEGY_OPTIONS["mcmc"] + SPARSE_DEPTH
