@@ -1,9 +1,11 @@
 """Helpers shared by the benchmark scripts: data paths, the results folder, JSON lines, markdown tables, plots,
-timing and a description of the machine. Not part of the package; the scripts import it as `_common` (they run as
-`python benchmarks/<script>.py`, which puts this folder on sys.path)."""
+training options (make_config, test_subset), timing and a description of the machine. Not part of the package; the
+scripts import it as `_common` (they run as `python benchmarks/<script>.py`, which puts this folder on sys.path)."""
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import datetime
 import json
 import math
@@ -114,11 +116,15 @@ def write_text(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
+def results_page(title: str, script: str, rows: Sequence[dict], columns) -> str:
+    """A results.md: a title, the command that made the figures, and their table."""
+    return "\n".join([f"# {title}", "", f"`.venv/bin/python benchmarks/{script}` (the module docstring says what each "
+                      "column is).", "", markdown_table(rows, columns), ""])
+
+
 def write_results_page(folder: Path, title: str, script: str, rows: Sequence[dict], columns) -> None:
-    """folder/results.md: a title, the command that made the figures, and their table."""
-    text = [f"# {title}", "", f"`.venv/bin/python benchmarks/{script}` (the module docstring says what each column "
-            "is).", "", markdown_table(rows, columns), ""]
-    write_text(folder / "results.md", "\n".join(text))
+    """folder/results.md: results_page()."""
+    write_text(folder / "results.md", results_page(title, script, rows, columns))
 
 
 def pyplot():
@@ -139,6 +145,53 @@ def human(n: int) -> str:
         if n >= div:
             return f"{n / div:g}{suffix}"
     return str(n)
+
+
+# ------------------------------------------------------------------------------------------------ training runs
+def make_config(**options: Any):
+    """A TrainConfig from options named as config.json names them, the nested groups' with a dot:
+    make_config(data=scene, steps=500, surface=True, **{"mcmc.refine_every": 10, "model.init": "random"})."""
+    from mcsplat.config import TrainConfig, config_of
+
+    top: dict[str, Any] = {}
+    nested: dict[str, dict[str, Any]] = {}
+    for key, value in options.items():
+        group, _, name = key.rpartition(".")
+        if group:
+            nested.setdefault(group, {})[name] = value
+        else:
+            top[key] = value
+    factories = {f.name: f.default_factory for f in dataclasses.fields(TrainConfig)}
+    for group, values in nested.items():
+        if group not in factories:
+            raise ValueError(f"TrainConfig has no group of options {group!r} (in {sorted(values)})")
+        top[group] = dataclasses.replace(top.get(group) or factories[group](), **values)
+    return config_of(**top)
+
+
+@contextlib.contextmanager
+def test_subset(stride: int, max_views: int):
+    """Evaluate train()'s final metrics on every `stride`-th test view (at most max_views; 0 = all): wraps the
+    scene loader the run calls. Training views are untouched."""
+    import importlib
+    import importlib.util
+
+    # The module through which a run loads its scene (run_scene.py; run_dir.py in checkouts before it).
+    names = [name for name in ("mcsplat.run_scene", "mcsplat.run_dir") if importlib.util.find_spec(name)]
+    loader = next(module for module in map(importlib.import_module, names) if hasattr(module, "load_scene"))
+    original = loader.load_scene
+
+    def load_with_subset(*args, **kwargs):
+        scene = original(*args, **kwargs)
+        views = scene.test[::stride]
+        scene.test = views[:max_views] if max_views else views
+        return scene
+
+    loader.load_scene = load_with_subset
+    try:
+        yield
+    finally:
+        loader.load_scene = original
 
 
 # ----------------------------------------------------------------------------------------------- timing, memory

@@ -18,55 +18,80 @@ training resolution, photo / without / with, enlarged without smoothing.
 
 from __future__ import annotations
 
-import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
-
-import argparse
-import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
-import torch
+import tyro
 from PIL import Image
 
 import _common as C
+from framework import Arm, Common
 
 # folder, default cap, test stride
 # (The shared fern has only images_8/, so every --downscale up to 8 loads the same 504x378 images: no zoom to test.)
 SCENES = {"lego": (C.LEGO, 30_000, 8), "cup": ("colmap_cup", 50_000, 1), "bird": ("colmap_bird", 50_000, 1)}
 ZOOMS = (2.0, 1.0, 0.5, 0.25)  # test resolution over the training one
+KEY = ("scene", "antialiased", "steps", "train_downscale", "cap_max", "init_scale")
 
 
-def run_arm(scene: str, antialiased: bool, args) -> dict:
-    from mcsplat import run_dir
-    from mcsplat.config import ModelConfig, TrainConfig
+@dataclass(frozen=True)
+class Options:
+    """Anti-aliasing against none, trained at one resolution and tested at four."""
+
+    scenes: tuple[Literal["bird", "cup", "lego"], ...] = ("lego", "cup", "bird")
+    steps: int = 3000
+    train_downscale: int = 2
+    cap_max: int | None = None
+    """Default: 30k for lego, 50k for the captures."""
+    init_scale: float | None = None
+    """Initial Gaussian scale x the nearest-neighbour distance (default: the strategy's, 0.1)."""
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
+
+
+def arms(options: Options) -> list[Arm]:
+    start = "" if options.init_scale is None else f"-init{options.init_scale:g}"
+    return [Arm(f"{scene}-{'aa' if antialiased else 'plain'}-{options.steps}{start}",
+                {"scene": scene, "antialiased": antialiased, "steps": options.steps,
+                 "train_downscale": options.train_downscale, "cap_max": options.cap_max or SCENES[scene][1],
+                 "init_scale": options.init_scale},
+                {"steps": options.steps, "downscale": options.train_downscale,
+                 "cap_max": options.cap_max or SCENES[scene][1], "antialiased": antialiased,
+                 "model.init_scale": options.init_scale})
+            for scene in options.scenes for antialiased in (False, True)]
+
+
+def run(arm: Arm, options: Options, folder: Path) -> dict:
+    import torch
+
+    from mcsplat import trained_run
     from mcsplat.data import load_scene
     from mcsplat.evaluation import evaluate
     from mcsplat.train import train
 
-    folder, cap, stride = SCENES[scene]
-    data = C.DATA_ROOT / folder
-    start = "" if args.init_scale is None else f"-init{args.init_scale:g}"
-    out = C.results_dir("antialiasing") / "runs" / f"{scene}-{'aa' if antialiased else 'plain'}-{args.steps}{start}"
-    config = TrainConfig(data=data, out=out, overwrite=True, steps=args.steps, downscale=args.train_downscale,
-                         cap_max=args.cap_max or cap, antialiased=antialiased, quiet=True, save_renders=False,
-                         threads=args.threads, model=ModelConfig(init_scale=args.init_scale))
+    scene_folder, _, stride = SCENES[arm.labels["scene"]]
+    data, out = options.common.data_root / scene_folder, folder / "runs" / arm.name
+    config = C.make_config(data=data, out=out, overwrite=True, quiet=True, save_renders=False,
+                           threads=options.common.threads, **arm.config)
     metrics = train(config)
-    run = run_dir.load(out, torch.device("cpu"))
-    record = {"scene": scene, "antialiased": antialiased, "steps": metrics["steps"], "cap_max": config.mcmc.cap_max,
-              "train_downscale": args.train_downscale, "seconds_per_step": metrics["train_seconds"] / metrics["steps"],
-              "gaussians": metrics["num_gaussians"], "init_scale": config.model.init_scale, "machine": C.machine("cpu")}
+    run = trained_run.load(out, torch.device("cpu"))
+    figures = {"steps": metrics["steps"], "seconds_per_step": metrics["train_seconds"] / metrics["steps"],
+               "gaussians": metrics["num_gaussians"]}
     for zoom in ZOOMS:
-        downscale = args.train_downscale / zoom
+        downscale = options.train_downscale / zoom
         if downscale < 1 or downscale != int(downscale):
             continue
         views = load_scene(data, downscale=int(downscale), test_every=config.test_every).test[::stride]
         score = evaluate(run.model, views, run.background, run.sh_degree, torch.device("cpu"), lpips_net="vgg")
-        record[f"x{zoom:g}"] = {"psnr": score.psnr, "ssim": score.ssim, "lpips": score.lpips, "views": score.views,
-                                "size": f"{views[0].camera.width}x{views[0].camera.height}"}
-        if zoom == min(ZOOMS):
+        figures[f"x{zoom:g}"] = {"psnr": score.psnr, "ssim": score.ssim, "lpips": score.lpips, "views": score.views,
+                                 "size": f"{views[0].camera.width}x{views[0].camera.height}"}
+        if zoom == min(ZOOMS):  # the picture's panels, for finish()
             with torch.no_grad():
                 image = _render(run, views[0])
-            record["picture"] = {"view": views[0].name, "photo": views[0].image_float().numpy(), "render": image}
-    return record
+            np.savez(folder / "runs" / f"{arm.name}-picture.npz", photo=views[0].image_float().numpy(), render=image)
+    return figures
 
 
 def _render(run, view) -> np.ndarray:
@@ -74,24 +99,29 @@ def _render(run, view) -> np.ndarray:
     return render(run.model, view.camera, run.background, run.sh_degree).rgb.clamp(0, 1).numpy()
 
 
-def picture(scene: str, records: list[dict]) -> None:
-    """Photo, without, with: one test view at the smallest resolution, each pixel drawn as an 8x8 block."""
-    by_arm = {r["antialiased"]: r["picture"] for r in records if "picture" in r}
-    if set(by_arm) != {False, True}:
+def finish(arms: list[Arm], options: Options, folder: Path) -> None:
+    """Per scene, photo / without / with: one test view at the smallest resolution, each pixel drawn as an 8x8
+    block (the default start only)."""
+    if options.init_scale is not None:
         return
-    panels = [by_arm[False]["photo"], by_arm[False]["render"], by_arm[True]["render"]]
-    gap = np.ones((panels[0].shape[0], 2, 3))
-    strip = np.concatenate([p for panel in panels for p in (panel, gap)][:-1], axis=1)
-    big = np.kron(strip, np.ones((8, 8, 1)))
-    Image.fromarray((big * 255).round().astype(np.uint8)).save(C.results_dir("antialiasing") / f"{scene}.png")
+    for scene in dict.fromkeys(arm.labels["scene"] for arm in arms):
+        saved = {arm.labels["antialiased"]: folder / "runs" / f"{arm.name}-picture.npz"
+                 for arm in arms if arm.labels["scene"] == scene}
+        if set(saved) != {False, True} or not all(path.is_file() for path in saved.values()):
+            continue
+        without, with_filter = np.load(saved[False]), np.load(saved[True])
+        panels = [without["photo"], without["render"], with_filter["render"]]
+        gap = np.ones((panels[0].shape[0], 2, 3))
+        strip = np.concatenate([p for panel in panels for p in (panel, gap)][:-1], axis=1)
+        big = np.kron(strip, np.ones((8, 8, 1)))
+        Image.fromarray((big * 255).round().astype(np.uint8)).save(folder / f"{scene}.png")
 
 
 def _seconds_per_step(row: dict) -> str:
     return f"{row['s/step']:.3f}" + (f" ({row['timing_note']})" if row.get("timing_note") else "")
 
 
-def report(folder) -> None:
-    records = C.read_jsonl(folder / "results.jsonl")
+def report(records: list[dict], folder: Path) -> str:
     rows = []
     for r in records:
         for zoom in ZOOMS:
@@ -107,36 +137,10 @@ def report(folder) -> None:
                ("initial scale (x kNN)", "init_scale", "g"),
                ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"), ("LPIPS-VGG", "lpips", ".4f"),
                ("test views", "views", ""), ("steps", "steps", ","), ("s/step", "s/step", _seconds_per_step)]
-    C.write_results_page(folder, "Anti-aliasing: `--antialiased` against none, trained at one resolution, tested "
-                         "at four", "antialiasing.py", rows, columns)
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", nargs="+", choices=sorted(SCENES), default=["lego", "cup", "bird"])
-    parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--train-downscale", type=int, default=2)
-    parser.add_argument("--cap-max", type=int, default=None, help="default: 30k for lego, 50k for the cup")
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--init-scale", type=float, default=None,
-                        help="initial Gaussian scale x the nearest-neighbour distance (default: the strategy's, 0.1)")
-    parser.add_argument("--report", action="store_true", help="only rebuild results.md")
-    args = parser.parse_args()
-    folder = C.results_dir("antialiasing")
-    if not args.report:
-        for scene in args.scenes:
-            records = []
-            for antialiased in (False, True):
-                record = run_arm(scene, antialiased, args)
-                records.append(record)
-                kept = {k: v for k, v in record.items() if k not in ("machine", "picture")}
-                C.emit(kept)
-                C.append_jsonl(folder / "results.jsonl", [{**kept, "machine": record["machine"]}])
-            if args.init_scale is None:  # the picture shows the default start
-                picture(scene, records)
-    report(folder)
-    print(json.dumps({"results": str(folder / "results.md")}))
+    return C.results_page("Anti-aliasing: `--antialiased` against none, trained at one resolution, tested at four",
+                          "antialiasing.py", rows, columns)
 
 
 if __name__ == "__main__":
-    main()
+    import framework
+    sys.exit(framework.script("antialiasing"))

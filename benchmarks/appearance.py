@@ -17,62 +17,59 @@ and `bilateral-grid`, into results/appearance/runs/ (git-ignored). Recorded from
 
 from __future__ import annotations
 
-import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
 
-import argparse
-import json
+import tyro
 
 import _common as C
+from framework import Arm, Common
 
 SCENES = {"bird": "colmap_bird", "cup": "colmap_cup", "fern": "llff_fern/fern", "dtu": "dtu_scan24_monosdf/scan24"}
 ARMS = ("none", "affine", "bilateral-grid")
+KEY = ("scene", "appearance", "steps", "cap_max")
 
 
-def run_arm(scene: str, appearance: str, args) -> dict:
-    from mcsplat.config import TrainConfig
+@dataclass(frozen=True)
+class Options:
+    """Exposure compensation against none on the shared captures."""
+
+    scenes: tuple[Literal["bird", "cup", "dtu", "fern"], ...] = ("cup", "bird", "fern", "dtu")
+    arms: tuple[Literal["none", "affine", "bilateral-grid"], ...] = ARMS
+    steps: int = 3000
+    cap_max: int = 50_000
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
+
+
+def arms(options: Options) -> list[Arm]:
+    return [Arm(f"{scene}-{appearance}-{options.steps}",
+                {"scene": scene, "appearance": appearance, "steps": options.steps, "cap_max": options.cap_max},
+                {"steps": options.steps, "cap_max": options.cap_max, "appearance": appearance})
+            for scene in options.scenes for appearance in options.arms]
+
+
+def run(arm: Arm, options: Options, folder: Path) -> dict:
     from mcsplat.train import train
 
-    out = C.results_dir("appearance") / "runs" / f"{scene}-{appearance}-{args.steps}"
-    config = TrainConfig(data=C.DATA_ROOT / SCENES[scene], out=out, overwrite=True, steps=args.steps,
-                         cap_max=args.cap_max, appearance=appearance, quiet=True, save_renders=False,
-                         threads=args.threads)
+    config = C.make_config(data=options.common.data_root / SCENES[arm.labels["scene"]], out=folder / "runs" / arm.name,
+                           overwrite=True, quiet=True, save_renders=False, threads=options.common.threads, **arm.config)
     metrics = train(config)
-    return {"scene": scene, "appearance": appearance, "steps": metrics["steps"], "cap_max": args.cap_max,
-            "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics["lpips"],
+    return {"steps": metrics["steps"], "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics["lpips"],
             "compensated_psnr": metrics["compensated_psnr"], "compensated_ssim": metrics["compensated_ssim"],
-            "seconds_per_step": metrics["train_seconds"] / metrics["steps"], "gaussians": metrics["num_gaussians"],
-            "machine": C.machine("cpu")}
+            "seconds_per_step": metrics["train_seconds"] / metrics["steps"], "gaussians": metrics["num_gaussians"]}
 
 
-def report(folder) -> None:
-    records = C.read_jsonl(folder / "results.jsonl")
+def report(records: list[dict], folder: Path) -> str:
     columns = [("scene", "scene", ""), ("appearance", "appearance", ""), ("steps", "steps", ","),
                ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"), ("LPIPS-VGG", "lpips", ".4f"),
                ("compensated PSNR", "compensated_psnr", ".2f"), ("compensated SSIM", "compensated_ssim", ".4f"),
                ("s/step", "seconds_per_step", ".3f"), ("Gaussians", "gaussians", ",")]
     title = "Exposure compensation: `--appearance affine` and `bilateral-grid` against none"
-    C.write_results_page(folder, title, "appearance.py", records, columns)
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", nargs="+", choices=sorted(SCENES), default=["cup", "bird", "fern", "dtu"])
-    parser.add_argument("--arms", nargs="+", choices=ARMS, default=list(ARMS))
-    parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--cap-max", type=int, default=50_000)
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--report", action="store_true", help="only rebuild results.md")
-    args = parser.parse_args()
-    folder = C.results_dir("appearance")
-    if not args.report:
-        for scene in args.scenes:
-            for appearance in args.arms:
-                record = run_arm(scene, appearance, args)
-                C.emit({k: v for k, v in record.items() if k != "machine"})
-                C.append_jsonl(folder / "results.jsonl", [record])
-    report(folder)
-    print(json.dumps({"results": str(folder / "results.md")}))
+    return C.results_page(title, "appearance.py", records, columns)
 
 
 if __name__ == "__main__":
-    main()
+    import framework
+    sys.exit(framework.script("appearance"))

@@ -7,25 +7,25 @@
 Every scene trains with MCMC at each fixed cap and with each automatic rule (default: no --cap-max, mcsplat's
 default since issue 56, the automatic cap with relocation "alive"; auto: `--cap-max auto` with the paper's
 relocation, as recorded before; auto-demand: the same without its per-pixel ceiling), from the same init (lego, DTU:
-5,000 random points; the other captures: their SfM points), with the same steps and schedules (the paper's, multiplied by
---schedule-scale, like budget.py). The target (issue 15): the automatic cap's test PSNR within 0.3 dB of the best
-fixed cap's, with at most 1.5x that cap's count. Two runs at a time, one thread each; a finished run is reused, an
-interrupted one resumed. Runs live in results/auto_cap/runs/ (git-ignored); an automatic run's record keeps its
-demand trajectory.
+5,000 random points; the other captures: their SfM points), with the same steps and schedules (the paper's,
+multiplied by --schedule-scale, like budget.py). The target (issue 15): the automatic cap's test PSNR within 0.3 dB of
+the best fixed cap's, with at most 1.5x that cap's count. Two runs at a time, one thread each (--jobs, --threads); a
+finished run is reused, an interrupted one resumed. Runs live in results/auto_cap/runs/ (git-ignored); an automatic
+run's record keeps its demand trajectory.
 """
 
 from __future__ import annotations
 
-import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
-
-import argparse
 import json
-import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
 
 import _common as C
+from framework import Arm, Common
 from mcsplat.subscribers import LOG_EVERY
 
 # name -> (folder under the shared data, init, downscale, random init points)
@@ -34,12 +34,26 @@ SCENES = {"lego": (C.LEGO, "random", 2, 5000), "bird": ("colmap_bird", "sfm", 4,
           "dtu": ("dtu_scan24_monosdf/scan24", "random", 1, 5000)}
 PSNR_MARGIN = 0.3
 COUNT_FACTOR = 1.5
+KEY = ("scene", "cap", "steps")
 
 
 # The automatic cap: `default` is a run without --cap-max (the automatic cap and relocation "alive", mcsplat's
 # defaults since issue 56); `auto` is --cap-max auto, and `auto-demand` the same before its per-pixel ceiling (their
 # records were made with the paper's relocation, and are kept).
 AUTO_RULES = ("default", "auto", "auto-demand")
+
+
+@dataclass(frozen=True)
+class Options:
+    """The automatic cap against fixed caps on the shared scenes."""
+
+    scenes: tuple[Literal["lego", "bird", "cup", "fern", "dtu"], ...] = tuple(SCENES)
+    caps: tuple[str, ...] = ("100000", "30000", "10000", "auto")
+    """Fixed caps, and automatic rules (default, auto, auto-demand)."""
+    steps: int = 3000
+    schedule_scale: float | None = None
+    """Default: steps / 30000."""
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common(threads=1, jobs=2)
 
 
 def cap_label(cap) -> str:
@@ -50,46 +64,47 @@ def run_name(scene: str, cap, steps: int) -> str:
     return f"{scene}-{cap_label(cap)}-{steps}steps"
 
 
-def train_one(job: dict) -> dict:
-    """Train (or reuse, or resume) one run in this process; returns its record."""
+def arms(options: Options) -> list[Arm]:
     from budget import Schedule
-    from mcsplat.config import ModelConfig, TrainConfig
-    from mcsplat.strategy.mcmc import MCMCConfig
+
+    scale = options.schedule_scale or options.steps / 30_000
+    sched = Schedule(scale).values()
+    out = []
+    for cap in options.caps:
+        for scene in options.scenes:
+            _, init, downscale, points = SCENES[scene]
+            config = {"cap_max": {"default": None}.get(cap, "auto") if cap in AUTO_RULES else int(cap),
+                      "steps": options.steps, "downscale": downscale, "seed": 0, "quiet": True, "lpips_net": "alex",
+                      "save_renders": False, "save_every": max(1, options.steps // 5),
+                      "scale_schedule": False,  # the schedules below are already multiplied by --schedule-scale
+                      "sh_increase_every": sched["sh_increase_every"], "model.init": init,
+                      "model.num_init_points": points or 100_000,
+                      **{f"mcmc.{key}": sched[key] for key in ("refine_start", "refine_stop", "refine_every")}}
+            if cap == "auto-demand":
+                config["mcmc.gaussians_per_pixel"] = 0.0  # no per-pixel ceiling
+            out.append(Arm(run_name(scene, cap, options.steps),
+                           {"scene": scene, "cap": cap, "steps": options.steps, "schedule_scale": scale}, config))
+    return out
+
+
+def run(arm: Arm, options: Options, folder: Path) -> dict:
+    """Train (or reuse, or resume) the arm's run; its figures."""
     from mcsplat.run_dir import RunDir
     from mcsplat.train import train
 
-    run_dir = Path(job["run_dir"])
+    run_dir = folder / "runs" / arm.name
     if (run_dir / "metrics.json").is_file():
         metrics = json.loads((run_dir / "metrics.json").read_text())
     else:
-        sched = Schedule(job["schedule_scale"]).values()
-        folder, init, downscale, points = SCENES[job["scene"]]
-        cap = {"default": None}.get(job["cap"], "auto") if job["cap"] in AUTO_RULES else int(job["cap"])
-        per_pixel = {"auto-demand": 0.0}.get(job["cap"], MCMCConfig.gaussians_per_pixel)  # no per-pixel ceiling
-        config = TrainConfig(
-            data=Path(job["data_root"]) / folder, out=run_dir, cap_max=cap, steps=job["steps"], downscale=downscale,
-            threads=job["threads"], seed=0, quiet=True, lpips_net="alex", save_renders=False,
-            save_every=max(1, job["steps"] // 5), resume=RunDir(run_dir).checkpoint_file.is_file(),
-            scale_schedule=False,  # the schedules below are already multiplied by --schedule-scale
-            sh_increase_every=sched["sh_increase_every"],
-            model=ModelConfig(init=init, num_init_points=points or 100_000),
-            mcmc=MCMCConfig(refine_start=sched["refine_start"], refine_stop=sched["refine_stop"],
-                            refine_every=sched["refine_every"], gaussians_per_pixel=per_pixel))
-        metrics = train(config)
-    record = {"scene": job["scene"], "cap": job["cap"], "steps": metrics["steps"], "psnr": round(metrics["psnr"], 3),
-              "ssim": round(metrics["ssim"], 4), "num_gaussians": metrics["num_gaussians"],
-              "train_seconds": metrics["train_seconds"], "schedule_scale": job["schedule_scale"],
-              "test_views": metrics["test_views"], "benchmark": "auto_cap"}
-    if job["cap"] in AUTO_RULES:  # kept in the record: the run folders are git-ignored
-        record["demand"] = [[step, n, round(share, 4)] for step, n, share in demand_trajectory(run_dir)]
-    return record
-
-
-def run_in_subprocess(job: dict) -> dict:
-    done = subprocess.run([sys.executable, __file__, "--worker", json.dumps(job)], capture_output=True, text=True)
-    if done.returncode != 0:
-        return {**job, "error": (done.stderr.strip().splitlines() or ["failed"])[-1]}
-    return json.loads(done.stdout.strip().splitlines()[-1])
+        data = options.common.data_root / SCENES[arm.labels["scene"]][0]
+        metrics = train(C.make_config(data=data, out=run_dir, threads=options.common.threads,
+                                      resume=RunDir(run_dir).checkpoint_file.is_file(), **arm.config))
+    figures = {"steps": metrics["steps"], "psnr": round(metrics["psnr"], 3), "ssim": round(metrics["ssim"], 4),
+               "num_gaussians": metrics["num_gaussians"], "train_seconds": metrics["train_seconds"],
+               "test_views": metrics["test_views"], "benchmark": "auto_cap"}
+    if arm.labels["cap"] in AUTO_RULES:  # kept in the record: the run folders are git-ignored
+        figures["demand"] = [[step, n, round(share, 4)] for step, n, share in demand_trajectory(run_dir)]
+    return figures
 
 
 def verdicts(records: list[dict]) -> list[dict]:
@@ -113,7 +128,7 @@ def verdict(scene: str, fixed: list[dict], auto: dict) -> dict:
             "gap": gap, "count_ratio": ratio, "passes": gap >= -PSNR_MARGIN and ratio <= COUNT_FACTOR}
 
 
-def report(records: list[dict], out: Path) -> str:
+def report(records: list[dict], folder: Path) -> str:
     failed = [r for r in records if "error" in r]
     records = [r for r in records if "error" not in r]
     table = C.markdown_table(records, [
@@ -122,11 +137,13 @@ def report(records: list[dict], out: Path) -> str:
         ("final #G", "num_gaussians", ","), ("train min", "train_seconds", lambda r: f"{r['train_seconds'] / 60:.1f}"),
         ("test views", "test_views", "")])
     checks = C.markdown_table(verdicts(records), [
-        ("scene", "scene", ""), ("rule", "rule", ""), ("best fixed cap", "best_cap", lambda r: C.human(int(r["best_cap"]))),
+        ("scene", "scene", ""), ("rule", "rule", ""),
+        ("best fixed cap", "best_cap", lambda r: C.human(int(r["best_cap"]))),
         ("its PSNR", "best_psnr", ".2f"), ("auto PSNR", "auto_psnr", ".2f"), ("PSNR gap", "gap", "+.2f"),
         ("auto count", "auto_count", ","), ("count / best cap's", "count_ratio", ".2f"),
         ("meets the target", "passes", lambda r: "yes" if r["passes"] else "**no**")])
-    stopped = "".join(f"- {r['scene']} at cap {r['cap']}: did not finish ({r['error'].split(';')[0]})\n" for r in failed)
+    stopped = "".join(f"- {r['scene']} at cap {r['cap']}: did not finish ({r['error'].split(';')[0]})\n"
+                      for r in failed)
     demand = trajectories(records)
     text = (f"# --cap-max auto against fixed caps\n\n{table}\n\nTarget: PSNR within {PSNR_MARGIN} dB of the best fixed "
             f"cap, at most {COUNT_FACTOR}x its count. Rule default: no --cap-max (the automatic cap with relocation "
@@ -135,7 +152,6 @@ def report(records: list[dict], out: Path) -> str:
             + (f"\n{stopped}" if stopped else "") +
             (f"\nDemand D/N of one refine step as the automatic cap grew (log.jsonl, every {LOG_EVERY} steps):\n\n"
              f"{demand}\n" if demand else ""))
-    C.write_text(out / "results.md", text)
     return text
 
 
@@ -156,37 +172,6 @@ def trajectories(records: list[dict]) -> str:
         for r in sorted(records, key=lambda r: (list(SCENES).index(r["scene"]), r["cap"])) if r.get("demand"))
 
 
-def latest(records: list[dict]) -> list[dict]:
-    by_key = {(r["scene"], r["cap"], r.get("steps")): r for r in records}
-    return list(by_key.values())
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
-    parser.add_argument("--caps", nargs="+", default=["100000", "30000", "10000", "auto"])
-    parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--schedule-scale", type=float, default=None, help="default: steps / 30000")
-    parser.add_argument("--parallel", type=int, default=2, help="runs at a time (one thread each)")
-    parser.add_argument("--data-root", default=str(C.DATA_ROOT))
-    parser.add_argument("--report", action="store_true", help="only rebuild results.md")
-    parser.add_argument("--worker", help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.worker:
-        print(json.dumps(train_one(json.loads(args.worker))), flush=True)
-        return
-    out = C.results_dir("auto_cap")
-    if not args.report:
-        scale = args.schedule_scale or args.steps / 30_000
-        jobs = [{"scene": s, "cap": cap, "steps": args.steps, "schedule_scale": scale, "threads": 1,
-                 "data_root": args.data_root, "run_dir": str(out / "runs" / run_name(s, cap, args.steps))}
-                for cap in args.caps for s in args.scenes]
-        with ThreadPoolExecutor(args.parallel) as pool:
-            for record in pool.map(run_in_subprocess, jobs):
-                C.emit(record)
-                C.append_jsonl(out / "results.jsonl", [record])
-    print(report(latest(C.read_jsonl(out / "results.jsonl")), out))
-
-
 if __name__ == "__main__":
-    main()
+    import framework
+    sys.exit(framework.script("auto_cap", [{"--parallel": "--jobs"}.get(arg, arg) for arg in sys.argv[1:]]))

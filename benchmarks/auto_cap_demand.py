@@ -25,14 +25,14 @@ WINDOWS = (10, 30, 100)
 
 
 def demand_shares(run_dir: Path, views: int, seed: int) -> dict:
-    from mcsplat import run_dir as run_folders
+    from mcsplat import trained_run
     from mcsplat.losses import photometric_loss
     from mcsplat.render import render
     from mcsplat.strategy.auto_cap import growth_demand
     from mcsplat.strategy.screen_gradients import ScreenGradients
 
     cpu = torch.device("cpu")
-    run = run_folders.load(run_dir, cpu)
+    run = trained_run.load(run_dir, cpu)
     config, model, step, scene = run.config, run.model, run.step, run.scene
     background, sh_degree, n = run.background, run.sh_degree, model.num_gaussians
     stats = {w: ScreenGradients() for w in WINDOWS}

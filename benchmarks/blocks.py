@@ -111,7 +111,7 @@ def picture(root: Path, args, path: Path) -> None:
     from mcsplat.evaluation import save_pixels
     from mcsplat.partition import read_plan
     from mcsplat.render import render
-    from mcsplat.run_dir import load
+    from mcsplat.trained_run import load
 
     device = torch.device("cpu")
     one = load(root / "one", device)

@@ -26,7 +26,7 @@ ARMS = [  # (blocks, margin, outside share); 1 block is the one run
 
 def main() -> None:
     from mcsplat.blocks import plan_blocks, train_blocks
-    from mcsplat.config import TrainConfig
+    from mcsplat.config import config_of
     from mcsplat.partition import BlocksFolder
     import mcsplat.partition.scene as block_scene
     from mcsplat.train import train
@@ -44,10 +44,10 @@ def main() -> None:
         for number, (count, margin, outside) in enumerate(ARMS):
             out, start = Path(tmp) / f"arm{number}", time.perf_counter()
             if count == 1:
-                merged, own = train(TrainConfig(out=out, **options)), []
+                merged, own = train(config_of(out=out, **options)), []
             else:
                 block_scene.OUTSIDE_SHARE = outside
-                plan_blocks(TrainConfig(**options), out, count=count, margin=margin)
+                plan_blocks(config_of(**options), out, count=count, margin=margin)
                 folder = BlocksFolder(out)
                 merged = train_blocks(folder, quiet=True)
                 own = [json.loads((folder.block_run(i) / "metrics.json").read_text())["psnr"] for i in range(count)]

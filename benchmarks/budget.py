@@ -10,10 +10,11 @@ Each run is mcsplat.train.train() with a TrainConfig: same steps, seed, initial 
 (ADC stops densifying at the cap: config.adc.cap_max), each strategy with its own initial scales and opacities (ADC
 3DGS's 1.0 x kNN and 0.1, MCMC 0.1 x kNN and 0.5) and ADC resetting opacities at its first densification step on
 lego's white background, as the paper ran its 3DGS baseline. The records in results.jsonl made before 2026-11-25
-used the baseline as it was then: MCMC's initial Gaussians and no reset at the first densification step. Lego (NeRF-Synthetic 400x400, white background) starts from the random
-init; the SfM scene from its COLMAP points. Prints one JSON line per run, appends it to
-benchmarks/results/budget/results.jsonl, and rewrites results.md (table and verdict) and budget.png (PSNR / SSIM /
-LPIPS against the cap, log x) from the latest record of every configuration. Runs live under results/budget/runs/
+used the baseline as it was then: MCMC's initial Gaussians and no reset at the first densification step. Lego
+(NeRF-Synthetic 400x400, white background) starts from the random init; the SfM scene from its COLMAP points. Prints
+one JSON line per run, appends it to benchmarks/results/budget/results.jsonl, and rewrites results.md (table and
+verdict) and budget.png (PSNR / SSIM / LPIPS against the cap, log x) from the latest record of every configuration.
+A configuration recorded already is not run again (--rerun trains it afresh). Runs live under results/budget/runs/
 (git-ignored): a finished run is reused, an interrupted one resumed from its checkpoint (--rerun starts afresh).
 
 Short CPU runs: the paper's schedules, in steps (MCMC refine 500..25000 every 100, ADC densify 500..15000 every 100,
@@ -32,27 +33,21 @@ Evaluation: lego has 200 test views; LPIPS-VGG on CPU costs ~1 s a view, so by d
 
 from __future__ import annotations
 
-import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
-
-import argparse
-import contextlib
 import json
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
-import torch
+import tyro
 
 import _common as C
-import mcsplat.run_dir as run_folders
-from mcsplat.train import train
-from mcsplat.config import ModelConfig, TrainConfig
-from mcsplat.strategy.adc import ADCConfig
-from mcsplat.strategy.mcmc import MCMCConfig
+from _common import test_subset
+from framework import Arm, Common, NotReady
 
 PAPER_STEPS = 30_000
 PAPER_INIT_POINTS = 100_000
+KEY = ("scene", "init", "strategy", "cap", "steps", "schedule_scale")
 
 
 @dataclass
@@ -70,89 +65,109 @@ class Schedule:
                 "reset_every": self._s(3000), "sh_increase_every": self._s(1000)}
 
 
-@dataclass
-class Job:
-    scene: str            # short name (lego, bird, cup or the folder's name)
-    path: Path
-    init: str             # random or sfm
-    strategy: str
-    cap: int
-    downscale: int
-    test_stride: int
-    max_test_views: int
+@dataclass(frozen=True)
+class Options:
+    """Quality at equal budget: MCMC against ADC with the same hard cap."""
 
-    def name(self, steps: int, scale: float) -> str:
-        return f"{self.scene}-{self.init}-{self.strategy}-cap{C.human(self.cap)}-{steps}steps-x{scale:g}"
-
-
-@contextlib.contextmanager
-def test_subset(stride: int, max_views: int):
-    """Evaluate train()'s final metrics on every `stride`-th test view (at most max_views; 0 = all): wraps the
-    scene loader the run calls. Training views are untouched."""
-    original = run_folders.load_scene
-
-    def load_with_subset(*args, **kwargs):
-        scene = original(*args, **kwargs)
-        views = scene.test[::stride]
-        scene.test = views[:max_views] if max_views else views
-        return scene
-
-    run_folders.load_scene = load_with_subset
-    try:
-        yield
-    finally:
-        run_folders.load_scene = original
+    scene: str = "lego"
+    """Random-init scene: lego (shared data) or a folder."""
+    caps: tuple[int, ...] = (10_000, 30_000, 100_000)
+    """Budgets for the random-init scene (none: skip it)."""
+    strategies: tuple[Literal["mcmc", "adc"], ...] = ("mcmc", "adc")
+    steps: int = 1200
+    """Steps per run (1200: 6-15 min per run on 2 cores, 100k cap included)."""
+    schedule_scale: float | None = None
+    """Multiplies the paper's schedules (default: steps / 30000)."""
+    init_points: int = 0
+    """Random-init points (0: min(100k, cap/2))."""
+    test_stride: int = 8
+    """Evaluate every N-th test view of --scene."""
+    max_test_views: int = 0
+    """At most this many test views (0: no limit)."""
+    sfm_scene: str = "bird"
+    """bird, cup, a COLMAP folder, or none."""
+    sfm_caps: tuple[int, ...] = (30_000,)
+    """Budgets for the SfM scene."""
+    sfm_downscale: int = 2
+    """bird is 544x960; 2 gives 272x480."""
+    sfm_test_stride: int = 1
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    seed: int = 0
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
 
 
 def init_points(cap: int, fixed: int | None) -> int:
     return fixed if fixed else min(PAPER_INIT_POINTS, max(1, cap // 2))
 
 
-def make_config(job: Job, args, run_dir: Path, resume: bool, overwrite: bool) -> TrainConfig:
-    sched = Schedule(args.schedule_scale).values()
-    return TrainConfig(
-        data=job.path, out=run_dir, strategy=job.strategy, cap_max=job.cap, steps=args.steps, downscale=job.downscale,
-        device=args.device, seed=args.seed, threads=args.threads, quiet=True, lpips_net="vgg", save_renders=False,
-        save_every=max(1, args.steps // 10), resume=resume, overwrite=overwrite,
-        scale_schedule=False,  # the schedules below are already multiplied by --schedule-scale
-        sh_increase_every=sched["sh_increase_every"],
-        model=ModelConfig(init=job.init, num_init_points=init_points(job.cap, args.init_points)),
-        mcmc=MCMCConfig(refine_start=sched["refine_start"], refine_stop=sched["refine_stop"],
-                        refine_every=sched["refine_every"], relocation="paper"),  # the paper's MCMC, grown to the cap
-        adc=ADCConfig(densify_start=sched["densify_start"], densify_stop=sched["densify_stop"],
-                      densify_every=sched["densify_every"], reset_every=sched["reset_every"]))
+def short_name(scene: str) -> str:
+    return scene if scene == "lego" or scene in C.SFM_SCENES else Path(scene).name
 
 
-def run_job(job: Job, args, runs: Path, info: dict) -> tuple[dict, bool]:
-    """(record, whether it is new). Reuses a finished run, resumes an interrupted one."""
-    run_dir = runs / job.name(args.steps, args.schedule_scale)
-    finished = (run_dir / "metrics.json").is_file()
-    started = time.perf_counter()
-    if finished and not args.rerun:
-        metrics, fresh = json.loads((run_dir / "metrics.json").read_text()), False
+def arms(options: Options) -> list[Arm]:
+    scale = options.schedule_scale or round(options.steps / PAPER_STEPS, 6)
+    jobs = [(options.scene, "random", strategy, cap, 1, options.test_stride, options.max_test_views)
+            for cap in options.caps for strategy in options.strategies]
+    if options.sfm_scene and options.sfm_scene.lower() != "none":
+        jobs += [(options.sfm_scene, "sfm", strategy, cap, options.sfm_downscale, options.sfm_test_stride, 0)
+                 for cap in options.sfm_caps for strategy in options.strategies]
+    return [Arm(f"{short_name(scene)}-{init}-{strategy}-cap{C.human(cap)}-{options.steps}steps-x{scale:g}",
+                {"scene": short_name(scene), "init": init, "strategy": strategy, "cap": cap, "steps": options.steps,
+                 "schedule_scale": scale, "scene_path": scene, "downscale": downscale, "test_stride": stride,
+                 "max_test_views": max_views, "init_points": init_points(cap, options.init_points)
+                 if init == "random" else None},
+                train_options(strategy, cap, init, downscale, scale, options))
+            for scene, init, strategy, cap, downscale, stride, max_views in jobs]
+
+
+def train_options(strategy: str, cap: int, init: str, downscale: int, scale: float, options: Options) -> dict:
+    """The run's TrainConfig options: same steps, seed, initial points and cap for both strategies, the paper's
+    schedules multiplied by `scale`."""
+    sched = Schedule(scale).values()
+    return {"strategy": strategy, "cap_max": cap, "steps": options.steps, "downscale": downscale,
+            "device": options.device, "seed": options.seed, "quiet": True, "lpips_net": "vgg", "save_renders": False,
+            "save_every": max(1, options.steps // 10),
+            "scale_schedule": False,  # the schedules below are already multiplied by --schedule-scale
+            "sh_increase_every": sched["sh_increase_every"], "model.init": init,
+            "model.num_init_points": init_points(cap, options.init_points),
+            **{f"mcmc.{key}": sched[key] for key in ("refine_start", "refine_stop", "refine_every")},
+            "mcmc.relocation": "paper",  # the paper's MCMC, grown to the cap
+            **{f"adc.{key}": sched[key] for key in ("densify_start", "densify_stop", "densify_every", "reset_every")}}
+
+
+def run(arm: Arm, options: Options, folder: Path) -> dict:
+    """Train the arm's run, or reuse a finished one (resume an interrupted one unless --rerun)."""
+    import torch
+
+    import mcsplat.run_dir as run_folders
+    from mcsplat.train import train
+
+    if options.device == "cuda" and not torch.cuda.is_available():
+        raise NotReady("no CUDA device available")
+    labels = arm.labels
+    path = C.scene_path(labels["scene_path"], options.common.data_root)
+    if not path.exists():
+        sys.exit(f"scene folder {path} not found (pass --data-root or a path)")
+    run_dir = folder / "runs" / arm.name
+    finished, rerun = (run_dir / "metrics.json").is_file(), options.common.rerun
+    if finished and not rerun:
+        metrics = json.loads((run_dir / "metrics.json").read_text())
     else:
-        resume = run_folders.RunDir(run_dir).checkpoint_file.is_file() and not args.rerun
-        config = make_config(job, args, run_dir, resume=resume, overwrite=args.rerun or finished)
-        with test_subset(job.test_stride, job.max_test_views):
-            metrics, fresh = train(config), True
-    record = {
-        "strategy": job.strategy, "cap": job.cap, "steps": metrics["steps"], "psnr": round(metrics["psnr"], 3),
-        "ssim": round(metrics["ssim"], 4),
+        resume = run_folders.RunDir(run_dir).checkpoint_file.is_file() and not rerun
+        config = C.make_config(data=path, out=run_dir, threads=options.common.threads, resume=resume,
+                               overwrite=rerun or finished, **arm.config)
+        with test_subset(labels["test_stride"], labels["max_test_views"]):
+            metrics = train(config)
+    return {
+        "steps": metrics["steps"], "psnr": round(metrics["psnr"], 3), "ssim": round(metrics["ssim"], 4),
         "lpips": round(metrics["lpips"], 4) if metrics.get("lpips") is not None else None,
-        "num_gaussians": metrics["num_gaussians"], "train_seconds": metrics["train_seconds"],
-        "benchmark": "budget", "scene": job.scene, "init": job.init, "schedule_scale": args.schedule_scale,
-        "init_points": init_points(job.cap, args.init_points) if job.init == "random" else None,
+        "num_gaussians": metrics["num_gaussians"], "train_seconds": metrics["train_seconds"], "benchmark": "budget",
         "lpips_net": metrics.get("lpips_net"), "exported_gaussians": metrics.get("exported_gaussians"),
         "ms_per_step": round(1000.0 * metrics["train_seconds"] / max(1, metrics["steps"]), 1),
-        "test_views": metrics.get("test_views"), "test_stride": job.test_stride, "downscale": job.downscale,
-        "device": metrics.get("device"), "threads": args.threads or torch.get_num_threads(),
-        "schedule": Schedule(args.schedule_scale).values(), "run_dir": str(run_dir),
-        "reused": not fresh,
-    }
-    if fresh:
-        record.update(wall_seconds=round(time.perf_counter() - started, 1), machine=info, commit=C.git_commit(),
-                      date=C.timestamp())
-    return record, fresh
+        "test_views": metrics.get("test_views"), "device": metrics.get("device"),
+        "threads": options.common.threads or torch.get_num_threads(),
+        "schedule": Schedule(labels["schedule_scale"]).values(), "run_dir": str(run_dir),
+        "reused": finished and not rerun}
 
 
 # ------------------------------------------------------------------------------------------------ the reports
@@ -164,7 +179,7 @@ def latest(records: list[dict]) -> list[dict]:
     """The last record of every configuration, sorted by scene, steps, cap and strategy."""
     by_key = {}
     for r in records:
-        if r.get("benchmark") == "budget":
+        if r.get("benchmark", r.get("script")) == "budget":
             by_key[config_key(r)] = r
     return sorted(by_key.values(), key=lambda r: (r["scene"] != "lego", r["scene"], r["steps"], r["cap"],
                                                   r["strategy"]))
@@ -272,70 +287,13 @@ def plot(rows: list[dict], path: Path) -> bool:
     return True
 
 
-def report(out: Path) -> None:
-    rows = latest(C.read_jsonl(out / "results.jsonl"))
-    C.write_text(out / "results.md", markdown(rows))
-    plotted = plot(rows, out / "budget.png")
-    print(f"wrote {out / 'results.md'}" + (f" and {out / 'budget.png'}" if plotted else ""), file=sys.stderr)
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scene", default="lego", help="random-init scene: lego (shared data) or a folder")
-    parser.add_argument("--caps", type=int, nargs="*", default=[10_000, 30_000, 100_000],
-                        help="budgets for the random-init scene (none: skip it)")
-    parser.add_argument("--strategies", nargs="+", choices=("mcmc", "adc"), default=["mcmc", "adc"])
-    parser.add_argument("--steps", type=int, default=1200,
-                        help="steps per run (1200: 6-15 min per run on 2 cores, 100k cap included)")
-    parser.add_argument("--schedule-scale", type=float, default=None,
-                        help="multiplies the paper's schedules (default: steps / 30000)")
-    parser.add_argument("--init-points", type=int, default=0, help="random-init points (0: min(100k, cap/2))")
-    parser.add_argument("--test-stride", type=int, default=8, help="evaluate every N-th test view of --scene")
-    parser.add_argument("--max-test-views", type=int, default=0, help="at most this many test views (0: no limit)")
-    parser.add_argument("--sfm-scene", default="bird", help="bird, cup, a COLMAP folder, or none")
-    parser.add_argument("--sfm-caps", type=int, nargs="+", default=[30_000], help="budgets for the SfM scene")
-    parser.add_argument("--sfm-downscale", type=int, default=2, help="bird is 544x960; 2 gives 272x480")
-    parser.add_argument("--sfm-test-stride", type=int, default=1)
-    parser.add_argument("--data-root", default=str(C.DATA_ROOT))
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all cores)")
-    parser.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--rerun", action="store_true", help="train again even when a finished run exists")
-    parser.add_argument("--report", action="store_true", help="only rebuild results.md and budget.png")
-    parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/budget)")
-    args = parser.parse_args()
-    if args.schedule_scale is None:
-        args.schedule_scale = round(args.steps / PAPER_STEPS, 6)
-    if args.device == "cuda" and not args.report:
-        C.cuda_or_exit("cuda", "budget")
-    out = Path(args.out) if args.out else C.results_dir("budget")
-    out.mkdir(parents=True, exist_ok=True)
-    if args.report:
-        report(out)
-        return
-    C.warn_if_busy()
-
-    def short_name(scene: str) -> str:
-        return scene if scene == "lego" or scene in C.SFM_SCENES else Path(scene).name
-
-    jobs = [Job(short_name(args.scene), C.scene_path(args.scene, args.data_root), "random", s, cap, 1,
-                args.test_stride, args.max_test_views) for cap in args.caps for s in args.strategies]
-    if args.sfm_scene and args.sfm_scene.lower() != "none":
-        jobs += [Job(short_name(args.sfm_scene), C.scene_path(args.sfm_scene, args.data_root), "sfm", s,
-                     cap, args.sfm_downscale, args.sfm_test_stride, 0) for cap in args.sfm_caps for s in args.strategies]
-    for job in jobs:
-        if not job.path.exists():
-            sys.exit(f"scene folder {job.path} not found (pass --data-root or a path)")
-    info = C.machine(args.device)
-    runs = out / "runs"
-    for job in jobs:
-        record, fresh = run_job(job, args, runs, info)
-        C.emit({k: v for k, v in record.items() if k not in ("machine", "schedule")})
-        known = {(r.get("run_dir"), r.get("train_seconds")) for r in C.read_jsonl(out / "results.jsonl")}
-        if fresh or (record["run_dir"], record["train_seconds"]) not in known:  # a reused run missing from the file
-            C.append_jsonl(out / "results.jsonl", [record])
-    report(out)
+def report(records: list[dict], folder: Path) -> str:
+    rows = latest(records)
+    if plot(rows, folder / "budget.png"):
+        print(f"wrote {folder / 'budget.png'}", file=sys.stderr)
+    return markdown(rows)
 
 
 if __name__ == "__main__":
-    main()
+    import framework
+    sys.exit(framework.script("budget"))

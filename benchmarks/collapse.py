@@ -17,17 +17,38 @@ results/collapse/runs/ (git-ignored); a finished run is reused. `--jobs 2 --thre
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 import _common as C
+from framework import Arm, Common
 
 LEVELS = ("dead_share", "unseen_dead_share", "copies_max", "copies_mean", "born_dead_share", "unplaced")
 MAX_DEAD_SHARE, PSNR_MARGIN = 0.25, 0.5
+KEY = ("tag", "arm", "steps")
+
+
+@dataclass(frozen=True)
+class Options:
+    """MCMC at a cap far above what the scene needs: the health levels and the test PSNR."""
+
+    scene: str = "bird"
+    """bird, cup, lego (the shared data) or a scene folder."""
+    downscale: int = 4
+    steps: int = 8000
+    arms: tuple[str, ...] = ("paper:1000000", "alive:1000000", "alive:62500")
+    """RELOCATION:CAP, or auto (no --cap-max)."""
+    tag: str | None = None
+    """The results' group and the start of its run folders' names (default: SCENE-1ofDOWNSCALE)."""
+    seed: int = 0
+    eval_every: int = 1000
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
 
 
 def arm_options(arm: str) -> list[str]:
@@ -37,41 +58,43 @@ def arm_options(arm: str) -> list[str]:
     return ["--cap-max", cap, "--mcmc.relocation", relocation]
 
 
-def run_folder(tag: str, arm: str, steps: int) -> Path:
-    return C.results_dir("collapse") / "runs" / f"{tag}-{arm.replace(':', '-')}-{steps}"
+def arms(options: Options) -> list[Arm]:
+    tag = options.tag or f"{Path(options.scene).name}-1of{options.downscale}"  # a folder's name, not its path
+    return [Arm(f"{tag}-{arm.replace(':', '-')}-{options.steps}",
+                {"tag": tag, "arm": arm, "steps": options.steps, "downscale": options.downscale})
+            for arm in options.arms]
 
 
-def train(job: dict) -> dict:
-    run = Path(job["run"])
-    if not (run / "metrics.json").is_file():
-        command = [str(C.REPO / ".venv" / "bin" / "mcsplat"), "train", str(job["scene"]), "--out", str(run),
-                   "--downscale", str(job["downscale"]), "--steps", str(job["steps"]), "--seed", str(job["seed"]),
-                   "--eval-every", str(job["eval_every"]), "--save-every", "0", "--quiet",
-                   "--lpips-net", "alex", "--no-save-renders", *arm_options(job["arm"])]
-        if job["threads"]:
-            command += ["--threads", str(job["threads"])]
-        command += ["--overwrite"] if run.exists() else []
+def run(arm: Arm, options: Options, folder: Path) -> dict:
+    """`mcsplat train` of the arm (a finished run is reused), then its figures."""
+    run_dir = folder / "runs" / arm.name
+    if not (run_dir / "metrics.json").is_file():
+        command = [sys.executable, "-m", "mcsplat", "train", str(C.scene_path(options.scene, options.common.data_root)),
+                   "--out", str(run_dir), "--downscale", str(options.downscale), "--steps", str(options.steps),
+                   "--seed", str(options.seed), "--eval-every", str(options.eval_every), "--save-every", "0",
+                   "--quiet", "--lpips-net", "alex", "--no-save-renders", *arm_options(arm.labels["arm"])]
+        if options.common.threads:
+            command += ["--threads", str(options.common.threads)]
+        command += ["--overwrite"] if run_dir.exists() else []
         print(" ".join(command), flush=True)
-        with open(run.parent / f"{run.name}.txt", "w") as out:
+        run_dir.parent.mkdir(parents=True, exist_ok=True)
+        with open(run_dir.parent / f"{run_dir.name}.txt", "w") as out:
             subprocess.run(command, check=True, stdout=out, stderr=subprocess.STDOUT)
-    return record(job, run)
+    return figures(run_dir)
 
 
-def record(job: dict, run: Path) -> dict:
+def figures(run: Path) -> dict:
     metrics = json.loads((run / "metrics.json").read_text())
     log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
     refines = [r for r in log if "dead_share" in r]
     last = refines[-1] if refines else {}
-    return {"benchmark": "collapse", "tag": job["tag"], "arm": job["arm"], "steps": job["steps"],
-            "downscale": job["downscale"], "psnr": metrics["psnr"], "ssim": metrics["ssim"],
-            "num_gaussians": metrics["num_gaussians"], "train_seconds": metrics.get("train_seconds"),
+    return {"psnr": metrics["psnr"], "ssim": metrics["ssim"], "num_gaussians": metrics["num_gaussians"],
+            "train_seconds": metrics.get("train_seconds"),
             "last_refine": {key: last.get(key) for key in ("step", *LEVELS)},
-            "trajectory": [{key: r.get(key) for key in ("step", "num_gaussians", "test_psnr", *LEVELS)} for r in log],
-            "machine": C.machine(), "commit": C.git_commit(), "date": C.timestamp()}
+            "trajectory": [{key: r.get(key) for key in ("step", "num_gaussians", "test_psnr", *LEVELS)} for r in log]}
 
 
-def report(folder: Path) -> None:
-    rows = C.read_jsonl(folder / "results.jsonl")
+def report(rows: list[dict], folder: Path) -> str:
     lines = ["# MCMC at a cap far above what the scene needs", "",
              "`benchmarks/collapse.py`: the health levels at the last refine step (log.jsonl) and the test PSNR of "
              "each arm. paper: the paper's relocation and growth (Eq. 9 with up to 51 copies a host); alive: no copy "
@@ -101,38 +124,9 @@ def report(folder: Path) -> None:
                 lines.append(f"- {r['arm']}: {dead:.1%} dead at the last refine, {gap:+.2f} dB against "
                              f"{fitting[0]['arm']}: {'met' if met else 'missed'}")
         lines.append("")
-    C.write_text(folder / "results.md", "\n".join(lines))
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--scene", default="bird")
-    parser.add_argument("--downscale", type=int, default=4)
-    parser.add_argument("--steps", type=int, default=8000)
-    parser.add_argument("--arms", nargs="+", default=["paper:1000000", "alive:1000000", "alive:62500"])
-    parser.add_argument("--tag", default=None, help="the results' group (default: SCENE at 1/DOWNSCALE)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--eval-every", type=int, default=1000)
-    parser.add_argument("--jobs", type=int, default=1)
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--report", action="store_true")
-    args = parser.parse_args()
-    folder = C.results_dir("collapse")
-    if not args.report:
-        tag = args.tag or f"{args.scene}-1of{args.downscale}"
-        scene = C.scene_path(args.scene)
-        jobs = [{"tag": tag, "arm": arm, "scene": str(scene), "downscale": args.downscale, "steps": args.steps,
-                 "seed": args.seed, "eval_every": args.eval_every, "threads": args.threads,
-                 "run": str(run_folder(tag, arm, args.steps))} for arm in args.arms]
-        (folder / "runs").mkdir(parents=True, exist_ok=True)
-        with ThreadPoolExecutor(args.jobs) as pool:
-            records = list(pool.map(train, jobs))
-        kept = [r for r in C.read_jsonl(folder / "results.jsonl") if (r["tag"], r["arm"], r["steps"]) not in
-                {(n["tag"], n["arm"], n["steps"]) for n in records}] if (folder / "results.jsonl").is_file() else []
-        (folder / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in kept + records))
-    report(folder)
-    print((folder / "results.md").read_text())
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    import framework
+    sys.exit(framework.script("collapse"))

@@ -18,19 +18,52 @@ Runs are kept under benchmarks/results/defaults_before_after/runs/ (git-ignored)
 
 from __future__ import annotations
 
-import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
-
-import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import torch
+import tyro
 
 import _common as C
+from framework import Arm, Common, NotReady
 
 SCENES = {"bird": "colmap_bird", "cup": "colmap_cup", "fern": "llff_fern/fern", "dtu": "dtu_scan24_monosdf/scan24"}
 TREES = ("before", "after")
+KEY = ("scene", "steps")
+
+
+@dataclass(frozen=True)
+class Options:
+    """The defaults before and after the clean-up options, model for model."""
+
+    scenes: tuple[Literal["bird", "cup", "fern", "dtu"], ...] = tuple(SCENES)
+    steps: int = 300
+    cap_max: int = 30_000
+    """The one option given (without it --steps 300 grows to the paper's 1M at once)."""
+    before_tree: Path = C.REPO.parent / "before-cleanup"
+    """A checkout of the code before the options (git worktree add ../before-cleanup 8fbe206)."""
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
+
+
+def arms(options: Options) -> list[Arm]:
+    return [Arm(f"{scene}-{options.steps}", {"scene": scene, "steps": options.steps, "cap": options.cap_max})
+            for scene in options.scenes]
+
+
+def run(arm: Arm, options: Options, folder: Path) -> dict:
+    """Both trees' runs of the scene (each reused when finished), compared."""
+    if not (options.before_tree / "src" / "mcsplat").is_dir():
+        raise NotReady(f"no checkout of the earlier code at {options.before_tree} (--before-tree)")
+    scene, steps = arm.labels["scene"], options.steps
+    runs = {tree: folder / "runs" / f"{tree}-{scene}-{steps}" for tree in TREES}
+    trees = {"before": options.before_tree, "after": C.REPO}
+    # Absolute: from a relative path to the same scene the code before trained another model (bird).
+    metrics = {tree: train(trees[tree], options.common.data_root.resolve() / SCENES[scene], runs[tree], steps,
+                           options.cap_max) for tree in TREES}
+    return compare(runs, metrics)
 
 
 def train(tree: Path, scene: Path, run: Path, steps: int, cap: int) -> dict:
@@ -49,11 +82,10 @@ def same_model(first: Path, second: Path) -> bool:
     return a.keys() == b.keys() and all(torch.equal(a[key], b[key]) for key in a)
 
 
-def compare(scene: str, steps: int, cap: int, runs: dict[str, Path], metrics: dict[str, dict]) -> dict:
+def compare(runs: dict[str, Path], metrics: dict[str, dict]) -> dict:
     before, after = metrics["before"], metrics["after"]
     step_ms = {tree: 1000 * C.logged_step_seconds(runs[tree]) for tree in TREES}
-    return {"benchmark": "defaults_before_after", "scene": scene, "steps": steps, "cap": cap,
-            "identical": same_model(runs["before"], runs["after"]),
+    return {"identical": same_model(runs["before"], runs["after"]),
             **{f"{key}_{tree}": round(m[key], 4) for tree, m in (("before", before), ("after", after))
                for key in ("psnr", "ssim", "lpips")},
             "gaussians": after["num_gaussians"], "step_ms_before": round(step_ms["before"], 1),
@@ -61,7 +93,7 @@ def compare(scene: str, steps: int, cap: int, runs: dict[str, Path], metrics: di
             "step_ratio": round(step_ms["after"] / step_ms["before"], 3)}
 
 
-def report(out: Path, records: list[dict], info: dict) -> None:
+def report(records: list[dict], folder: Path) -> str:
     columns = [("scene", "scene", ""), ("steps", "steps", ","),
                ("same model", "identical", lambda r: "yes" if r["identical"] else "no"),
                ("PSNR before", "psnr_before", ".2f"), ("PSNR after", "psnr_after", ".2f"),
@@ -69,51 +101,16 @@ def report(out: Path, records: list[dict], info: dict) -> None:
                ("LPIPS before", "lpips_before", ".4f"), ("LPIPS after", "lpips_after", ".4f"),
                ("Gaussians", "gaussians", ","), ("ms/step before", "step_ms_before", ".1f"),
                ("ms/step after", "step_ms_after", ".1f"), ("after / before", "step_ratio", ".3f")]
+    last = records[-1]  # its machine and date (records made before the framework have neither: this machine's, now)
     text = ["# The defaults before and after the clean-up options", "",
-            f"Machine: {C.machine_line(info)}. {C.timestamp()}.", "",
+            f"Machine: {C.machine_line(last.get('machine') or C.machine())}. {last.get('date') or C.timestamp()}.", "",
             "`mcsplat train SCENE --steps N --cap-max C` with every other option at its default, in the code before "
             "the options (`before`) and in this tree (`after`), one run at a time; 'same model': every parameter of "
             "the final models equal bit for bit; ms/step: from step 100 to the last.", "",
             C.markdown_table(sorted(records, key=lambda r: r["scene"]), columns), ""]
-    C.write_text(out / "results.md", "\n".join(text))
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
-    parser.add_argument("--steps", type=int, default=300)
-    parser.add_argument("--cap-max", type=int, default=30_000,
-                        help="the one option given (without it --steps 300 grows to the paper's 1M at once)")
-    parser.add_argument("--before-tree", type=Path, default=C.REPO.parent / "before-cleanup",
-                        help="a checkout of the code before the options (git worktree add ../before-cleanup 8fbe206)")
-    parser.add_argument("--data-root", type=Path, default=C.DATA_ROOT)
-    parser.add_argument("--out", type=Path, default=C.RESULTS / "defaults_before_after")
-    parser.add_argument("--report", action="store_true", help="only remake the table")
-    args = parser.parse_args()
-    results = args.out / "results.jsonl"
-    records = C.read_jsonl(results)
-    if not args.report:
-        if not (args.before_tree / "src" / "mcsplat").is_dir():
-            sys.exit(f"defaults_before_after: no checkout of the earlier code at {args.before_tree} (--before-tree)")
-        C.warn_if_busy()
-        done = {(r["scene"], r["steps"]) for r in records}
-        for scene in args.scenes:
-            if (scene, args.steps) in done:
-                continue
-            runs = {tree: args.out / "runs" / f"{tree}-{scene}-{args.steps}" for tree in TREES}
-            trees = {"before": args.before_tree, "after": C.REPO}
-            # Absolute: from a relative path to the same scene the code before trained another model (bird).
-            metrics = {tree: train(trees[tree], args.data_root.resolve() / SCENES[scene], runs[tree], args.steps,
-                                   args.cap_max) for tree in TREES}
-            new = compare(scene, args.steps, args.cap_max, runs, metrics)
-            records.append(new)
-            C.append_jsonl(results, [new])
-            C.emit(new)
-    if not records:
-        sys.exit("defaults_before_after: no results yet; run the benchmark first")
-    report(args.out, records, C.machine())
-    print(f"wrote {args.out / 'results.md'}")
+    return "\n".join(text)
 
 
 if __name__ == "__main__":
-    main()
+    import framework
+    sys.exit(framework.script("defaults_before_after"))

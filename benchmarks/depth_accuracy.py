@@ -25,17 +25,18 @@ scored pixel; the share of pixels that leaves is printed beside them.
 
 from __future__ import annotations
 
-import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
-
-import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
+import tyro
 
 import _common as C
+from framework import Arm, Common
 
 ARMS = {"mcmc": [], "mcmc-surface": ["--surface"], "adc": ["--strategy", "adc"],
         "adc-surface": ["--strategy", "adc", "--surface"],
@@ -55,6 +56,46 @@ ALPHA_SEEN = 0.5     # the model sees the object where its alpha reaches this
 PICTURE_VIEW = 0     # the test view whose error maps are drawn
 
 
+KEY = ("arm", "steps")
+
+
+@dataclass(frozen=True)
+class Options:
+    """Lego's depth against the dataset's own test-view depth renders, arm by arm."""
+
+    arms: tuple[Literal[tuple(ARMS)], ...] = DEFAULT_ARMS
+    steps: int = 2000
+    picture: str | None = None
+    """The error maps' file name (default: depth-errors-STEPS[-ARMS].png)."""
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
+
+
+def arms(options: Options) -> list[Arm]:
+    return [Arm(f"{arm}-{options.steps}", {"arm": arm, "steps": options.steps}) for arm in options.arms]
+
+
+def run(arm: Arm, options: Options, folder: Path) -> dict:
+    """Train the arm (a finished run is reused), score its depth, and keep the picture's maps for finish()."""
+    lego = C.scene_path("lego", options.common.data_root)
+    views = scored_views(lego)
+    if not views:
+        sys.exit(f"{lego} has no test-view depth maps (r_N_depth_0001.png): see the shared data's SOURCE.md")
+    run_dir = train(arm.labels["arm"], lego, options.steps, folder / "runs", C.REPO)
+    record, maps = score(run_dir, views)
+    np.savez(folder / "runs" / f"{arm.name}-maps.npz", **maps)
+    return record
+
+
+def finish(arms: list[Arm], options: Options, folder: Path) -> None:
+    """The error maps of every arm asked for, side by side (when all of them have run)."""
+    saved = {arm.labels["arm"]: folder / "runs" / f"{arm.name}-maps.npz" for arm in arms}
+    if not all(path.is_file() for path in saved.values()):
+        return
+    name = "" if tuple(options.arms) == DEFAULT_ARMS else "-" + "-".join(options.arms)
+    picture({arm: dict(np.load(path)) for arm, path in saved.items()},
+            folder / (options.picture or f"depth-errors-{options.steps}{name}.png"))
+
+
 def train(arm: str, lego: Path, steps: int, runs: Path, script_root: Path) -> Path:
     run = runs / f"{arm}-{steps}"
     if (run / "metrics.json").exists():
@@ -72,7 +113,7 @@ def scored_views(lego: Path):
     from mcsplat.data import load_scene
     from mcsplat.data.attachments import DepthOptions
 
-    scene = load_scene(lego, attachments=[DepthOptions(encoding="nerf-synthetic")])
+    scene = load_scene(lego, attachments=[DepthOptions(depth_encoding="nerf-synthetic")])
     return [view for view in scene.test if "depth" in view.attachments]
 
 
@@ -80,7 +121,7 @@ def scored_views(lego: Path):
 def score(run: Path, views) -> tuple[dict, dict]:
     """The depth errors of one run over the views, and the error maps of the picture's view."""
     from mcsplat.render import render
-    from mcsplat.run_dir import load
+    from mcsplat.trained_run import load
 
     trained = load(run, torch.device("cpu"))
     errors = {"median": [], "mean": [], "planar": [], "median_interior": []}
@@ -139,7 +180,7 @@ def picture(maps: dict[str, dict], path: Path) -> None:
     plt.close(figure)
 
 
-def report(records: list[dict]) -> str:
+def report(records: list[dict], folder: Path) -> str:
     def depth(key: str, part: str, scale: float = 1.0, spec: str = ".4f"):
         return lambda r: format(r[key][part] * scale, spec)
 
@@ -169,35 +210,6 @@ def report(records: list[dict]) -> str:
                     f"of the truth varies by less than {EDGE_STEP} units (\"pixels %\": their share).\n")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--arms", nargs="+", default=list(DEFAULT_ARMS), choices=list(ARMS))
-    parser.add_argument("--steps", type=int, default=2000)
-    parser.add_argument("--data-root", type=Path, default=C.DATA_ROOT)
-    parser.add_argument("--report", action="store_true", help="only rebuild results.md from results.jsonl")
-    parser.add_argument("--picture", help="the error maps' file name (default: depth-errors-STEPS[-ARMS].png)")
-    args = parser.parse_args()
-    out = C.results_dir("depth_accuracy")
-    if not args.report:
-        lego = C.scene_path("lego", args.data_root)
-        views = scored_views(lego)
-        if not views:
-            sys.exit(f"{lego} has no test-view depth maps (r_N_depth_0001.png): see the shared data's SOURCE.md")
-        records, maps = [], {}
-        for arm in args.arms:
-            run = train(arm, lego, args.steps, out / "runs", C.REPO)
-            record, maps[arm] = score(run, views)
-            record = {"arm": arm, "steps": args.steps, **record, "commit": C.git_commit(), "date": C.timestamp()}
-            C.emit(record)
-            records.append(record)
-        C.append_jsonl(out / "results.jsonl", records)
-        name = "" if tuple(args.arms) == DEFAULT_ARMS else "-" + "-".join(args.arms)
-        picture(maps, out / (args.picture or f"depth-errors-{args.steps}{name}.png"))
-    latest = {(r["arm"], r["steps"]): r for r in C.read_jsonl(out / "results.jsonl")}  # the last record of each arm
-    table = report(list(latest.values()))
-    print(table)
-    C.write_text(out / "results.md", table)
-
-
 if __name__ == "__main__":
-    main()
+    import framework
+    sys.exit(framework.script("depth_accuracy"))

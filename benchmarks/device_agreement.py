@@ -26,8 +26,8 @@ import torch
 
 import _common as C
 from mcsplat import losses, render
-from mcsplat.render.launch import cuda_kernels, set_cuda_kernels
-from mcsplat.run_dir import load
+from mcsplat.render.composite.function import cuda_kernels, set_cuda_kernels
+from mcsplat.trained_run import load
 from mcsplat.strategy.base import l1_regularizers
 
 PATHS = ("cuda-tile", "cuda-scalar", "cpu")

@@ -8,7 +8,7 @@ its ScalableTSDFVolume).
 
 Open3D is optional and used by this benchmark only (`.venv/bin/python -m pip install open3d==0.20.0`); without it
 the Open3D rows are skipped with one line. The runs are fused on the CPU in the first run's voxel size (as
-mesh_quality.py does) with `mcsplat export`'s defaults, stage by stage as `mcsplat.mesh.extract` does:
+mesh_quality.py does) with `mcsplat export`'s defaults, stage by stage as `mcsplat.mesh.pipeline` does:
 
     depth        every training view's median depth where alpha >= 0.5: at each SfM point in front of the view and
                  inside it, the depth at its pixel minus the point's depth (pairs beyond 5% of R left out, as in
@@ -62,7 +62,7 @@ OPEN3D_HINT = "open3d is missing: the Open3D rows are skipped (`.venv/bin/python
 def depth_maps(trained, cameras, options) -> tuple[list, list, list]:
     """(raw depth maps, confirmed depth maps, colours) of every view, as extract() fuses them."""
     from mcsplat.mesh.consistency import KeptDepth, consistent_depth, nearest_views
-    from mcsplat.mesh.extract import surface_of_view
+    from mcsplat.mesh.pipeline import surface_of_view
 
     raw, colours = [], []
     for camera in cameras:
@@ -170,7 +170,7 @@ def our_mesh(volume) -> tuple:
     import trimesh
 
     from mcsplat.mesh.clean import drop_small_pieces
-    from mcsplat.mesh.extract import MeshOptions
+    from mcsplat.mesh import MeshOptions
     from mcsplat.mesh.surface import zero_surface
 
     vertices, faces, colours = zero_surface(volume)
@@ -234,11 +234,11 @@ def in_box(vertices: np.ndarray, faces: np.ndarray, grid) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------------------ one run
 def measure(run: Path, voxel_size: float | None, picture: bool) -> list[dict]:
-    from mcsplat import run_dir
-    from mcsplat.mesh.extract import DEFAULT_VOXEL_BUDGET, MeshOptions
+    from mcsplat import trained_run
+    from mcsplat.mesh import DEFAULT_VOXEL_BUDGET, MeshOptions
     from mcsplat.mesh.grid import choose_grid, object_box
 
-    trained = run_dir.load(run, torch.device("cpu"))
+    trained = trained_run.load(run, torch.device("cpu"))
     scene, radius = trained.scene, trained.scene.radius
     if scene.points is None:
         raise SystemExit(f"{run}: its scene has no SfM points")

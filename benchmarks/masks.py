@@ -22,23 +22,37 @@ A picture per scene (results/masks/<scene>.jpg): training renders with the mask 
 
 from __future__ import annotations
 
-import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
-
-import argparse
-import json
+import os
 import shutil
+import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
+import tyro
 from PIL import Image
 
 import _common as C
+from framework import Arm, Common
 
 SCENES = {"cup": "colmap_cup", "bird": "colmap_bird"}
 PAINT = np.array([255, 0, 255], dtype=np.uint8)
 BLOCK = (0.375, 0.625)  # the block spans this share of the width and of the height (the centre quarter of its area)
 PICTURE_VIEWS = 4
+KEY = ("scene", "masks", "budget_seconds", "downscale")
+
+
+@dataclass(frozen=True)
+class Options:
+    """Training masks: a block painted over every photo, trained with its mask and without."""
+
+    scenes: tuple[Literal["bird", "cup"], ...] = ("cup", "bird")
+    budget: str = "5m"
+    """--budget of each run."""
+    downscale: int = 1
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
 
 
 def block_slices(height: int, width: int) -> tuple[slice, slice]:
@@ -47,32 +61,38 @@ def block_slices(height: int, width: int) -> tuple[slice, slice]:
 
 
 def painted_copy(source: Path, target: Path) -> Path:
-    """The scene with the block painted over every image folder's photos and a masks/ folder leaving it out."""
+    """The scene with the block painted over every image folder's photos and a masks/ folder leaving it out (made
+    once, aside, then renamed: the arms of a scene may run at the same time)."""
     if (target / "masks").is_dir():
         return target
-    shutil.rmtree(target, ignore_errors=True)
-    shutil.copytree(source / "sparse", target / "sparse")
+    building = target.with_name(f"{target.name}.{os.getpid()}.tmp")
+    shutil.rmtree(building, ignore_errors=True)
+    shutil.copytree(source / "sparse", building / "sparse")
     for folder in sorted(p for p in source.iterdir() if p.is_dir() and p.name.startswith("images")):
-        (target / folder.name).mkdir(parents=True)
+        (building / folder.name).mkdir(parents=True)
         for photo in sorted(folder.iterdir()):
             pixels = np.array(Image.open(photo).convert("RGB"))
             pixels[block_slices(*pixels.shape[:2])] = PAINT
-            Image.fromarray(pixels).save(target / folder.name / photo.name, quality=95)
+            Image.fromarray(pixels).save(building / folder.name / photo.name, quality=95)
             if folder.name == "images":
                 mask = np.full(pixels.shape[:2], 255, dtype=np.uint8)
                 mask[block_slices(*pixels.shape[:2])] = 0
-                (target / "masks").mkdir(exist_ok=True)
-                Image.fromarray(mask).save(target / "masks" / f"{photo.stem}.png")
+                (building / "masks").mkdir(exist_ok=True)
+                Image.fromarray(mask).save(building / "masks" / f"{photo.stem}.png")
+    if not (target / "masks").is_dir():
+        shutil.rmtree(target, ignore_errors=True)
+        building.replace(target)
+    shutil.rmtree(building, ignore_errors=True)
     return target
 
 
 def block_scores(run: Path, original: Path) -> tuple[dict, list[np.ndarray]]:
     """Block PSNR on the train and test views and the magenta score, from the run's final model; and renders."""
-    from mcsplat import run_dir
+    from mcsplat import trained_run
     from mcsplat.data import load_scene
     from mcsplat.render import render
 
-    trained = run_dir.load(run, torch.device("cpu"))
+    trained = trained_run.load(run, torch.device("cpu"))
     clean = load_scene(original, downscale=trained.config.downscale, test_every=trained.config.test_every)
     photos = {view.name: view for view in clean.train + clean.test}
     scores, renders = {}, []
@@ -97,55 +117,49 @@ def block_scores(run: Path, original: Path) -> tuple[dict, list[np.ndarray]]:
     return scores, renders
 
 
-def run_arm(scene: str, painted: Path, masks: str, args) -> tuple[dict, list[np.ndarray]]:
-    from mcsplat.config import TrainConfig, budget_seconds
+def arms(options: Options) -> list[Arm]:
+    from mcsplat.config import budget_seconds
+
+    return [Arm(f"{scene}-{masks}", {"scene": scene, "masks": masks, "budget_seconds": budget_seconds(options.budget),
+                                     "downscale": options.downscale},
+                {"downscale": options.downscale, "budget": options.budget, "masks": masks})
+            for scene in options.scenes for masks in ("auto", "none")]
+
+
+def run(arm: Arm, options: Options, folder: Path) -> dict:
     from mcsplat.train import train
 
-    out = C.results_dir("masks") / "runs" / f"{scene}-{masks}"
-    config = TrainConfig(data=painted, out=out, overwrite=True, downscale=args.downscale, budget=args.budget,
-                         masks=masks, quiet=True, lpips_net="alex", save_renders=False, threads=args.threads)
-    metrics = train(config)
-    scores, renders = block_scores(out, C.DATA_ROOT / SCENES[scene])
-    record = {"scene": scene, "masks": masks, "budget_seconds": budget_seconds(args.budget),
-              "downscale": args.downscale, "steps": metrics["steps"], "gaussians": metrics["num_gaussians"],
-              "masked_psnr": metrics.get("masked_psnr"), "masked_ssim": metrics.get("masked_ssim"), **scores,
-              "machine": C.machine("cpu")}
-    return record, renders
+    scene = arm.labels["scene"]
+    original = options.common.data_root / SCENES[scene]
+    painted = painted_copy(original, folder / "runs" / "scenes" / scene)
+    out = folder / "runs" / arm.name
+    metrics = train(C.make_config(data=painted, out=out, overwrite=True, quiet=True, lpips_net="alex",
+                                  save_renders=False, threads=options.common.threads, **arm.config))
+    scores, renders = block_scores(out, original)
+    Image.fromarray(np.concatenate(renders, axis=1)).save(folder / "runs" / f"{arm.name}-renders.png")
+    return {"steps": metrics["steps"], "gaussians": metrics["num_gaussians"],
+            "masked_psnr": metrics.get("masked_psnr"), "masked_ssim": metrics.get("masked_ssim"), **scores}
 
 
-def report(folder: Path) -> None:
-    records = C.read_jsonl(folder / "results.jsonl")
+def finish(arms: list[Arm], options: Options, folder: Path) -> None:
+    """A picture per scene whose two arms have renders: with the mask (top), without (bottom), at half size (enough
+    to see the paint, light in the repository)."""
+    for scene in dict.fromkeys(arm.labels["scene"] for arm in arms):
+        strips = [folder / "runs" / f"{scene}-{masks}-renders.png" for masks in ("auto", "none")]
+        if all(strip.is_file() for strip in strips):
+            picture = Image.fromarray(np.concatenate([np.array(Image.open(strip)) for strip in strips], axis=0))
+            picture.resize((picture.width // 2, picture.height // 2), Image.Resampling.BOX).save(
+                folder / f"{scene}.jpg", quality=85)
+
+
+def report(records: list[dict], folder: Path) -> str:
     columns = [("scene", "scene", ""), ("masks", "masks", ""), ("steps", "steps", ","),
                ("block PSNR train", "train_block_psnr", ".2f"), ("block PSNR test", "test_block_psnr", ".2f"),
                ("magenta (train)", "train_magenta", ".3f"), ("outside PSNR test", "test_outside_psnr", ".2f"),
                ("masked test PSNR (metrics.json)", "masked_psnr", ".2f"), ("Gaussians", "gaussians", ",")]
-    C.write_results_page(folder, "Training masks: a block painted over every photo", "masks.py", records, columns)
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", nargs="+", choices=sorted(SCENES), default=["cup", "bird"])
-    parser.add_argument("--budget", default="5m", help="--budget of each run (default 5m)")
-    parser.add_argument("--downscale", type=int, default=1)
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--report", action="store_true", help="only rebuild results.md")
-    args = parser.parse_args()
-    folder = C.results_dir("masks")
-    if not args.report:
-        for scene in args.scenes:
-            painted = painted_copy(C.DATA_ROOT / SCENES[scene], folder / "runs" / "scenes" / scene)
-            rows = []
-            for masks in ("auto", "none"):
-                record, renders = run_arm(scene, painted, masks, args)
-                C.emit({k: v for k, v in record.items() if k != "machine"})
-                C.append_jsonl(folder / "results.jsonl", [record])
-                rows.append(np.concatenate(renders, axis=1))
-            picture = Image.fromarray(np.concatenate(rows, axis=0))
-            picture.resize((picture.width // 2, picture.height // 2), Image.Resampling.BOX).save(
-                folder / f"{scene}.jpg", quality=85)  # half size: enough to see the paint, light in the repository
-    report(folder)
-    print(json.dumps({"results": str(folder / "results.md")}))
+    return C.results_page("Training masks: a block painted over every photo", "masks.py", records, columns)
 
 
 if __name__ == "__main__":
-    main()
+    import framework
+    sys.exit(framework.script("masks"))

@@ -108,11 +108,11 @@ def train(scene: str, strategy: str, data_root: Path, threads: int) -> Path:
 def export_worker(run: str, voxel_size: float | None, truncation: float) -> None:
     """In a fresh process: what `mcsplat export RUN --format mesh [--voxel-size S]` does, timed; prints one JSON
     line."""
-    from mcsplat import run_dir
+    from mcsplat import trained_run
     from mcsplat.mesh import DEFAULT_VOXEL_BUDGET, MeshOptions, extract, write_mesh
 
     started = time.perf_counter()
-    trained = run_dir.load(run, torch.device("cpu"))
+    trained = trained_run.load(run, torch.device("cpu"))
     # A given voxel size may need more voxels than the default budget when this model's box is larger.
     options = MeshOptions(truncation=truncation) if voxel_size is None else \
         MeshOptions(voxel_size=voxel_size, voxel_budget=4 * DEFAULT_VOXEL_BUDGET, truncation=truncation)
@@ -185,11 +185,11 @@ def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
 
 # ------------------------------------------------------------------------------------------------ measures
 def measure(run: Path, exported: dict, name: str) -> dict:
-    from mcsplat import run_dir
+    from mcsplat import trained_run
     from mcsplat.gaussians import DEAD_OPACITY
     from mcsplat.mesh import read_mesh
 
-    trained = run_dir.load(run, torch.device("cpu"))
+    trained = trained_run.load(run, torch.device("cpu"))
     mesh = read_mesh(trained.folder.mesh_file)
     vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     scene, radius = trained.scene, trained.scene.radius

@@ -21,111 +21,119 @@ Recorded per run: test PSNR / SSIM / LPIPS-VGG, s/step, and for refined runs the
 
 from __future__ import annotations
 
-import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
-
-import argparse
 import json
 import math
+import os
 import shutil
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
-import torch
+import tyro
 
 import _common as C
+from framework import Arm, Common
 
 CUP = "colmap_cup"
+KEY = ("run", "steps", "downscale")
 
 
-def perturbed_copy(target: Path, train_names: set[str], degrees: float, radius_share: float,
-                   scene_radius: float) -> dict[str, list[float]]:
-    """The cup with its training poses moved, as tests/test_pose_refinement.py moves them (tests/helpers.py);
-    returns each moved image's rotation vector (radians)."""
+@dataclass(frozen=True)
+class Options:
+    """Pose refinement on the cup, its training poses moved and as they are."""
+
+    steps: int = 3000
+    downscale: int = 2
+    cap_max: int = 50_000
+    degrees: float = 1.0
+    """Each training pose is turned by this much about a random axis ..."""
+    radius_share: float = 0.01
+    """... and moved by this share of the scene radius in a random direction."""
+    lrs: tuple[float, ...] = (1e-5, 1e-4)
+    """--pose-opt-lr of the refined runs on the moved poses."""
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
+
+
+def arms(options: Options) -> list[Arm]:
+    from mcsplat.pose_refinement import PoseOptions
+
+    default = PoseOptions().pose_opt_lr
+    runs = [("exact", False, None), (f"exact + pose-opt {default:.0e}", False, default), ("perturbed", True, None)]
+    runs += [(f"perturbed + pose-opt {lr:.0e}", True, lr) for lr in options.lrs]
+    return [Arm(f"{label.replace(' ', '_')}-{options.steps}",
+                {"run": label, "pose_opt_lr": lr, "steps": options.steps, "downscale": options.downscale,
+                 "perturbed": perturbed},
+                {"steps": options.steps, "downscale": options.downscale, "cap_max": options.cap_max,
+                 "pose_opt": lr is not None, **({"pose_opt_lr": lr} if lr is not None else {})})
+            for label, perturbed, lr in runs]
+
+
+def perturbed_copy(options: Options, target: Path) -> dict[str, list[float]]:
+    """The cup with its training poses moved, as tests/test_pose_refinement.py moves them (tests/helpers.py), made
+    once for these --degrees and --radius-share; each moved image's rotation vector (radians)."""
+    from mcsplat.data import load_scene
+
+    asked = {"degrees": options.degrees, "radius_share": options.radius_share, "downscale": options.downscale}
+    made = target / "moved.json"
+    if made.is_file() and json.loads(made.read_text())["asked"] == asked:
+        return json.loads(made.read_text())["moved"]
     sys.path.insert(0, str(C.REPO / "tests"))
     from helpers import perturbed_cup
 
+    scene = load_scene(options.common.data_root / CUP, downscale=options.downscale)
+    building = target.with_name(f"{target.name}.{os.getpid()}.tmp")
+    shutil.rmtree(building, ignore_errors=True)
+    building.mkdir(parents=True)
+    moved = perturbed_cup(options.common.data_root, building, {v.name for v in scene.train}, options.degrees,
+                          options.radius_share, scene.radius, image_folders=("images", "images_4"))
+    moved = {name: omega.tolist() for name, omega in moved.items()}
+    (building / "moved.json").write_text(json.dumps({"asked": asked, "moved": moved}))
     shutil.rmtree(target, ignore_errors=True)
-    target.mkdir(parents=True)
-    moved = perturbed_cup(C.DATA_ROOT, target, train_names, degrees, radius_share, scene_radius,
-                          image_folders=("images", "images_4"))
-    return {name: omega.tolist() for name, omega in moved.items()}
+    building.replace(target)
+    return moved
 
 
-def run_arm(label: str, data: Path, args, moved: dict | None, lr: float | None) -> dict:
-    from mcsplat.config import TrainConfig
+def run(arm: Arm, options: Options, folder: Path) -> dict:
+    import torch
+
     from mcsplat.data import load_scene
     from mcsplat.train import train
 
-    out = C.results_dir("pose_refinement") / "runs" / f"{label}-{args.steps}"
-    config = TrainConfig(data=data, out=out, overwrite=True, steps=args.steps, downscale=args.downscale,
-                         cap_max=args.cap_max, quiet=True, save_renders=False, threads=args.threads,
-                         pose_opt=lr is not None, **({"pose_opt_lr": lr} if lr is not None else {}))
+    data, moved = options.common.data_root / CUP, None
+    if arm.labels["perturbed"]:
+        data = folder / "runs" / "perturbed-cup"
+        moved = perturbed_copy(options, data)
+    out = folder / "runs" / arm.name
+    config = C.make_config(data=data, out=out, overwrite=True, quiet=True, save_renders=False,
+                           threads=options.common.threads, **arm.config)
     metrics = train(config)
-    record = {"run": label, "pose_opt_lr": lr, "steps": metrics["steps"], "downscale": args.downscale,
-              "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics["lpips"],
-              "seconds_per_step": metrics["train_seconds"] / metrics["steps"], "machine": C.machine("cpu")}
-    if lr is not None:
+    figures = {"steps": metrics["steps"], "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics["lpips"],
+               "seconds_per_step": metrics["train_seconds"] / metrics["steps"]}
+    if arm.labels["pose_opt_lr"] is not None:
         deltas = torch.load(out / "checkpoint.pt", weights_only=True)["poses"]["deltas"].double()
-        names = [view.name for view in load_scene(data, downscale=args.downscale).train]
-        record["median_rotation_degrees"] = float(deltas[:, :3].norm(dim=1).median()) * 180 / math.pi
-        record["median_translation_radii"] = float(deltas[:, 3:].norm(dim=1).median())
+        names = [view.name for view in load_scene(data, downscale=options.downscale).train]
+        figures["median_rotation_degrees"] = float(deltas[:, :3].norm(dim=1).median()) * 180 / math.pi
+        figures["median_translation_radii"] = float(deltas[:, 3:].norm(dim=1).median())
         if moved:
             cosines = [float(np.dot(deltas[i, :3].numpy(), -np.array(moved[name]))
                              / (np.linalg.norm(deltas[i, :3].numpy()) * np.linalg.norm(moved[name]) + 1e-30))
                        for i, name in enumerate(names) if name in moved]
-            record["median_cosine"] = float(np.median(cosines))
-    return record
+            figures["median_cosine"] = float(np.median(cosines))
+    return figures
 
 
-def report(folder: Path) -> None:
-    records = C.read_jsonl(folder / "results.jsonl")
+def report(records: list[dict], folder: Path) -> str:
     columns = [("run", "run", ""), ("--pose-opt-lr", "pose_opt_lr", ".0e"), ("steps", "steps", ","),
                ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"), ("LPIPS-VGG", "lpips", ".4f"),
                ("median correction (deg)", "median_rotation_degrees", ".3f"),
                ("median correction (radii)", "median_translation_radii", ".4f"),
                ("cosine with the undoing rotation", "median_cosine", ".2f"), ("s/step", "seconds_per_step", ".3f")]
-    C.write_results_page(folder, "Pose refinement: `--pose-opt` on the cup, its training poses moved and as they "
-                         "are", "pose_refinement.py", records, columns)
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--downscale", type=int, default=2)
-    parser.add_argument("--cap-max", type=int, default=50_000)
-    parser.add_argument("--degrees", type=float, default=1.0)
-    parser.add_argument("--radius-share", type=float, default=0.01)
-    parser.add_argument("--lrs", type=float, nargs="+", default=[1e-5, 1e-4])
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--rerun", action="store_true", help="train again the runs results.jsonl already holds")
-    parser.add_argument("--report", action="store_true", help="only rebuild results.md")
-    args = parser.parse_args()
-    folder = C.results_dir("pose_refinement")
-    if not args.report:
-        from mcsplat.config import TrainConfig
-        from mcsplat.data import load_scene
-
-        original = C.DATA_ROOT / CUP
-        scene = load_scene(original, downscale=args.downscale)
-        moved = perturbed_copy(folder / "runs" / "perturbed-cup", {v.name for v in scene.train}, args.degrees,
-                               args.radius_share, scene.radius)
-        default = TrainConfig.__dataclass_fields__["pose_opt_lr"].default
-        arms = [("exact", original, None, None), (f"exact + pose-opt {default:.0e}", original, None, default),
-                ("perturbed", folder / "runs" / "perturbed-cup", moved, None)]
-        arms += [(f"perturbed + pose-opt {lr:.0e}", folder / "runs" / "perturbed-cup", moved, lr) for lr in args.lrs]
-        done = {(r["run"], r["steps"], r["downscale"]) for r in C.read_jsonl(folder / "results.jsonl")} \
-            if (folder / "results.jsonl").is_file() else set()
-        for label, data, moved_poses, lr in arms:
-            if (label, args.steps, args.downscale) in done and not args.rerun:
-                continue  # recorded already: the table keeps that record
-            record = run_arm(label.replace(" ", "_"), data, args, moved_poses, lr)
-            record["run"] = label
-            C.emit({k: v for k, v in record.items() if k != "machine"})
-            C.append_jsonl(folder / "results.jsonl", [record])
-    report(folder)
-    print(json.dumps({"results": str(folder / "results.md")}))
+    return C.results_page("Pose refinement: `--pose-opt` on the cup, its training poses moved and as they are",
+                          "pose_refinement.py", records, columns)
 
 
 if __name__ == "__main__":
-    main()
+    import framework
+    sys.exit(framework.script("pose_refinement"))

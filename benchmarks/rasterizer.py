@@ -9,8 +9,8 @@ Scene: N Gaussians in a ball in front of the camera, scaled so that about 32 Gau
 (forward, backward) and the whole render + backward (projection, SH, binning, compositing, autograd). On the CPU the
 same scene is also timed, in the same process, through the kernels as they were before the SIMD work (the scalar
 compositing kernels; torch projection, SH and binning), and the speed-ups are reported as ratios. On CUDA,
-`--cuda-kernels` times each named set of compositing kernels (render/launch.py's set_cuda_kernels) on the same bins,
-as `<name>_composite_forward_ms` / `<name>_composite_backward_ms`; the first named also runs the whole render.
+`--cuda-kernels` times each named set of compositing kernels (render/kernel_choice.py's set_cuda_kernels) on the same
+bins, as `<name>_composite_forward_ms` / `<name>_composite_backward_ms`; the first named also runs the whole render.
 """
 
 from __future__ import annotations
@@ -29,11 +29,11 @@ import torch
 
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import Splats, render, set_cpu_threads
-from mcsplat.render.binning import bin_gaussians
-from mcsplat.render.launch import CompositeFunction, cuda_kernels, set_cpu_kernels, set_cuda_kernels
+from mcsplat.render.bin.warp_kernels import bin_gaussians
+from mcsplat.render.composite.function import CompositeFunction, cuda_kernels, set_cpu_kernels, set_cuda_kernels
 from mcsplat.render.paths import TORCH_BASELINE_PATH, use_render_path
 from mcsplat.render.constants import ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, TILE_SIZE, TRANSMITTANCE_MIN
-from mcsplat.render.project import project_gaussians, view_dependent_colors
+from mcsplat.render.project.torch_autograd import project_gaussians, view_dependent_colors
 
 
 def make_scene(n: int, size: int, device: str, seed: int = 0):

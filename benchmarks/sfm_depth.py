@@ -38,10 +38,10 @@ HIDDEN = 0.05            # differences beyond this share of R: the point is hidd
 @torch.no_grad()
 def signed_differences(run: Path) -> tuple[np.ndarray, float]:
     """(median depth - point depth at the point's pixel over the kept pairs, scene radius)."""
-    from mcsplat import run_dir
+    from mcsplat import trained_run
     from mcsplat.render import render
 
-    trained = run_dir.load(run, torch.device("cpu"))
+    trained = trained_run.load(run, torch.device("cpu"))
     scene, radius = trained.scene, trained.scene.radius
     if scene.points is None:
         raise SystemExit(f"{run}: its scene has no SfM points")

@@ -54,7 +54,7 @@ from mcsplat.data import View
 from mcsplat.gaussians import GaussianModel
 from mcsplat.optim import make_optimizers, means_lr_at
 from mcsplat.render import RenderResult
-from mcsplat.render.launch import CompositeFunction
+from mcsplat.render.composite.function import CompositeFunction
 from mcsplat.render.paths import TORCH_BASELINE_PATH, RenderPath, current_render_path, use_render_path
 from mcsplat.strategy.adc import ADCConfig, ADCStrategy
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy

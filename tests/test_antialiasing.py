@@ -14,8 +14,8 @@ import torch
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.gaussians import GaussianModel
 from mcsplat.render import Splats, render, set_cpu_threads
-from mcsplat.render.project import project_gaussians
-from mcsplat.render.project_kernel import project_and_shade
+from mcsplat.render.project.torch_autograd import project_gaussians
+from mcsplat.render.project.warp_kernel import project_and_shade
 
 from test_render import PARAMS, SEEDS, compare_with_reference, make_camera, on, random_splats
 from test_render_kernels import wide_scene
@@ -142,7 +142,7 @@ def test_a_model_carries_the_flag_to_render_and_subsets():
 
 def test_train_with_antialiased_sets_the_flag_everywhere(tmp_path, mini_demo, capsys):
     from mcsplat.cli import main
-    from mcsplat.run_dir import load
+    from mcsplat.trained_run import load
 
     out = tmp_path / "run"
     assert main(["train", str(mini_demo), "--out", str(out), "--steps", "30", "--antialiased", "--quiet",

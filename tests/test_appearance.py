@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from mcsplat.appearance import AffineAppearance, apply_transform, fitted_transform, lr_at
-from mcsplat.config import TrainConfig
+from mcsplat.config import TrainConfig, config_of
 from mcsplat.errors import MCSplatError
 from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.train import train
@@ -40,7 +40,7 @@ def _shifted_cup(shared_data: Path, root: Path) -> tuple[Path, set[str]]:
 
 def _config(root: Path, out: Path, **options) -> TrainConfig:
     options = {"steps": 1200, **options}
-    return TrainConfig(data=root, out=out, downscale=8, quiet=True, lpips_net="alex", save_every=0,
+    return config_of(data=root, out=out, downscale=8, quiet=True, lpips_net="alex", save_every=0,
                        save_renders=False, mcmc=MCMCConfig(cap_max=8000), **options)
 
 

@@ -25,7 +25,7 @@ from mcsplat.errors import DataError
 SOURCE_ROOT = Path(__file__).resolve().parents[1] / "src" / "mcsplat" / "data"
 LEGO_TEST = "nerf_synthetic_lego_400/lego"
 LEGO_VIEWS = ("r_0", "r_25", "r_50", "r_100")  # test views around the object: r_0 and r_100 half a turn apart
-NERF_SYNTHETIC = DepthOptions(encoding="nerf-synthetic")
+NERF_SYNTHETIC = DepthOptions(depth_encoding="nerf-synthetic")
 
 
 # ----------------------------------------------------------------------------------------------------------- seam
@@ -175,7 +175,7 @@ def test_a_16_bit_depth_is_resized_by_nearest_and_scaled_to_units(shared_data, t
     names = ["12", "30", "41"]
     for name in names:
         Image.fromarray(steps).save(folder / f"{name}.png")
-    scene = load_scene(shared_data / "colmap_cup", downscale=4, attachments=[DepthOptions(str(folder), png_step=0.002)])
+    scene = load_scene(shared_data / "colmap_cup", downscale=4, attachments=[DepthOptions(str(folder), depth_png_step=0.002)])
     views = {view.name: view for view in scene.train + scene.test}
     assert {name for name, view in views.items() if view.attachment("depth") is not None} == set(names)
     assert any(note.startswith(f"depth maps for 3 of {len(views)} images from {folder}") for note in scene.notes)
@@ -262,7 +262,7 @@ def test_bad_depth_files_are_one_line_errors(shared_data, tmp_path):
     assert "shape [600, 800, 3]" in error(DepthOptions(str(folder)))
     (folder / "12.npy").write_bytes(b"not numpy")
     assert "cannot read depth map" in error(DepthOptions(str(folder)))
-    for bad in (dict(encoding="kinect"), dict(measure="planar"), dict(png_step=0), dict(source=" ")):
+    for bad in (dict(depth_encoding="kinect"), dict(depth_measure="planar"), dict(depth_png_step=0), dict(depths=" ")):
         with pytest.raises(DataError, match="depth"):
             DepthOptions(**bad)
 

@@ -14,7 +14,7 @@ from mcsplat.appearance import BilateralGridAppearance
 from mcsplat.appearance.bilateral_grid import total_variation
 from mcsplat.appearance.slicing import slice_grid, slice_reference
 from mcsplat.compute.runtime import set_cpu_threads
-from mcsplat.config import TrainConfig
+from mcsplat.config import config_of
 from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.train import train
 
@@ -93,7 +93,7 @@ GRID = (4, 4, 2)  # a coarse grid for 100x75 photos (16x16x8 holds more numbers 
 
 def test_the_grids_of_vignetted_photos_learn_their_vignette(shared_data, tmp_path):
     root, vignetted = altered_cup(shared_data, tmp_path / "cup", _vignette)
-    config = TrainConfig(data=root, out=tmp_path / "grid", downscale=8, steps=1200, quiet=True, lpips_net="alex",
+    config = config_of(data=root, out=tmp_path / "grid", downscale=8, steps=1200, quiet=True, lpips_net="alex",
                          save_every=0, save_renders=False, mcmc=MCMCConfig(cap_max=8000), appearance="bilateral-grid",
                          appearance_grid_shape=GRID, appearance_lr=0.03, appearance_lr_final=0.003)
     print(f"test PSNR (photos without vignette) {train(config)['psnr']:.2f} dB")

@@ -16,13 +16,13 @@ import torch
 from mcsplat.blocks import block_config, plan_blocks, train_blocks
 from mcsplat.blocks.merge import joined, kept_in_core
 from mcsplat.cli import main
-from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.config import ModelConfig, TrainConfig, config_of
 from mcsplat.errors import MCSplatError
 from mcsplat.partition import BlocksFolder, block_scene, estimated_bytes, read_plan
 from mcsplat.partition.cells import split_cells
 from mcsplat.partition.scene import OUTSIDE_SHARE
 from mcsplat.render import render
-from mcsplat.run_dir import load
+from mcsplat.trained_run import load
 from mcsplat.run_scene import scene_of
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
 
@@ -34,7 +34,7 @@ def cup_training(shared_data, **overrides) -> TrainConfig:
                    save_renders=False, save_every=60, threads=1, cap_max=8000, scale_schedule=False,
                    model=ModelConfig(sh_degree=1), mcmc=MCMCConfig(refine_start=30, refine_every=30))
     options.update(overrides)
-    return TrainConfig(**options)
+    return config_of(**options)
 
 
 def test_the_cells_cover_the_plane_once_and_share_the_points():

@@ -259,7 +259,7 @@ def test_train_runs_on_a_simple_radial_capture(shared_data, tmp_path):
     from mcsplat.config import TrainConfig
     from mcsplat.evaluation import evaluate
     from mcsplat.initialization import initial_model
-    from mcsplat.run_dir import load
+    from mcsplat.trained_run import load
     from mcsplat.train import train
 
     scores = {}

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from mcsplat.camera import Camera, intrinsics
-from mcsplat.config import TrainConfig
+from mcsplat.config import config_of
 from mcsplat.data import View, load_scene
 from mcsplat.data.attachments.depth import KIND as DEPTH
 from mcsplat.data.attachments.depth import DepthOptions
@@ -187,12 +187,12 @@ def test_the_weight_starts_at_its_share_and_falls_to_its_final_share():
 
 def test_the_options_refuse_what_they_cannot_use():
     with pytest.raises(MCSplatError, match="--depths is 'none'"):
-        TrainConfig(data=Path("."), depth_loss="metric")
+        config_of(data=Path("."), depth_loss="metric")
     with pytest.raises(MCSplatError, match="--depth-weight 0.5: these shape a depth term"):
-        TrainConfig(data=Path("."), depth_weight=0.5, named=frozenset({"depth_weight"}))
+        config_of(data=Path("."), depth_weight=0.5, named=frozenset({"depth_weight"}))
     with pytest.raises(MCSplatError, match="--sparse-depth-from 0.5"):
-        TrainConfig(data=Path("."), sparse_depth_from=0.5, named=frozenset({"sparse_depth_from"}))
-    TrainConfig(data=Path("."), sparse_depth=0.1, sparse_depth_from=0.5, named=frozenset({"sparse_depth_from"}))
+        config_of(data=Path("."), sparse_depth_from=0.5, named=frozenset({"sparse_depth_from"}))
+    config_of(data=Path("."), sparse_depth=0.1, sparse_depth_from=0.5, named=frozenset({"sparse_depth_from"}))
 
 
 def test_a_scene_with_depth_maps_for_some_views_trains(tmp_path, mini_demo, monkeypatch):
@@ -220,7 +220,7 @@ def test_a_scene_with_depth_maps_for_some_views_trains(tmp_path, mini_demo, monk
         return value
 
     monkeypatch.setattr(DenseDepth, "__call__", recorded)
-    metrics = train(TrainConfig(data=mini_demo, out=tmp_path / "run", steps=40, quiet=True, lpips_net="alex",
+    metrics = train(config_of(data=mini_demo, out=tmp_path / "run", steps=40, quiet=True, lpips_net="alex",
                                 save_every=0, save_renders=False, depths=str(folder), depth_loss="metric",
                                 depth_weight=0.5, cap_max=1000))
     assert math.isfinite(metrics["psnr"])

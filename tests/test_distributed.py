@@ -12,7 +12,7 @@ import pytest
 
 from distributed_worker import reduce_once
 from distributed_worker import run as worker
-from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.config import ModelConfig, TrainConfig, config_of
 from mcsplat.planning import Plan, for_processes
 from mcsplat.errors import MCSplatError
 from mcsplat.io.checkpoint import load_checkpoint
@@ -32,7 +32,7 @@ def demo_config(out: Path, **overrides) -> TrainConfig:
                    save_every=500, threads=1, model=ModelConfig(num_init_points=3000), scale_schedule=False,
                    mcmc=MCMCConfig(cap_max=3400, refine_start=50, refine_every=50))
     options.update(overrides)
-    return TrainConfig(**options)
+    return config_of(**options)
 
 
 def launch(comm: Path, configs: list[TrainConfig], crash: dict | None = None, timeout: float = 60.0) -> list[dict]:

@@ -304,6 +304,8 @@ def test_one_table_holds_every_format_and_the_cli_takes_it_as_it_is(tmp_path):
     import dataclasses
     import typing
 
+    import tyro
+
     from mcsplat.cli import Export
     from mcsplat.export import EXPORT_FORMATS, ExportOptions, format_help
     from mcsplat.io.formats import FORMATS
@@ -311,7 +313,7 @@ def test_one_table_holds_every_format_and_the_cli_takes_it_as_it_is(tmp_path):
 
     assert list(EXPORT_FORMATS) == ["ply", "splat", "compressed-ply", "spz", "sog", "glb", "gltf", "mesh"]
     assert [name for name, entry in EXPORT_FORMATS.items() if entry.ending is not None] == list(FORMATS)
-    annotation = typing.get_type_hints(Export, include_extras=True)["format"]
+    annotation = typing.get_type_hints(ExportOptions, include_extras=True)["format"]
     choices, _ = typing.get_args(typing.get_args(annotation)[0])  # Annotated[Literal[...] | None, help]
     assert typing.get_args(choices) == tuple(EXPORT_FORMATS)
     assert all(f"{name}: " in format_help() for name in EXPORT_FORMATS)
@@ -320,8 +322,11 @@ def test_one_table_holds_every_format_and_the_cli_takes_it_as_it_is(tmp_path):
         "ply": "point_cloud.ply", "splat": "point_cloud.splat", "compressed-ply": "point_cloud.compressed.ply",
         "spz": "point_cloud.spz", "sog": "point_cloud.sog", "glb": "point_cloud.glb", "gltf": "point_cloud.gltf",
         "mesh": "mesh.ply"}
-    command = {field.name: field.default for field in dataclasses.fields(Export) if field.name != "run"}
-    assert command == {field.name: field.default for field in dataclasses.fields(ExportOptions)}
+    # The command's options are the library's, declared once: the CLI nests ExportOptions itself, without a prefix.
+    nested = typing.get_type_hints(Export, include_extras=True)["export"]
+    assert typing.get_args(nested)[0] is ExportOptions and tyro.conf.OmitArgPrefixes in typing.get_args(nested)
+    assert [field.name for field in dataclasses.fields(Export)] == ["run", "export"]
+    assert dataclasses.fields(Export)[1].default_factory() == ExportOptions()
 
 
 def test_the_plain_ply_through_the_table_is_the_ply_training_writes(tmp_path):

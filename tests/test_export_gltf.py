@@ -207,7 +207,7 @@ def test_three_js_draws_the_glb_as_mcsplat_renders_it(tiny_run, tmp_path):
     import torch
     from PIL import Image
 
-    from mcsplat import run_dir
+    from mcsplat import trained_run
     from mcsplat.render import render
 
     pytest.importorskip("websockets", reason="the browser tests' websockets (a dependency of viser) is not installed")
@@ -225,7 +225,7 @@ def test_three_js_draws_the_glb_as_mcsplat_renders_it(tiny_run, tmp_path):
     shutil.copy(NODE_SCRIPTS / "three_splat_page.html", folder / "page.html")
     assert main(["export", str(tiny_run), "--out", str(folder / "scene.glb")]) == 0
 
-    run = run_dir.load(tiny_run, torch.device("cpu"))
+    run = trained_run.load(tiny_run, torch.device("cpu"))
     camera = run.scene.test[0].camera
     width, height = camera.width, camera.height
     assert camera.K[0, 2] == width / 2 and camera.K[1, 2] == height / 2, "the page's projection is centred"

@@ -21,19 +21,20 @@ LAYERS = [
     ("session", ("blocks", "train", "export")),
     ("consumers", ("viewer", "report")),
     ("loop", ("trainer", "stopping", "subscribers")),
-    ("run", ("run_setup", "state", "run_dir", "run_scene", "events", "run_metrics", "evaluation")),
+    ("run", ("run_setup", "run_start", "state", "trained_run", "run_dir", "run_scene", "events", "run_metrics",
+             "evaluation")),
     ("set-up", ("distributed", "initialization", "partition", "planning", "config", "config_types")),
-    ("method", ("surface", "depth_terms", "loss_terms", "strategy", "mesh", "appearance", "pose_refinement",
-                "visibility", "metrics", "optim")),
+    ("method", ("surface", "depth_correlation", "depth_terms", "appearance", "pose_refinement", "features", "loss_terms", "strategy",
+                "mesh", "visibility", "metrics", "optim")),
     ("building blocks", ("render", "losses", "ssim_cpu", "ssim_warp", "adam_cpu", "capture", "data", "io",
                          "camera_path", "per_image")),
     ("model", ("gaussians",)),
-    ("foundation", ("geometry", "compute", "camera", "errors", "")),
+    ("foundation", ("geometry", "compute", "camera", "option_checks", "errors", "")),
 ]
 
 
 def module_files() -> dict[str, Path]:
-    """'mcsplat.render.binning' -> its file, for every module of the package."""
+    """'mcsplat.render.bin.warp_kernels' -> its file, for every module of the package."""
     found = {}
     for path in PACKAGE.rglob("*.py"):
         parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)

@@ -98,7 +98,7 @@ def test_masks_are_found_by_name_resized_and_inverted(shared_data, tmp_path):
     for view in views:  # 800x600 masks brought to the 200x150 images, exact at the block's edges
         assert np.array_equal(view.mask.numpy(), expected), view.name
     assert any(f"masks for {len(views)} of {len(views)} images" in note for note in scene.notes)
-    inverted = load_scene(root, downscale=4, masks=MaskOptions(invert=True))
+    inverted = load_scene(root, downscale=4, masks=MaskOptions(invert_masks=True))
     assert np.array_equal(inverted.train[0].mask.numpy(), 255 - expected)
     assert load_scene(root, downscale=4, masks=MaskOptions("none")).train[0].mask is None
     # A folder named on the command line, away from the scene, works the same way.
@@ -144,7 +144,7 @@ def test_masks_that_leave_nothing_to_train_on_are_refused(shared_data, tmp_path,
     for mask in (root / "masks").iterdir():
         white.save(mask)
     with pytest.raises(DataError, match=r"\(inverted\).*without --invert-masks"):
-        load_scene(root, downscale=4, masks=MaskOptions(invert=True))
+        load_scene(root, downscale=4, masks=MaskOptions(invert_masks=True))
     run = tmp_path / "run"
     status = main(["train", str(root), "--out", str(run), "--downscale", "4", "--steps", "5", "--quiet",
                    "--invert-masks"])
@@ -195,10 +195,10 @@ def test_alpha_channel_as_mask(mini_demo):
 # ------------------------------------------------------------------------------------------- training, end to end
 def _magenta_in_block(run: Path) -> float:
     """How magenta the block region of the training renders is: mean (R + B) / 2 - G (the paint: 1)."""
-    from mcsplat import run_dir
+    from mcsplat import trained_run
     from mcsplat.render import render
 
-    trained = run_dir.load(run, torch.device("cpu"))
+    trained = trained_run.load(run, torch.device("cpu"))
     scores = []
     for view in trained.scene.train[::8]:
         with torch.no_grad():
@@ -208,7 +208,7 @@ def _magenta_in_block(run: Path) -> float:
 
 
 def test_a_block_painted_over_every_photo_is_not_learned_with_its_mask(shared_data, tmp_path):
-    from mcsplat.config import TrainConfig
+    from mcsplat.config import config_of
     from mcsplat.strategy.mcmc import MCMCConfig
     from mcsplat.train import train
 
@@ -217,7 +217,7 @@ def test_a_block_painted_over_every_photo_is_not_learned_with_its_mask(shared_da
     magenta = {}
     for masks in ("auto", "none"):
         run = tmp_path / f"run-{masks}"
-        metrics = train(TrainConfig(data=root, out=run, downscale=4, steps=400, masks=masks, quiet=True,
+        metrics = train(config_of(data=root, out=run, downscale=4, steps=400, masks=masks, quiet=True,
                                     lpips_net="alex", save_every=0, save_renders=False,
                                     mcmc=MCMCConfig(cap_max=15000)))
         magenta[masks] = _magenta_in_block(run)

@@ -19,13 +19,13 @@ from mcsplat.errors import MCSplatError
 from mcsplat.export import ExportOptions
 from mcsplat.mesh import DEFAULT_VOXEL_BUDGET, MeshOptions, extract, holds_mesh, read_mesh, write_mesh
 from mcsplat.mesh.consistency import KeptDepth, consistent_depth, nearest_views
-from mcsplat.mesh.extract import CONSISTENT_VIEWS
+from mcsplat.mesh.options import CONSISTENT_VIEWS
 from mcsplat.mesh.fusion import TSDFVolume
 from mcsplat.mesh.grid import TRUNCATION_VOXELS, VoxelGrid, choose_grid, object_box
 from mcsplat.mesh.raster import picture, rasterize
 from mcsplat.mesh.surface import zero_surface
 from mcsplat.render import Splats, render
-from mcsplat.run_dir import load
+from mcsplat.trained_run import load
 
 from conftest import REPO
 
@@ -370,10 +370,10 @@ def test_bad_input_gets_one_line_errors(tiny_run, tmp_path, capsys):
         error = capsys.readouterr().err.strip()
         assert error.startswith("mcsplat: error:") and message in error and "\n" not in error, error
     assert not (tmp_path / "mesh.stl").exists() and not (tiny_run / "mesh.ply").exists()
-    assert Export.__dataclass_fields__["voxel_budget"].default == DEFAULT_VOXEL_BUDGET
-    assert Export.__dataclass_fields__["truncation"].default == MeshOptions().truncation == TRUNCATION_VOXELS
-    assert (Export.__dataclass_fields__["consistent_views"].default == ExportOptions().consistent_views
-            == MeshOptions().consistent_views == CONSISTENT_VIEWS)
+    # One declaration: the command's mesh options are the library's MeshOptions, its defaults the library's.
+    assert Export(run=tiny_run).export.mesh == ExportOptions().mesh == MeshOptions()
+    assert (MeshOptions().voxel_budget, MeshOptions().truncation, MeshOptions().consistent_views) == (
+        DEFAULT_VOXEL_BUDGET, TRUNCATION_VOXELS, CONSISTENT_VIEWS)
 
 
 def test_a_gaussian_ply_is_no_mesh(tiny_run):

@@ -45,10 +45,43 @@ def test_the_flags_keep_their_names():
     config = parsed("--appearance", "affine", "--appearance-lr", "0.01", "--pose-opt", "--pose-opt-lr", "0.001",
                     "--eval-every", "3", "--mcmc.refine-start", "5", "--model.num-init-points", "100",
                     "--optim.means-lr", "0.0002", "--cap-max", "auto", "--no-scale-schedule")
-    assert (config.appearance, config.appearance_lr, config.pose_opt, config.pose_opt_lr) == ("affine", 0.01, True,
-                                                                                              0.001)
+    compensation, poses = config.compensation, config.poses  # each feature's options, in its own group
+    assert (compensation.appearance, compensation.appearance_lr, poses.pose_opt, poses.pose_opt_lr) == (
+        "affine", 0.01, True, 0.001)
     assert (config.eval_every, config.mcmc.refine_start, config.model.num_init_points) == (3, 5, 100)
     assert config.optim.means_lr == 0.0002 and config.mcmc.auto_cap and not config.scale_schedule
+
+
+def test_each_feature_group_keeps_its_flags_and_config_json_its_keys():
+    """A feature's options are a group of TrainConfig (features.py) whose flags keep no prefix, and config.json keeps
+    them beside the others under the same names: a file written before the groups reads as it did. No option is
+    named twice, nor a group like an option (the key would be read as the group)."""
+    import typing
+
+    from mcsplat.config import ViewerOptions, config_of, from_jsonable, option_value, with_options
+    from mcsplat.config_types import flat_groups
+    from mcsplat.surface import SurfaceOptions
+
+    hints = typing.get_type_hints(TrainConfig)
+    groups = flat_groups(TrainConfig)
+    assert {"compensation", "poses", "surface_terms", "depth_terms", "training_masks", "depth_maps",
+            "live_viewer"} <= set(groups)
+    names = [f.name for group in groups for f in dataclasses.fields(hints[group])]
+    names += [f.name for f in dataclasses.fields(TrainConfig)]
+    assert len(names) == len(set(names)), "an option named twice"
+    config = parsed("--surface", "--surface-from", "0.4", "--masks", "none", "--depths", "auto", "--port", "9000")
+    assert (config.surface_terms.surface, config.surface_terms.surface_from, config.training_masks.masks,
+            config.depth_maps.depths, config.live_viewer.port) == (True, 0.4, "none", "auto", 9000)
+    saved = to_jsonable(config)
+    assert not set(groups) & set(saved) and (saved["surface_from"], saved["masks"], saved["port"]) == (0.4, "none",
+                                                                                                   9000)
+    assert from_jsonable(saved) == config
+    assert option_value(config, "surface_from") == 0.4 and option_value(config, "mcmc.cap_max") == config.mcmc.cap_max
+    assert with_options(config, surface_from=0.5, steps=7) == from_jsonable({**saved, "surface_from": 0.5, "steps": 7})
+    assert config_of(data=DEMO, surface=True, port=9) == TrainConfig(
+        data=DEMO, surface_terms=SurfaceOptions(surface=True), live_viewer=ViewerOptions(port=9))
+    with pytest.raises(MCSplatError, match="surface_from is \"soon\", not a number"):
+        from_jsonable({**saved, "surface_from": "soon"})
 
 
 def test_the_strategy_follows_the_plan_and_the_options_stay():

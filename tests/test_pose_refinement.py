@@ -12,11 +12,11 @@ import pytest
 import torch
 
 from mcsplat.camera import Camera
-from mcsplat.config import TrainConfig
+from mcsplat.config import TrainConfig, config_of
 from mcsplat.pose_refinement import PoseRefinement, correction_matrix
 from mcsplat.render import render, set_cpu_threads
-from mcsplat.render.project import project_gaussians, view_dependent_colors
-from mcsplat.render.project_kernel import project_and_shade
+from mcsplat.render.project.torch_autograd import project_gaussians, view_dependent_colors
+from mcsplat.render.project.warp_kernel import project_and_shade
 from mcsplat.render.reference import reference_render
 from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.train import train
@@ -111,7 +111,7 @@ def test_a_correction_is_a_rigid_motion_in_the_camera_axes():
 
 # ------------------------------------------------------------------------------------------------ on a capture
 def _config(data: Path, out: Path, **options) -> TrainConfig:
-    return TrainConfig(data=data, out=out, downscale=4, steps=1500, quiet=True, lpips_net="alex", save_every=0,
+    return config_of(data=data, out=out, downscale=4, steps=1500, quiet=True, lpips_net="alex", save_every=0,
                        save_renders=False, mcmc=MCMCConfig(cap_max=10_000), **options)
 
 
@@ -143,7 +143,7 @@ def test_a_resumed_run_with_pose_opt_takes_the_same_steps(mini_demo, tmp_path):
     from mcsplat.events import Control, StepDone
 
     def config(out: Path, **options) -> TrainConfig:
-        return TrainConfig(data=mini_demo, out=out, steps=40, pose_opt=True, quiet=True, lpips_net="alex",
+        return config_of(data=mini_demo, out=out, steps=40, pose_opt=True, quiet=True, lpips_net="alex",
                            save_every=0, save_renders=False, mcmc=MCMCConfig(cap_max=3000), **options)
 
     train(config(tmp_path / "straight"))

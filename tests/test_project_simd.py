@@ -1,4 +1,4 @@
-"""The CPU's SIMD projection (render/cpu/project.py, 16 Gaussians per vector) against the float64 truth: in float32
+"""The CPU's SIMD projection (render/project/cpu_simd.py, 16 Gaussians per vector) against the float64 truth: in float32
 it must be as close to it as the Warp kernel it replaces on the CPU, forward (every output, the screen extent
 included) and backward (every gradient, the view matrix's for pose refinement), for every SH degree and option, for
 chunks cut short, and with the SH coefficients split or together."""
@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from mcsplat.render import Splats, set_cpu_threads
-from mcsplat.render.launch import set_cpu_kernels
-from mcsplat.render.project_kernel import project_and_shade
+from mcsplat.render.composite.function import set_cpu_kernels
+from mcsplat.render.project.warp_kernel import project_and_shade
 
 from test_pose_refinement import tilted_camera, with_view_grad
 from test_render import PARAMS, make_camera

@@ -10,9 +10,9 @@ import torch
 
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import Splats, render, set_cpu_threads
-from mcsplat.render.binning import bin_gaussians
-from mcsplat.render.launch import CompositeFunction, composite, cpu_kernels, set_cpu_kernels
-from mcsplat.render.project import project_gaussians
+from mcsplat.render.bin.warp_kernels import bin_gaussians
+from mcsplat.render.composite.function import CompositeFunction, composite, cpu_kernels, set_cpu_kernels
+from mcsplat.render.project.torch_autograd import project_gaussians
 from mcsplat.render.reference import reference_composite, reference_median_gaussian, reference_render
 
 SEEDS = [0, 1, 2, 3]
@@ -465,7 +465,7 @@ def test_block_masks_change_nothing_but_the_work():
     splats = random_splats(300, 23, log_scale=(-4.0, -2.5))
     camera = make_camera(width=96, height=80, distance=2.5)
     proj = project_gaussians(*(getattr(splats, p) for p in PARAMS[:4]), camera)
-    from mcsplat.render.project import view_dependent_colors
+    from mcsplat.render.project.torch_autograd import view_dependent_colors
     colors = view_dependent_colors(splats.means, splats.sh, camera, 3)
     plain = bin_gaussians(proj.tile_min, proj.tile_max, proj.depths, proj.radii, 6, 5)
     masked = bin_gaussians(proj.tile_min, proj.tile_max, proj.depths, proj.radii, 6, 5, means2d=proj.means2d,

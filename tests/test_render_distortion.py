@@ -1,6 +1,6 @@
-"""2DGS's depth distortion (render(distortion=True), render/distortion.py) against the dense reference renderer's
-sum over every ordered pair of a pixel's Gaussians, forward and every gradient, in float64 and float32, through each
-compositing kernel; and its value where it is known by hand."""
+"""2DGS's depth distortion (render(distortion=True), render/outputs/distortion.py) against the dense reference
+renderer's sum over every ordered pair of a pixel's Gaussians, forward and every gradient, in float64 and float32,
+through each compositing kernel; and its value where it is known by hand."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
-"""Projection + SH and binning as Warp kernels, against the torch versions they replaced (project.py and
-binning_torch.py): the same values, the same gradients, the same lists."""
+"""Projection + SH and binning as Warp kernels, against the torch versions they replaced (project/torch_autograd.py and
+bin/torch_oracle.py): the same values, the same gradients, the same lists."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ import torch
 
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import set_cpu_threads
-from mcsplat.render.binning import bin_gaussians
-from mcsplat.render.binning_torch import torch_bin_gaussians
-from mcsplat.render.launch import set_cpu_kernels
-from mcsplat.render.project import project_gaussians, view_dependent_colors
-from mcsplat.render.project_kernel import project_and_shade
+from mcsplat.render.bin.warp_kernels import bin_gaussians
+from mcsplat.render.bin.torch_oracle import torch_bin_gaussians
+from mcsplat.render.composite.function import set_cpu_kernels
+from mcsplat.render.project.torch_autograd import project_gaussians, view_dependent_colors
+from mcsplat.render.project.warp_kernel import project_and_shade
 
 from test_render import PARAMS, make_camera, on, random_splats
 
@@ -191,7 +191,7 @@ def test_the_projection_reads_a_moved_cameras_numbers_from_its_host_copy():
     """A camera moved to the GPU keeps the host copy it came from, and the projection's scalar arguments are read
     from it: reading them from device tensors would wait for every kernel queued before (a stall per render). The
     "meta" device has no data at all, so any read from the moved tensors would fail here."""
-    from mcsplat.render.project_kernel import _camera_arguments
+    from mcsplat.render.project.warp_kernel import _camera_arguments
 
     camera = make_camera(width=40, height=30)
     moved = camera.to("meta")

@@ -1,6 +1,6 @@
-"""The normal map (render(normals=True), render/normals.py) against the dense reference renderer: each Gaussian's
-normal found another way (the covariance's smallest eigenvector) and composited by the reference, forward and every
-gradient, in float64 and float32, through each compositing kernel."""
+"""The normal map (render(normals=True), render/outputs/normals.py) against the dense reference renderer: each
+Gaussian's normal found another way (the covariance's smallest eigenvector) and composited by the reference, forward and
+every gradient, in float64 and float32, through each compositing kernel."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import torch
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.geometry.depth_normals import normals_from_depth, points_from_depth
 from mcsplat.render import Splats, render
-from mcsplat.render.launch import cpu_kernels, set_cpu_kernels
+from mcsplat.render.composite.function import cpu_kernels, set_cpu_kernels
 from mcsplat.render.reference import reference_composite, reference_normals, reference_project
 
 from test_render import assert_close_relative, leaf, make_camera, random_splats

@@ -7,9 +7,9 @@ import torch
 
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import render, set_cpu_threads
-from mcsplat.render.binning import bin_gaussians
-from mcsplat.render.launch import CompositeFunction, cpu_kernels, set_cpu_kernels
-from mcsplat.render.project import project_gaussians, view_dependent_colors
+from mcsplat.render.bin.warp_kernels import bin_gaussians
+from mcsplat.render.composite.function import CompositeFunction, cpu_kernels, set_cpu_kernels
+from mcsplat.render.project.torch_autograd import project_gaussians, view_dependent_colors
 
 from test_render import PARAMS, assert_close_relative, leaf, make_camera, random_splats
 

@@ -12,11 +12,11 @@ import torch
 
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import render
-from mcsplat.render import tile_kernels
-from mcsplat.render.binning import bin_gaussians
-from mcsplat.render.launch import (CompositeFunction, composite, cpu_kernels, cuda_kernels, kernels_for,
+from mcsplat.render.composite import warp_tiles
+from mcsplat.render.bin.warp_kernels import bin_gaussians
+from mcsplat.render.composite.function import (CompositeFunction, composite, cpu_kernels, cuda_kernels, kernels_for,
                                    set_cpu_kernels, set_cuda_kernels)
-from mcsplat.render.project import project_gaussians, view_dependent_colors
+from mcsplat.render.project.torch_autograd import project_gaussians, view_dependent_colors
 from mcsplat.render.reference import reference_median_gaussian, reference_render
 
 from test_pose_refinement import tilted_camera, with_view_grad
@@ -69,7 +69,7 @@ def test_tile_kernels_over_many_batches_with_early_termination(dtype, variant, d
     with tile_kernels_on(variant):
         fast, _ = compare_with_reference(splats, camera, background=(1.0, 0.4, 0.0), rtol=RTOL[dtype], seed=3,
                                          device=device)
-    assert fast.num_pairs / 9 > 2 * tile_kernels.FORWARD_BLOCK, "tiles (3 x 3) must need several forward batches"
+    assert fast.num_pairs / 9 > 2 * warp_tiles.FORWARD_BLOCK, "tiles (3 x 3) must need several forward batches"
     transmittance = 1.0 - fast.alpha.detach()
     assert transmittance.min() < 1e-3 and transmittance.max() > 0.05, "some pixels stop early, others do not"
 
@@ -176,8 +176,8 @@ def test_cuda_kernel_choice_and_the_cpu_fallbacks():
 
 def test_gradients_land_in_one_buffer_sliced_per_parameter():
     """The backward's ten columns map onto the five inputs, each once (a wrong slice would still run)."""
-    columns = sorted(tile_kernels.GRADIENT_COLUMNS.values())
-    assert columns[0][0] == 0 and columns[-1][1] == tile_kernels.GRADIENT_WIDTH
+    columns = sorted(warp_tiles.GRADIENT_COLUMNS.values())
+    assert columns[0][0] == 0 and columns[-1][1] == warp_tiles.GRADIENT_WIDTH
     assert all(a[1] == b[0] for a, b in zip(columns, columns[1:]))
     g = torch.Generator().manual_seed(0)
     splats = random_splats(30, 0)
@@ -203,8 +203,8 @@ def test_tile_kernels_compile_for_hopper_gpus_without_one(dtype, tmp_path):
 
     ensure_warp()
     scalar = warp_scalar(dtype)
-    kernels = [tile_kernels.forward_kernel(scalar), tile_kernels.forward_kernel(scalar, True),
-               tile_kernels.backward_kernel(scalar), tile_kernels.backward_kernel(scalar, False)]
+    kernels = [warp_tiles.forward_kernel(scalar), warp_tiles.forward_kernel(scalar, True),
+               warp_tiles.backward_kernel(scalar), warp_tiles.backward_kernel(scalar, False)]
     for kernel in kernels:
         module = kernel.module
         previous = module.options.get("block_dim")

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcsplat import run_dir
+from mcsplat import run_start, trained_run
 from mcsplat.cli import main
 
 DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
@@ -62,7 +62,7 @@ def test_config_json_names_the_scene_from_the_root_with_its_fingerprint(trained,
     assert config["scene"]["kind"] == "blender"
     assert (config["scene"]["train_views"], config["scene"]["test_views"]) == (12, 3)
     monkeypatch.chdir(tmp_path)
-    assert len(run_dir.load(run, torch.device("cpu")).scene.train) == 12
+    assert len(trained_run.load(run, torch.device("cpu")).scene.train) == 12
 
 
 def test_resume_refuses_another_scene_given_and_says_where_each_came_from(trained, run_copy, tmp_path, capsys):
@@ -128,15 +128,15 @@ def test_a_hand_edited_fingerprint_is_a_one_line_error(run_copy, trained, capsys
 def test_mask_and_depth_folders_are_named_from_the_root(tmp_path, monkeypatch, mini_demo):
     """--masks and --depths folders given from the current folder are kept from the root, as the scene is: `eval`
     or --resume run from elsewhere still finds them (their words, 'auto', 'none', 'alpha', stay words)."""
-    from mcsplat.config import TrainConfig
+    from mcsplat.config import config_of
 
     monkeypatch.chdir(tmp_path)
     for masks, depths, expected in (("my-masks", "none", (str(tmp_path / "my-masks"), "none")),
                                     ("alpha", "sensor/depths", ("alpha", str(tmp_path / "sensor" / "depths")))):
-        config = TrainConfig(data=mini_demo, out=Path("run") / masks, masks=masks, depths=depths)
-        lock = run_dir.train_lock(config)
+        config = config_of(data=mini_demo, out=Path("run") / masks, masks=masks, depths=depths)
+        lock = run_start.train_lock(config)
         try:
-            prepared, plan = run_dir.prepare(config, lock)
+            begun = run_start.begin(config, lock)
         finally:
             lock.release()
-        assert (prepared.masks, prepared.depths) == expected and plan is None
+        assert (begun.config.training_masks.masks, begun.config.depth_maps.depths) == expected and begun.plan is None

@@ -371,12 +371,17 @@ def test_a_refused_run_leaves_no_folder_it_made(tmp_path, mini_demo):
 
 
 def _float_options() -> list[tuple[str, str]]:
-    """(group, name) of every float option of `mcsplat train` and of its model group: inf passed each range check
-    without an upper end (--surface-flatten, --surface-normal, --surface-distortion...)."""
-    from mcsplat.config import ModelConfig, TrainConfig
-    from mcsplat.config_types import option_types
+    """(group, name) of every float option of `mcsplat train` (its own, its model group's, and those of the groups
+    whose flags have no prefix: --surface-*, --depth-*, ...): inf passed each range check without an upper end
+    (--surface-flatten, --surface-normal, --surface-distortion...)."""
+    import typing
 
-    return [(group, name) for group, cls in (("", TrainConfig), ("model", ModelConfig))
+    from mcsplat.config import ModelConfig, TrainConfig
+    from mcsplat.config_types import flat_groups, option_types
+
+    hints = typing.get_type_hints(TrainConfig)
+    owners = [("", TrainConfig), ("model", ModelConfig)] + [("", hints[group]) for group in flat_groups(TrainConfig)]
+    return [(group, name) for group, cls in owners
             for name, hint in option_types(cls).items() if float in (hint, *getattr(hint, "__args__", ()))]
 
 
@@ -386,8 +391,8 @@ def test_every_float_option_refuses_a_number_that_is_not_finite(value):
 
     import torch
 
-    from mcsplat.config import ModelConfig, TrainConfig
-    from mcsplat.mesh.extract import MeshOptions
+    from mcsplat.config import ModelConfig, TrainConfig, with_options
+    from mcsplat.mesh import MeshOptions
     from mcsplat.mesh.grid import choose_grid
 
     options = _float_options()
@@ -399,7 +404,7 @@ def test_every_float_option_refuses_a_number_that_is_not_finite(value):
             if group:
                 replace(base, model=replace(ModelConfig(), **{name: value}))
             else:
-                replace(base, **{name: value})
+                with_options(base, **{name: value})
     with pytest.raises(MCSplatError, match="--truncation must be at least 1"):
         MeshOptions(truncation=value)
     with pytest.raises(MCSplatError, match="--voxel-size must be a positive finite number"):

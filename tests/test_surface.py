@@ -8,13 +8,13 @@ from pathlib import Path
 
 import torch
 
-from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.config import ModelConfig, TrainConfig, config_of
 from mcsplat.gaussians import GaussianModel
 from mcsplat.geometry.rotation import quaternion_to_rotation
 from mcsplat.loss_terms import StepContext, render_outputs
 from mcsplat.optim import OptimConfig, make_optimizers
 from mcsplat.render import render
-from mcsplat.run_dir import load
+from mcsplat.trained_run import load
 from mcsplat.strategy.mcmc import MCMCConfig, inject_noise, relocate_dead
 from mcsplat.surface import DISTORTION_FROM, DepthNormal, Distortion, Flatten, edge_weight, surface_terms
 from mcsplat.train import train
@@ -148,7 +148,7 @@ def test_a_surface_run_comes_out_flatter(tmp_path):
                 save_renders=False, model=ModelConfig(num_init_points=1500), scale_schedule=False,
                 mcmc=MCMCConfig(cap_max=1800, refine_start=20, refine_every=20))
     train(TrainConfig(out=tmp_path / "plain", **base))
-    metrics = train(TrainConfig(out=tmp_path / "surface", surface=True, surface_from=0.5, **base))
+    metrics = train(config_of(out=tmp_path / "surface", surface=True, surface_from=0.5, **base))
     # Adam moves a log-scale by at most its rate (0.005) a step: 60 steps can thin the smallest axis by about a
     # quarter, not more (the plain run stays near round: 0.95 here).
     assert flatness(tmp_path / "surface") < 0.9 * flatness(tmp_path / "plain")

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.config import ModelConfig, TrainConfig, config_of
 from mcsplat.data import load_scene
 from mcsplat.errors import MCSplatError
 from mcsplat.gaussians import GaussianModel
@@ -20,7 +20,7 @@ from mcsplat.render import render
 from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.evaluation import evaluate
 from mcsplat.initialization import initial_model
-from mcsplat.run_dir import load
+from mcsplat.trained_run import load
 from mcsplat.train import train
 
 DEMO = Path(__file__).resolve().parents[1] / "data" / "lego_demo"
@@ -32,7 +32,7 @@ def small_config(out: Path, **overrides) -> TrainConfig:
                    # Refine early so relocation and growth happen within a short test run (steps, not scaled).
                    scale_schedule=False, mcmc=MCMCConfig(cap_max=3400, refine_start=50, refine_every=50))
     options.update(overrides)
-    return TrainConfig(**options)
+    return config_of(**options)
 
 
 @pytest.fixture(scope="module")

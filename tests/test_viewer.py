@@ -22,7 +22,7 @@ import pytest
 import torch
 
 from mcsplat.cli import main
-from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.config import ModelConfig, TrainConfig, config_of
 from mcsplat.errors import MCSplatError
 from mcsplat.events import Control
 from mcsplat.strategy.mcmc import MCMCConfig
@@ -36,7 +36,7 @@ def test_viewer_without_viser_says_how_to_install(tmp_path, monkeypatch):
     find_spec = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "viser" else find_spec(name, *a))
     with pytest.raises(MCSplatError, match=r"pip install 'mcsplat\[viewer\]'"):
-        train(TrainConfig(data=DEMO, out=tmp_path / "run", steps=5, quiet=True, viewer=True))
+        train(config_of(data=DEMO, out=tmp_path / "run", steps=5, quiet=True, viewer=True))
     assert not (tmp_path / "run").exists(), "a missing extra must not leave a half-started run"
 
 
@@ -44,7 +44,7 @@ def test_viewer_option_adds_the_viewer_subscriber(tmp_path):
     pytest.importorskip("viser")
     from mcsplat.viewer import TrainingViewer
 
-    config = TrainConfig(data=DEMO, out=tmp_path, viewer=True, port=9999)
+    config = config_of(data=DEMO, out=tmp_path, viewer=True, port=9999)
     viewers = [s for s in standard_subscribers(config, tmp_path) if isinstance(s, TrainingViewer)]
     assert len(viewers) == 1 and (viewers[0].host, viewers[0].port) == ("127.0.0.1", 9999)
     assert not any(isinstance(s, TrainingViewer) for s in standard_subscribers(TrainConfig(data=DEMO), tmp_path))
@@ -180,7 +180,7 @@ def test_live_viewer_in_a_browser_and_the_report(browser, tiny_run, tmp_path):
 
 
 def test_render_modes_of_the_viewer(tiny_run):
-    from mcsplat.run_dir import load
+    from mcsplat.trained_run import load
     from mcsplat.viewer.modes import MODES, render_mode
 
     from mcsplat.data import load_scene

@@ -12,9 +12,11 @@ from typing import Any
 import torch
 
 import _common as C
+import framework
+from _common import test_subset
+from framework import NotReady  # noqa: F401  (the runs' NotReady is the framework's)
 import mcsplat.run_dir as run_folders
-from budget import test_subset
-from mcsplat.config import ModelConfig, TrainConfig
+from mcsplat.config import ModelConfig, TrainConfig, config_of
 from mcsplat.planning import settings_of
 from mcsplat.strategy.adc import ADCConfig
 from mcsplat.strategy.mcmc import MCMCConfig
@@ -25,24 +27,15 @@ from .experiments import Run, Scale
 NESTED = {"model": ModelConfig, "mcmc": MCMCConfig, "adc": ADCConfig}
 
 
-class Records:
+class Records(framework.Records):
     """records.jsonl of a scale: the last record of every run name."""
 
     def __init__(self, folder: Path) -> None:
-        self.path = folder / "records.jsonl"
-        self.by_name = {r["name"]: r for r in C.read_jsonl(self.path)}
+        super().__init__(folder / "records.jsonl")
 
-    def add(self, record: dict) -> None:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        C.append_jsonl(self.path, [record])
-        self.by_name[record["name"]] = record
-
-    def get(self, name: str) -> dict | None:
-        return self.by_name.get(name)
-
-
-class NotReady(Exception):
-    """A run that cannot be trained by this checkout or at this point of the pass (the message says why)."""
+    @property
+    def by_name(self) -> dict[str, dict]:
+        return {name: record for (name,), record in self.by_key.items()}
 
 
 def resolve_cap(run: Run, records: Records) -> int | None:
@@ -77,7 +70,7 @@ def make_config(run: Run, scale: Scale, cap: int | None, run_dir: Path, resume: 
     nested["mcmc"].setdefault("relocation", "paper")  # the paper's method: its relocation and growth to the cap
     nested["model"].setdefault("num_init_points", scale.random_points)
     steps = top.pop("steps", scale.steps)
-    return TrainConfig(
+    return config_of(
         data=C.DATA_ROOT / setting.folder, out=run_dir, strategy=run.strategy, cap_max=cap, steps=steps,
         downscale=setting.downscale, seed=run.seed, quiet=True, lpips_net="vgg", save_renders=False,
         save_every=max(1, steps // 4), save_every_minutes=0, resume=resume, overwrite=not resume,

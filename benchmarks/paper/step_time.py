@@ -40,7 +40,7 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=30, help="training views timed per run")
     parser.add_argument("--threads", type=int, default=None)
     args = parser.parse_args()
-    from mcsplat import run_dir as run_folders
+    from mcsplat import trained_run
     from mcsplat.losses import photometric_loss
     from mcsplat.render import render
 
@@ -51,7 +51,7 @@ def main() -> None:
         sys.exit(f"step_time: no checkpoint.pt in {', '.join(missing)} (pass trained run folders)")
     C.set_threads(args.threads)
     cpu = torch.device("cpu")
-    runs = [run_folders.load(path, cpu) for path in paths]
+    runs = [trained_run.load(path, cpu) for path in paths]
     views = runs[0].scene.train[:: max(1, len(runs[0].scene.train) // args.views)][: args.views]
     seconds: list[list[float]] = [[] for _ in runs]
     pairs: list[list[int]] = [[] for _ in runs]      # (tile, Gaussian) intersections: the compositing work

@@ -8,7 +8,7 @@ its plan (mcsplat.planning), made from this and handed to the step and the strat
 from __future__ import annotations
 
 import dataclasses
-import math
+import functools
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,16 +16,27 @@ from typing import Annotated, Any, Literal, Sequence
 
 import tyro
 
-from .config_types import checked_dataclass, option_types
+from .appearance.options import AppearanceOptions
+from .config_types import checked_dataclass, flat_groups
+from .data.attachments.depth import DepthOptions
+from .data.attachments.masks import MaskOptions
+from .depth_correlation import DepthCorrelationOptions
+from .depth_terms import DepthTermOptions
+from . import option_checks
 from .errors import MCSplatError
+from .features import features_named
 from .optim import OptimConfig
+from .pose_refinement import PoseOptions
 from .strategy.adc import ADCConfig
 from .strategy.mcmc import MCMCConfig
+from .surface import SurfaceOptions
 
-# Options that only affect how this process runs: on --resume they come from the command line, the rest from
-# the run's saved configuration (steps included: the learning-rate schedule depends on it).
-PROCESS_OPTIONS = ("eval_every", "save_every", "save_every_minutes", "quiet", "threads", "device", "viewer", "port",
-                   "host", "viewer_origin", "dist_timeout")
+# How an option is treated on --resume, as metadata of its field (`resume_policy`): "process" options only affect
+# how this process runs, and come from the command line; "place" options say where the scene and the run folder are
+# now, which may change; every other option comes from the run's saved configuration (steps included: the
+# learning-rate schedule depends on it), and a command line that gives it another value is refused.
+PROCESS = {"resume": "process"}
+PLACE = {"resume": "place"}
 
 
 @dataclass(frozen=True)
@@ -49,12 +60,27 @@ class ModelConfig:
 
 
 @dataclass(frozen=True)
+class ViewerOptions:
+    """The live viewer of the training (this process's own: --resume takes them from its command line)."""
+
+    viewer: bool = field(default=False, metadata=PROCESS)
+    """Serve a live web viewer of the training (needs `pip install mcsplat[viewer]`)."""
+    port: int = field(default=8080, metadata=PROCESS)
+    """Port of the live viewer."""
+    host: str = field(default="127.0.0.1", metadata=PROCESS)
+    """Address the live viewer listens on; 0.0.0.0 exposes it to the network."""
+    viewer_origin: tuple[str, ...] = field(default=(), metadata=PROCESS)
+    """Web pages (host names or origins such as http://myhost:8080) allowed to connect to the viewer besides its own
+    page: where it is reached under a name, or through a proxy."""
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """Train a 3D Gaussian Splatting scene with the MCMC method (or the 3DGS ADC baseline)."""
 
-    data: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DATA")]
+    data: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DATA")] = field(metadata=PLACE)
     """Scene folder: COLMAP, NeRF/Blender transforms or LLFF poses_bounds (auto-detected)."""
-    out: Path | None = None
+    out: Path | None = field(default=None, metadata=PLACE)
     """Run directory (default: runs/<scene folder name>)."""
     strategy: Literal["mcmc", "adc"] = "mcmc"
     """mcmc: the paper's method. adc: classic 3DGS densification, the baseline."""
@@ -85,103 +111,37 @@ class TrainConfig:
     """Every N-th image is held out for testing (Blender scenes use their own test split)."""
     background: Literal["auto", "white", "black"] = "auto"
     """auto: white when the images have an alpha channel (a synthetic object, as the paper), black otherwise."""
-    masks: str = "auto"
-    """Pixels the loss leaves out: 'auto' takes the scene's masks/ folder when it has one (a PNG per image,
-    masks/<image name>.png, black: left out), 'none' ignores it, 'alpha' takes the images' alpha channel, or give a
-    folder. Evaluation reports masked PSNR / SSIM beside the plain ones."""
-    invert_masks: bool = False
-    """Masks are white where the pixel is left out (and black where it is kept)."""
-    depths: str = "none"
-    """Depth maps loaded onto the views, for --depth-loss: 'none', 'auto' (beside each photo as <photo
-    stem>_depth.npy / .png, or the scene's depths/ folder) or a folder of <image name>.npy / .png. A view without one
-    has none."""
-    depth_encoding: Literal["metric", "nerf-synthetic"] = "metric"
-    """metric: .npy floats, or 16-bit PNG steps of --depth-png-step, in the capture's units; nerf-synthetic: its
-    8-bit renders (8 (1 - R/255) along the ray, R = 0: no object)."""
-    depth_measure: Literal["z", "ray"] = "z"
-    """What a metric depth map measures: z (along the optical axis) or ray (from the camera along the pixel's ray)."""
-    depth_png_step: float = 0.001
-    """A 16-bit PNG depth map's step in the capture's units (0.001: millimetres of a capture in metres)."""
-    depth_loss: Literal["none", "metric", "relative", "disparity"] = "none"
-    """Hold the rendered depth to the --depths maps: metric (a sensor's depths in the scene's units; maps in other
-    units are refused), relative (a monocular model's depth, its scale and shift fitted to the render in each view)
-    or disparity (the same for inverse depth: MiDaS, Depth Anything). The mean relative error where a map has a
-    depth (docs/training.md)."""
-    depth_weight: float = 0.1
-    """Weight of --depth-loss (on the mean relative depth error) ..."""
-    depth_from: float = 0.0
-    """... from this share of the steps on ..."""
-    depth_final: float = 1.0
-    """... going linearly to this share of itself at the last step."""
-    sparse_depth: float = 0.0
-    """Weight of sparse depth from the SfM points (COLMAP scenes): the rendered depth at the pixel of each point an
-    image saw held to the point's depth (mean relative error); 0: off. 0.1 is a start (docs/training.md) ..."""
-    sparse_depth_from: float = 0.5
-    """... from this share of the steps on (from the start it cost the bird 1.2 dB, from half way 0.2) ..."""
-    sparse_depth_final: float = 1.0
-    """... going linearly to this share of itself at the last step."""
-    device: Literal["auto", "cpu", "cuda"] = "auto"
+    training_masks: Annotated[MaskOptions, tyro.conf.OmitArgPrefixes] = field(default_factory=MaskOptions)
+    depth_maps: Annotated[DepthOptions, tyro.conf.OmitArgPrefixes] = field(
+        default_factory=lambda: DepthOptions(depths="none"))
+    device: Literal["auto", "cpu", "cuda"] = field(default="auto", metadata=PROCESS)
     """auto: CUDA when available, else CPU."""
     seed: int = 0
     """Random seed of the initialisation, the view order, relocation and noise."""
-    threads: int | None = None
+    threads: int | None = field(default=None, metadata=PROCESS)
     """CPU threads (default: all cores)."""
-    eval_every: int = 0
+    eval_every: int = field(default=0, metadata=PROCESS)
     """Evaluate on the test views every N steps (0: only at the end)."""
-    save_every: int = 5000
+    save_every: int = field(default=5000, metadata=PROCESS)
     """Write a checkpoint every N steps (and on Ctrl-C or SIGTERM)."""
-    save_every_minutes: float = 10.0
+    save_every_minutes: float = field(default=10.0, metadata=PROCESS)
     """Also write one when this many minutes have passed since the last (0: off)."""
-    resume: bool = False
+    resume: bool = field(default=False, metadata=PLACE)
     """Continue from the run directory's checkpoint."""
-    overwrite: bool = False
+    overwrite: bool = field(default=False, metadata=PLACE)
     """Allow writing into a run directory that already holds a run (files are replaced, never deleted)."""
-    quiet: bool = False
+    quiet: bool = field(default=False, metadata=PROCESS)
     """No progress bar or messages (for scripts); the final scores and the files written are still printed."""
     sh_increase_every: int = 1000
     """The active SH degree grows by one every N steps up to the model's degree."""
     ssim_weight: float = 0.2
     """Weight of D-SSIM in the loss; L1 gets the rest (the paper: 0.2)."""
-    appearance: Literal["none", "affine", "bilateral-grid"] = "none"
-    """Exposure / white-balance compensation: 'affine' learns a colour transform (3x3 + bias) per training image,
-    'bilateral-grid' a 16x16x8 grid of them over the image and its brightness; applied to the render before the
-    loss; renders and exports show the scene without it. Evaluation adds the compensated score (an affine transform
-    of each test view fitted on its left half, its right half scored)."""
-    appearance_lr: float = 0.003
-    """Learning rate of the per-image transforms at the first step (3DGS's exposure rate, 0.01, was worse on a test
-    capture with shifted colours: 24.3 against 24.8 dB) ..."""
-    appearance_lr_final: float = 0.0003
-    """... decaying log-linearly to this at the last step."""
-    appearance_reg: float = 0.01
-    """Weight of the pull of each image's transform toward identity (squared distance of A from I and of b from 0;
-    for a bilateral grid, of its mean transform)."""
-    appearance_grid_shape: tuple[int, int, int] = (16, 16, 8)
-    """A bilateral grid's cells across the image, down it and over brightness (gsplat's 16 16 8, made for photos of
-    about a megapixel: a grid holds 12 numbers a cell, so small images want a coarser one)."""
-    appearance_grid_tv: float = 10.0
-    """Weight of a bilateral grid's total variation (mean squared difference of neighbouring cells; gsplat's 10)."""
-    pose_opt: bool = False
-    """Learn a small rigid correction of each training image's pose with the scene (SfM poses of phone captures are
-    slightly off); test views keep theirs."""
-    pose_opt_lr: float = 1e-4
-    """Adam learning rate of the corrections (rotation in radians, translation in scene radii). gsplat's 1e-5, set
-    for 30,000 GPU steps, moves them too little in a few thousand: on the cup with its poses a degree off, 1,500 steps
-    won back 18% of the PSNR lost at 1e-5, 66% at 1e-4, and overshot at 1e-3 ..."""
-    pose_opt_reg: float = 1e-6
-    """... and their weight decay."""
-    surface: bool = False
-    """Train for a surface a mesh can be made of (PGSR's single-view terms): Gaussians flattened toward surface
-    elements, and from --surface-from on, the rendered normals held to the normals of the rendered (planar) depth.
-    Costs one more compositing pass a step while the second term is on."""
-    surface_flatten: float = 100.0
-    """Weight of the mean smallest scale of the Gaussians a step sees, in scene radii (PGSR's 100)."""
-    surface_normal: float = 0.015
-    """Weight of the depth-normal consistency term (PGSR's 0.015), weighted per pixel by (1 - image gradient)^2."""
-    surface_from: float = 0.23
-    """The share of the steps after which the depth-normal term starts (PGSR: step 7,000 of 30,000)."""
-    surface_distortion: float = 0.0
-    """Weight of 2DGS's depth distortion (a pixel's Gaussians pulled together in inverse depth, in scene radii),
-    from a tenth of the run on; 0: off. Costs one more compositing pass a step while it is on."""
+    compensation: Annotated[AppearanceOptions, tyro.conf.OmitArgPrefixes] = field(default_factory=AppearanceOptions)
+    poses: Annotated[PoseOptions, tyro.conf.OmitArgPrefixes] = field(default_factory=PoseOptions)
+    surface_terms: Annotated[SurfaceOptions, tyro.conf.OmitArgPrefixes] = field(default_factory=SurfaceOptions)
+    depth_terms: Annotated[DepthTermOptions, tyro.conf.OmitArgPrefixes] = field(default_factory=DepthTermOptions)
+    depth_prior: Annotated[DepthCorrelationOptions, tyro.conf.OmitArgPrefixes] = field(
+        default_factory=DepthCorrelationOptions)
     antialiased: bool = False
     """Mip-Splatting's 2D filter: a splat's opacity shrinks as the 0.3 px screen-space blur widens it, so fine
     detail keeps its weight when the scene is seen from farther away or at a lower resolution than it was trained
@@ -190,16 +150,8 @@ class TrainConfig:
     """LPIPS backbone for the final metrics (the paper reports VGG)."""
     save_renders: bool = True
     """Write the final test renders as PNG."""
-    viewer: bool = False
-    """Serve a live web viewer of the training (needs `pip install mcsplat[viewer]`)."""
-    port: int = 8080
-    """Port of the live viewer."""
-    host: str = "127.0.0.1"
-    """Address the live viewer listens on; 0.0.0.0 exposes it to the network."""
-    viewer_origin: tuple[str, ...] = ()
-    """Web pages (host names or origins such as http://myhost:8080) allowed to connect to the viewer besides its own
-    page: where it is reached under a name, or through a proxy."""
-    dist_timeout: float = 600.0
+    live_viewer: Annotated[ViewerOptions, tyro.conf.OmitArgPrefixes] = field(default_factory=ViewerOptions)
+    dist_timeout: float = field(default=600.0, metadata=PROCESS)
     """Under torchrun: seconds a process waits for the others before it stops with an error (a process died or
     hangs)."""
     block: Annotated[str | None, tyro.conf.Suppress] = None
@@ -233,28 +185,10 @@ class TrainConfig:
                   (self.threads is None or self.threads >= 1, "--threads must be at least 1"),
                   (self.sh_increase_every >= 1, "--sh-increase-every must be at least 1"),
                   (self.dist_timeout > 0, "--dist-timeout must be positive"),
-                  (self.depth_png_step > 0, "--depth-png-step must be positive (0.001: millimetres of a capture in "
-                                            "metres)"),
-                  (self.depth_loss == "none" or self.depths != "none",
-                   f"--depth-loss {self.depth_loss} reads depth maps, and --depths is 'none': give --depths auto "
-                   "(beside the photos, or the scene's depths/) or the folder that holds them"),
-                  (min(self.depth_weight, self.depth_final, self.sparse_depth, self.sparse_depth_final) >= 0
-                   and 0 <= self.depth_from <= 1 and 0 <= self.sparse_depth_from <= 1,
-                   "--depth-weight, --depth-final, --sparse-depth and --sparse-depth-final must be >= 0, "
-                   "--depth-from and --sparse-depth-from within [0, 1]"),
+                  (self.depth_terms.depth_loss == "none" or self.depth_maps.depths != "none",
+                   f"--depth-loss {self.depth_terms.depth_loss} reads depth maps, and --depths is 'none': give "
+                   "--depths auto (beside the photos, or the scene's depths/) or the folder that holds them"),
                   (0.0 <= self.ssim_weight <= 1.0, "--ssim-weight must be in [0, 1]"),
-                  (self.appearance_lr > 0 and self.appearance_lr_final > 0 and self.appearance_reg >= 0
-                   and self.appearance_grid_tv >= 0,
-                   "--appearance-lr and --appearance-lr-final must be positive, --appearance-reg and "
-                   "--appearance-grid-tv 0 or more"),
-                  (min(self.appearance_grid_shape) >= 2,
-                   "--appearance-grid-shape needs at least 2 cells along each of its three axes"),
-                  (self.surface_flatten >= 0 and self.surface_normal >= 0 and self.surface_distortion >= 0
-                   and 0 <= self.surface_from <= 1,
-                   "--surface-flatten, --surface-normal and --surface-distortion must be >= 0 and --surface-from "
-                   "within [0, 1]"),
-                  (self.pose_opt_lr > 0 and self.pose_opt_reg >= 0,
-                   "--pose-opt-lr must be positive, --pose-opt-reg 0 or more"),
                   (self.resolution_start is None or 0.0 < self.resolution_start <= 1.0,
                    "--resolution-start must be in (0, 1] (1: full size from the first step)"),
                   (self.resolution_full_at is None or 0.0 < self.resolution_full_at <= 1.0,
@@ -268,15 +202,7 @@ class TrainConfig:
         for ok, message in checks:
             if not ok:
                 raise MCSplatError(message)
-        ignored = surface_options_ignored(self)
-        if ignored:
-            raise MCSplatError(f"{', '.join(ignored)}: the --surface-* options shape the loss terms of --surface, "
-                               f"which this run trains without, so they would be ignored; add --surface, or leave them "
-                               f"out")
-        ignored = depth_options_ignored(self)
-        if ignored:
-            raise MCSplatError(f"{', '.join(ignored)}: these shape a depth term this run trains without (--depth-loss "
-                               f"none, --sparse-depth 0), so they would be ignored; add it, or leave them out")
+        refuse_unused_options(self)
         if self.budget is not None:
             budget_seconds(self.budget)  # a one-line error for a budget it cannot read
         # Coarse to fine under --budget; --cap-max goes to the strategy that takes it.
@@ -313,44 +239,114 @@ def _default(value: Any, default: Any) -> Any:
     return default if value is None else value
 
 
-def surface_options_ignored(config: TrainConfig) -> list[str]:
-    """The --surface-* options the command line gave (`config.named`) to a new run without --surface, as it gave them
-    (a resumed run's --surface is its own: run_dir compares the options given with it)."""
-    if config.surface or config.resume or not config.named:
-        return []
-    return [f"--{name.replace('_', '-')} {getattr(config, name)}" for name in SURFACE_OPTIONS if name in config.named]
+def feature_groups(config: TrainConfig) -> list[Any]:
+    """The option groups of `config` whose flags have no prefix (features.py: each says what its feature adds to a
+    run), in the order TrainConfig declares them."""
+    return [getattr(config, name) for name in flat_groups(TrainConfig)]
 
 
-def depth_options_ignored(config: TrainConfig) -> list[str]:
-    """The options of a depth term the command line gave to a new run without that term, as surface_options_ignored
-    finds --surface's."""
+def unused_options(config: TrainConfig) -> list[tuple[list[str], str]]:
+    """The options the command line gave (`config.named`) to a new run that its groups say would be ignored (the
+    --surface-* options without --surface), as it gave them, each group's with the reason (a resumed run's options are
+    its own: run_dir compares the options given with them)."""
     if config.resume or not config.named:
         return []
-    off = (DENSE_DEPTH_OPTIONS if config.depth_loss == "none" else ()) + \
-        (SPARSE_DEPTH_OPTIONS if config.sparse_depth == 0 else ())
-    return [f"--{name.replace('_', '-')} {getattr(config, name)}" for name in off if name in config.named]
+    found = []
+    for group in features_named(feature_groups(config), "unused_options"):
+        given = [f"--{name.replace('_', '-')} {getattr(group, name)}" for name in group.unused_options()
+                 if name in config.named]
+        if given:
+            found.append((given, group.unused_reason))
+    return found
+
+
+def refuse_unused_options(config: TrainConfig) -> None:
+    for given, reason in unused_options(config):
+        raise MCSplatError(f"{', '.join(given)}: {reason}")
 
 
 def non_finite_options(config: TrainConfig) -> list[str]:
     """The float options of `config` and of its model group that hold inf or nan, as the command line gives them (the
-    groups optim, mcmc and adc check their own)."""
-    found = []
-    for group, prefix in ((config, ""), (config.model, "model.")):
-        for name, hint in option_types(type(group)).items():
-            value = getattr(group, name)
-            if float in (hint, *typing.get_args(hint)) and isinstance(value, float) and not math.isfinite(value):
-                found.append(f"--{prefix}{name.replace('_', '-')} {value}")
+    other groups check their own as they are made)."""
+    return option_checks.non_finite_options(config) + option_checks.non_finite_options(config.model, "model.")
+
+
+def resume_policy(key: str) -> str | None:
+    """How --resume treats the option of config.json's `key`: "process" (this process's own: from the command
+    line), "place" (where the scene and the run folder are now) or None (the run's own: from config.json)."""
+    return _policies().get(key)
+
+
+@functools.cache
+def _policies() -> dict[str, str]:
+    found = {}
+    for owner, prefix in [(TrainConfig, "")] + [(group, "") for group in _flat_group_types()]:
+        for f in dataclasses.fields(owner):
+            if "resume" in f.metadata:
+                found[prefix + f.name] = f.metadata["resume"]
     return found
 
 
+def _flat_group_types() -> list[type]:
+    hints = typing.get_type_hints(TrainConfig)
+    return [hints[name] for name in flat_groups(TrainConfig)]
+
+
 def process_options(config: TrainConfig) -> dict[str, Any]:
-    """This process's own options (PROCESS_OPTIONS), as keyword arguments of `dataclasses.replace`."""
-    return {name: getattr(config, name) for name in PROCESS_OPTIONS}
+    """This process's own options (resume policy "process"), by config.json's key."""
+    return {key: option_value(config, key) for key, policy in _policies().items() if policy == "process"}
 
 
-SURFACE_OPTIONS = ("surface_flatten", "surface_normal", "surface_from", "surface_distortion")  # --surface's terms
-DENSE_DEPTH_OPTIONS = ("depth_weight", "depth_from", "depth_final")  # --depth-loss's
-SPARSE_DEPTH_OPTIONS = ("sparse_depth_from", "sparse_depth_final")  # --sparse-depth's
+def option_value(config: Any, key: str) -> Any:
+    """The value of config.json's `key` ("steps", "mcmc.cap_max", "appearance_lr": a key of a group without
+    prefix is its field's name) in `config`."""
+    owner, _, name = key.rpartition(".")
+    if owner:
+        return option_value(getattr(config, owner), name)
+    group = _flat_owner(type(config), name)
+    return getattr(getattr(config, group) if group else config, name)
+
+
+def with_options(config: TrainConfig, **values: Any) -> TrainConfig:
+    """`config` with the options of config.json's keys `values` replaced (those of groups without prefix by their
+    own names: with_options(config, surface=True))."""
+    top, groups = _by_group(values)
+    top.update({group: dataclasses.replace(getattr(config, group), **changed) for group, changed in groups.items()})
+    return dataclasses.replace(config, **top)
+
+
+def config_of(**values: Any) -> TrainConfig:
+    """A configuration made in one go from options named as config.json and the command line name them (a script's
+    short form: config_of(data=scene, steps=500, surface=True) is TrainConfig(data=scene, steps=500,
+    surface_terms=SurfaceOptions(surface=True)))."""
+    top, groups = _by_group(values)
+    defaults = {f.name: f.default_factory() for f in dataclasses.fields(TrainConfig) if f.name in groups}
+    top.update({group: dataclasses.replace(defaults[group], **changed) for group, changed in groups.items()})
+    return TrainConfig(**top)
+
+
+def _by_group(values: dict[str, Any]) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    """`values` split into TrainConfig's own fields and those of each group without prefix."""
+    top: dict[str, Any] = {}
+    groups: dict[str, dict[str, Any]] = {}
+    for key, value in values.items():
+        group = _flat_owner(TrainConfig, key)
+        if group:
+            groups.setdefault(group, {})[key] = value
+        else:
+            top[key] = value
+    return top, groups
+
+
+def _flat_owner(cls: type, name: str) -> str | None:
+    """The group without prefix of `cls` that holds the field `name`, or None (a field of `cls` itself)."""
+    if not dataclasses.is_dataclass(cls) or name in {f.name for f in dataclasses.fields(cls)}:
+        return None
+    hints = typing.get_type_hints(cls)
+    return next((group for group in flat_groups(cls)
+                 if name in {f.name for f in dataclasses.fields(hints[group])}), None)
+
+
 # (init scale, init opacity) per strategy: the MCMC paper's code, and 3DGS's for its ADC.
 INITIAL_GAUSSIANS = {"mcmc": (0.1, 0.5), "adc": (1.0, 0.1)}
 BUDGET_RESOLUTION_START = 0.25  # --budget trains coarse to fine from a quarter of the image size
@@ -408,9 +404,20 @@ def options_given(config: TrainConfig) -> frozenset[str]:
 
 
 def to_jsonable(config: Any) -> Any:
+    """config.json's form of a configuration (or any of its values): a group of options without prefix keeps its
+    options beside the others, as the command line gives them."""
     if dataclasses.is_dataclass(config):
-        return {f.name: to_jsonable(getattr(config, f.name)) for f in dataclasses.fields(config)
-                if f.metadata.get("saved", True)}
+        record: dict[str, Any] = {}
+        flat = flat_groups(type(config))
+        for f in dataclasses.fields(config):
+            if not f.metadata.get("saved", True):
+                continue
+            value = to_jsonable(getattr(config, f.name))
+            if f.name in flat:
+                record.update(value)
+            else:
+                record[f.name] = value
+        return record
     if isinstance(config, Path):
         return str(config)
     if isinstance(config, (list, tuple)):

@@ -12,7 +12,9 @@ import json
 import types
 import typing
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import Annotated, Any, Literal, Union
+
+import tyro
 
 
 @functools.cache
@@ -20,6 +22,17 @@ def option_types(cls: type) -> dict[str, Any]:
     """The declared type of each field of the dataclass `cls`."""
     hints = typing.get_type_hints(cls, include_extras=False)
     return {field.name: hints[field.name] for field in dataclasses.fields(cls)}
+
+
+@functools.cache
+def flat_groups(cls: type) -> tuple[str, ...]:
+    """The fields of the dataclass `cls` that are groups of options whose flags have no prefix
+    (tyro.conf.OmitArgPrefixes: --surface-from, not --surface-terms.surface-from): config.json keeps their options
+    beside `cls`'s own, under their own names, as the command line gives them."""
+    hints = typing.get_type_hints(cls, include_extras=True)
+    return tuple(f.name for f in dataclasses.fields(cls)
+                 if typing.get_origin(hints[f.name]) is Annotated
+                 and any(mark is tyro.conf.OmitArgPrefixes for mark in hints[f.name].__metadata__))
 
 
 def fits(value: Any, hint: Any) -> bool:
@@ -75,6 +88,14 @@ def checked_dataclass(cls: type, values: Any, source: str, prefix: str = "", nes
     where = prefix.rstrip(".") or "the file"
     if not isinstance(values, dict):
         raise MCSplatError(f"{source}: {where} must be an object {{...}}")
+    flat = flat_groups(cls)
+    if flat:  # the options of a group without prefix sit beside cls's own: gathered into the group here
+        values, nested = dict(values), dict(nested or {})
+        hints_of = option_types(cls)
+        for group in flat:
+            names = {f.name for f in dataclasses.fields(hints_of[group])}
+            values[group] = {key: values.pop(key) for key in list(values) if key in names}
+            nested[group] = hints_of[group]
     hints = {name: hint for name, hint in option_types(cls).items()
              if next(f for f in dataclasses.fields(cls) if f.name == name).metadata.get("saved", True)}
     missing = sorted(hints.keys() - values.keys()) if complete else []
@@ -86,7 +107,8 @@ def checked_dataclass(cls: type, values: Any, source: str, prefix: str = "", nes
             raise MCSplatError(f"{source}: unknown option {prefix + key!r} (written by another mcsplat version?)")
         hint = hints[key]
         if nested and key in nested:
-            value = checked_dataclass(nested[key], value, source, f"{prefix}{key}.", complete=complete)
+            inner = prefix if key in flat else f"{prefix}{key}."
+            value = checked_dataclass(nested[key], value, source, inner, complete=complete)
         elif not fits(value, hint):
             raise MCSplatError(f"{source}: {prefix}{key} is {json.dumps(value)}, not {describe(hint)}; put back the "
                                f"value mcsplat wrote there")

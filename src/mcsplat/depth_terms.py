@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Literal, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -35,6 +35,8 @@ from .camera import Camera
 from .data import Scene
 from .data.sfm_tracks import points_seen
 from .errors import MCSplatError
+from .option_checks import refuse_non_finite
+from .features import FeatureParts, FeatureStart
 from .loss_terms import StepContext
 
 MIN_ALPHA = 0.5  # the render's depth is read where it is at least this opaque
@@ -242,3 +244,49 @@ def depth_terms(scene: Scene, means: torch.Tensor, device: torch.device | str, *
             check_metric_scale(scene.train, means)
         terms.append(DenseDepth(mode, dense))
     return terms
+
+
+@dataclass(frozen=True)
+class DepthTermOptions:
+    """Depth supervision (sparse depth from the SfM points; --depth-loss on the --depths maps)."""
+
+    depth_loss: Literal["none", "metric", "relative", "disparity"] = "none"
+    """Hold the rendered depth to the --depths maps: metric (a sensor's depths in the scene's units; maps in other
+    units are refused), relative (a monocular model's depth, its scale and shift fitted to the render in each view)
+    or disparity (the same for inverse depth: MiDaS, Depth Anything). The mean relative error where a map has a
+    depth (docs/training.md)."""
+    depth_weight: float = 0.1
+    """Weight of --depth-loss (on the mean relative depth error) ..."""
+    depth_from: float = 0.0
+    """... from this share of the steps on ..."""
+    depth_final: float = 1.0
+    """... going linearly to this share of itself at the last step."""
+    sparse_depth: float = 0.0
+    """Weight of sparse depth from the SfM points (COLMAP scenes): the rendered depth at the pixel of each point an
+    image saw held to the point's depth (mean relative error); 0: off. 0.1 is a start (docs/training.md) ..."""
+    sparse_depth_from: float = 0.5
+    """... from this share of the steps on (what the start costs: docs/training.md) ..."""
+    sparse_depth_final: float = 1.0
+    """... going linearly to this share of itself at the last step."""
+
+    def __post_init__(self) -> None:
+        refuse_non_finite(self)
+        if not (min(self.depth_weight, self.depth_final, self.sparse_depth, self.sparse_depth_final) >= 0
+                and 0 <= self.depth_from <= 1 and 0 <= self.sparse_depth_from <= 1):
+            raise MCSplatError("--depth-weight, --depth-final, --sparse-depth and --sparse-depth-final must be >= 0, "
+                               "--depth-from and --sparse-depth-from within [0, 1]")
+
+    def unused_options(self) -> tuple[str, ...]:
+        return (("depth_weight", "depth_from", "depth_final") if self.depth_loss == "none" else ()) + \
+            (("sparse_depth_from", "sparse_depth_final") if self.sparse_depth == 0 else ())
+
+    unused_reason = ("these shape a depth term this run trains without (--depth-loss none, --sparse-depth 0), so "
+                     "they would be ignored; add it, or leave them out")
+
+    def setup(self, start: FeatureStart) -> FeatureParts:
+        if self.sparse_depth == 0 and self.depth_loss == "none":
+            return FeatureParts()
+        return FeatureParts(loss_terms=depth_terms(
+            start.scene, start.model.means, start.device, mode=self.depth_loss,
+            sparse=Schedule(self.sparse_depth, self.sparse_depth_from, self.sparse_depth_final),
+            dense=Schedule(self.depth_weight, self.depth_from, self.depth_final)))

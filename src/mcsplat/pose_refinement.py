@@ -8,7 +8,7 @@ the camera's own axes:
     W' = exp(twist(omega, R tau)) W        W the image's world-to-camera matrix, R the scene radius
 
 learned with its own Adam and weight decay (gsplat's `pose_opt`). The gradient reaches W' through the projection
-kernel's hand-written backward (render/project_kernel.py) and torch takes it on to (omega, tau) through the matrix
+kernel's hand-written backward (render/project/warp_kernel.py) and torch takes it on to (omega, tau) through the matrix
 exponential. Held-out views keep their poses: they are the reference the scene is scored against. The corrections
 are in the checkpoint (under "poses"); the scene and its exports do not depend on them. It is a per-image module
 (per_image.py): it moves the camera, and adds no loss term (its pull toward zero is Adam's weight decay).
@@ -17,11 +17,15 @@ are in the checkpoint (under "poses"); the scene and its exports do not depend o
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Any, Sequence
 
 import torch
 
 from .camera import Camera
 from .errors import MCSplatError
+from .option_checks import refuse_non_finite
+from .features import FeatureParts, FeatureStart
 from .per_image import PerImageModule, PlanSteps
 
 
@@ -74,3 +78,36 @@ class PoseRefinement(PerImageModule):
         with torch.no_grad():
             self.deltas.copy_(state["deltas"])
         self.optimizer.load_state_dict(state["optimizer"])
+
+
+@dataclass(frozen=True)
+class PoseOptions:
+    """Camera pose refinement."""
+
+    pose_opt: bool = False
+    """Learn a small rigid correction of each training image's pose with the scene (SfM poses of phone captures are
+    slightly off); test views keep theirs."""
+    pose_opt_lr: float = 1e-4
+    """Adam learning rate of the corrections (rotation in radians, translation in scene radii; gsplat's 1e-5 is set
+    for 30,000 GPU steps and moves them too little in a few thousand: docs/imperfect-captures.md) ..."""
+    pose_opt_reg: float = 1e-6
+    """... and their weight decay."""
+
+    def __post_init__(self) -> None:
+        refuse_non_finite(self)
+        if not (self.pose_opt_lr > 0 and self.pose_opt_reg >= 0):
+            raise MCSplatError("--pose-opt-lr must be positive, --pose-opt-reg 0 or more")
+
+    def setup(self, start: FeatureStart) -> FeatureParts:
+        if not self.pose_opt:
+            return FeatureParts()
+        if start.world_size > 1:
+            raise MCSplatError("--pose-opt does not work with several training processes yet (each holds the "
+                               "corrections of its own views); train in one process, or leave it out")
+        return FeatureParts(modules=[PoseRefinement(len(start.scene.train), start.scene.radius, start.device,
+                                                    self.pose_opt_lr, self.pose_opt_reg)])
+
+    def facts(self, modules: Sequence[PerImageModule]) -> dict[str, Any]:
+        """metrics.json's pose_corrections: how far the poses moved."""
+        poses = next((module for module in modules if isinstance(module, PoseRefinement)), None)
+        return {"pose_corrections": poses.summary()} if poses is not None else {}

@@ -3,7 +3,7 @@ layout is spelled here only (docs/architecture.md, "The run folder", lists its k
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from .evaluation import Evaluation
@@ -24,7 +24,7 @@ class RunFacts:
     budget_seconds: float | None = None  # --budget
     # MCMC asking the scene (no --cap-max, or relocation alive): (where growth stopped or None, the most allowed)
     auto_cap: tuple[int | None, int] | None = None
-    pose_corrections: dict[str, float] | None = None  # --pose-opt
+    features: dict[str, Any] = field(default_factory=dict)  # what the run's features add (features.py: facts())
 
 
 def metrics(evaluation: Evaluation | None, lpips_net: str, steps: int, num_gaussians: int,
@@ -47,7 +47,7 @@ def metrics(evaluation: Evaluation | None, lpips_net: str, steps: int, num_gauss
             # Where growth stopped as the scene asked for no more (None: it asked to the end, the ceiling decided)
             **({"auto_cap": run.auto_cap[0], "auto_cap_ceiling": run.auto_cap[1]} if run.auto_cap else {}),
             **scores["masked"], **scores["compensated"],
-            **({"pose_corrections": run.pose_corrections} if run.pose_corrections is not None else {}),
+            **run.features,
             "per_view_psnr": scores["per_view_psnr"]}
 
 

@@ -1,6 +1,6 @@
 """The scene of a run: loaded as the run loads it, named from the root in config.json with the folders it reads
-beside it, known by its fingerprint wherever it is now (so --resume continues on the scene it trained on), and the
-background it is composited on."""
+beside it, known by its fingerprint wherever it is now (so --resume continues on the scene it trained on), the
+background it is composited on, and the rule that nothing is written inside a scene folder."""
 
 from __future__ import annotations
 
@@ -11,35 +11,33 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from .config import TrainConfig
-from .data import Scene, load_scene
-from .data.attachments.depth import DepthOptions
-from .data.attachments.masks import MaskOptions
-from .errors import MCSplatError
+from .config import TrainConfig, feature_groups, with_options
+from .data import Scene, detect_kind, load_scene
+from .errors import DataError, MCSplatError
+from .features import features_named
 from .partition import block_scene
 
 Background = tuple[float, float, float]
 
-# Options that name a folder unless they hold one of their words.
-FOLDER_OPTIONS = {"masks": ("auto", "none", "alpha"), "depths": ("auto", "none")}
 
 
 def scene_of(config: TrainConfig) -> Scene:
     """The scene a run trains on, loaded as the run loads it (a block's run: the part of it its block trains on)."""
     scene = load_scene(config.data, downscale=config.downscale, test_every=config.test_every,
                        background=None if config.background == "auto" else config.background,
-                       masks=MaskOptions(config.masks, config.invert_masks),
-                       attachments=[DepthOptions(config.depths, config.depth_encoding, config.depth_measure,
-                                                 config.depth_png_step)])
+                       attachments=[group.per_view_input()
+                                    for group in features_named(feature_groups(config), "per_view_input")])
     return scene if config.block is None else block_scene(scene, config.block, config.run_dir)
 
 
 def with_folders_absolute(config: TrainConfig) -> TrainConfig:
-    """`config` with its --masks and --depths folders from the root, as config.json names the scene (`absolute`):
-    `eval` or --resume run from another folder still finds them. Their keywords stay as they are."""
-    changes = {key: str(absolute(value)) for key, words in FOLDER_OPTIONS.items()
-               if (value := getattr(config, key)) and value not in words}
-    return dataclasses.replace(config, **changes) if changes else config
+    """`config` with the folders its options name (--masks, --depths: a field whose metadata says "folder_unless" it
+    holds one of its words) from the root, as config.json names the scene (`absolute`): `eval` or --resume run from
+    another folder still finds them. Their keywords stay as they are."""
+    changes = {f.name: str(absolute(value)) for group in feature_groups(config) for f in dataclasses.fields(group)
+               if "folder_unless" in f.metadata and (value := getattr(group, f.name))
+               and value not in f.metadata["folder_unless"]}
+    return with_options(config, **changes) if changes else config
 
 
 def absolute(path: str | Path) -> Path:
@@ -107,3 +105,43 @@ def background_of(config: TrainConfig, scene: Scene) -> Background:
     if config.background == "auto":
         return scene.background
     return (1.0, 1.0, 1.0) if config.background == "white" else (0.0, 0.0, 0.0)
+
+
+def scene_holding(path: Path) -> tuple[Path, str] | None:
+    """The nearest folder at or above `path` that holds a scene, and its kind; None where none does
+    (OTHER/images/a/b/x.ply lies inside the scene OTHER as well)."""
+    for folder in (path, *path.parents):
+        if folder.is_dir():
+            try:
+                return folder, detect_kind(folder)
+            except DataError:
+                continue
+    return None
+
+
+def refuse_scene_folder(out: Path, data: Path) -> None:
+    """A run folder is never a scene folder, nor inside the scene it trains on or any other: mcsplat writes nothing
+    there."""
+    out, data = out.resolve(), data.resolve()
+    if out == data or out.is_relative_to(data):
+        raise MCSplatError(f"--out {out} is inside the scene folder {data}, which mcsplat never writes into; give "
+                           f"a run folder elsewhere (the default is runs/{data.name} in the current folder)")
+    held = scene_holding(out)
+    if held is not None:
+        folder, kind = held
+        where = "holds" if folder == out else f"is inside {folder}, which holds"
+        raise MCSplatError(f"--out {out} {where} a {kind} scene, which mcsplat never writes into; give another run "
+                           f"folder")
+
+
+def refuse_writing_into_scene(path: Path, config: TrainConfig) -> None:
+    """An output of a command on a run (export, render, report) is never inside the scene the run trained on, nor
+    in another scene folder: mcsplat writes nothing there."""
+    target, data = path.resolve(), Path(config.data).resolve()
+    if target == data or target.is_relative_to(data):
+        raise MCSplatError(f"--out {path} is inside the scene folder {data} the run trained on, which mcsplat never "
+                           f"writes into; write it elsewhere (leave --out out to write into the run folder)")
+    held = scene_holding(target)
+    if held is not None:
+        raise MCSplatError(f"--out {path} is inside the scene folder {held[0]} (a {held[1]} scene), which mcsplat "
+                           f"never writes into; write it elsewhere")

@@ -1,5 +1,6 @@
-"""How a training run begins: its folder prepared (new, resumed or refused), this process's own options, its device
-and threads, the scene, the state (fresh or from the checkpoint), its planner, and the folder's files begun.
+"""How a training run begins: its folder read once and prepared (new, resumed or refused: run_start.py), this
+process's own options, its device and threads, the scene, the state (fresh or from the checkpoint), its planner, and
+the folder's files begun.
 
 The loop (trainer.TrainingRun) starts from what `set_up` gives it; with several processes every process sets up the
 same way, rank 0 alone reading and writing the folder.
@@ -7,18 +8,16 @@ same way, rank 0 alone reading and writing the folder.
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from dataclasses import dataclass
 
 import torch
 
-from . import run_dir, run_scene
+from . import run_dir, run_scene, run_start
 from .compute.device import resolve_device
-from .config import TrainConfig, process_options
+from .config import TrainConfig, process_options, with_options
 from .data import Scene
 from .distributed import Team, scene_summary, setup_of, threads_per_process
-from .errors import MCSplatError
 from .io.lock import FolderLock
 from .planning import Planner, initial_plan, planner_for
 from .render import set_cpu_threads
@@ -39,19 +38,13 @@ class RunSetup:
 
 def set_up(config: TrainConfig, team: Team, lock: FolderLock) -> RunSetup:
     """Everything a run needs before its first step; rank 0 takes `lock` on the folder (the caller releases it)."""
-    if (config.appearance != "none" or config.pose_opt) and team.world_size > 1:
-        raise MCSplatError("--appearance and --pose-opt do not work with several training processes yet (each "
-                           "holds the corrections of its own views); train in one process, or leave them out")
     team.check_same_setup(setup_of(config))
     own = config
-    config, saved_plan = team.on_main(lambda: run_dir.prepare(own, lock, team.world_size))
-    named = config.data  # where a resumed run's config.json says its scene is
+    begun = team.on_main(lambda: run_start.begin(own, lock, team.world_size))  # its refusal stops every process
     # This process's own options, and the scene given to it, from the root (it may differ between machines: the
     # scenes are compared below; a resumed run's with the one it trained on).
-    config = dataclasses.replace(config, **process_options(own), data=run_scene.absolute(own.data))
-    if config.resume:
-        run_dir.check_resumable(saved_plan, team.world_size)
-    plan = saved_plan or initial_plan(config, team.world_size)
+    config = with_options(begun.config, **process_options(own), data=run_scene.absolute(own.data))
+    plan = begun.plan or initial_plan(config, team.world_size)
     folder = run_dir.RunDir(config.run_dir)
     device = team.device(resolve_device(config.device))
     threads = config.threads if config.threads is not None or team.world_size == 1 else threads_per_process()
@@ -59,19 +52,20 @@ def set_up(config: TrainConfig, team: Team, lock: FolderLock) -> RunSetup:
         torch.set_num_threads(threads)
     set_cpu_threads(threads)
     if config.resume and team.is_main:
-        scene, scene_note = run_scene.scene_to_resume(config, named, folder.read_scene_fingerprint(),
-                                                               folder.config_file)
+        scene, scene_note = run_scene.scene_to_resume(config, begun.scene_named, begun.scene_fingerprint,
+                                                      folder.config_file)
     else:
         scene, scene_note = run_scene.scene_of(config), None
     team.check_same_setup(scene_summary(scene))
     if not scene.test and config.eval_every and team.is_main:
         warnings.warn(f"--eval-every {config.eval_every} is ignored: the scene has no test views to evaluate "
                       f"(--test-every {config.test_every})", stacklevel=3)
-    checkpoint = team.on_main(lambda: folder.read_checkpoint_of(config, plan)) if config.resume else None
-    state, note = start(config, plan, scene, device, team, checkpoint, progress=not config.quiet and team.is_main)
+    background = run_scene.background_of(config, scene)
+    state, note = start(config, plan, scene, background, device, team, begun.checkpoint,
+                        progress=not config.quiet and team.is_main)
     if scene_note:
         note = f"{note} {scene_note}"
     planner = planner_for(config, plan, scene, state, resumed=config.resume)
     if team.is_main:
         folder.begin(config, planner.plan, state.step, run_scene.scene_fingerprint(scene))
-    return RunSetup(config, folder, device, scene, run_scene.background_of(config, scene), state, note, planner)
+    return RunSetup(config, folder, device, scene, background, state, note, planner)

@@ -28,6 +28,7 @@ import math
 import torch
 import warp as wp
 
+from .compute.cpp_snippets import read_snippet
 from .compute.cpu_target import kernel_flags
 from .compute.runtime import cpu_threads, ensure_warp, flat_view, run_ranges
 from .ssim_warp import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
@@ -46,147 +47,12 @@ _TAPS = ", ".join(f"{float(torch.tensor(w, dtype=torch.float32))!r}f" for w in _
 
 # Each launch item is a range of output rows (one per CPU thread). A row's five statistics (or three partials) are
 # blurred along the row once, into a ring of the last WINDOW rows, and blurred down the columns from there: the
-# row-blurred planes never leave the thread's cache (the passes before wrote and read back 15 full planes).
-_HELPERS = f"""
-    const float taps[{_WINDOW}] = {{{_TAPS}}};
-    const int half = {_WINDOW // 2}, window = {_WINDOW};
-    const int w = width, h = height;
-    const long plane = (long)w * h;
-    const int first = (int)((long)part * h / parts), last = (int)((long)(part + 1) * h / parts);
-    // Each output is summed in a register over the 11 taps (a fixed count, so the loop over k unrolls and the loop
-    // over j vectorises), rather than added into `out` tap by tap: one store a value instead of eleven.
-    auto blur_row = [&](const float* __restrict padded, float* __restrict out) {{  // padded[0 .. w + 2 half) -> w
-        for (int j = 0; j < w; ++j) {{
-            float sum = taps[0] * padded[j];
-            for (int k = 1; k < {_WINDOW}; ++k) sum += taps[k] * padded[j + k];
-            out[j] = sum;
-        }}
-    }};
-    // A sum in double over 8 lanes: a single running sum would keep the loop it sits in from being vectorised.
-    auto sum_lanes = [](const float* values, int count) {{
-        double lanes[8] = {{0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0}};
-        int j = 0;
-        for (; j + 8 <= count; j += 8)
-            for (int k = 0; k < 8; ++k) lanes[k] += values[j + k];
-        double total = 0.0;
-        for (; j < count; ++j) total += values[j];
-        for (int k = 0; k < 8; ++k) total += lanes[k];
-        return total;
-    }};
-    // The rows of the window around `row` inside the image, blurred down the columns from the ring (maps of w);
-    // rows outside the image are read from `zeros` (maps of w zeros), which adds nothing.
-    auto blur_column = [&](const float* ring, const float* zeros, int maps, int row, float* __restrict out) {{
-        const float* rows[{_WINDOW}];
-        for (int k = 0; k < window; ++k) {{
-            const int source = row + k - half;
-            rows[k] = source < 0 || source >= h ? zeros : ring + (long)(source % window) * maps * w;
-        }}
-        for (int j = 0; j < maps * w; ++j) {{
-            float sum = 0.0f;
-            for (int k = 0; k < {_WINDOW}; ++k) sum += taps[k] * rows[k][j];
-            out[j] = sum;
-        }}
-    }};
-"""
-
-_FORWARD = _HELPERS + f"""
-    const float* x = (const float*)image.data;
-    const float* y = (const float*)target.data;
-    float* partial = (float*)partials.data;
-    double* sums = (double*)row_sums.data;
-    double* l1 = (double*)l1_sums.data;
-    const int stride = w + 2 * half;
-    // This part's room in `scratch` (forward_scratch_floats): a 4K image's ring (845 KB) is more than some
-    // platforms give a thread's stack, and torch's allocation fails with a clear error where malloc's would crash.
-    float* ring = (float*)scratch.data + (long)part * scratch_floats;
-    float* padded = ring + window * 5 * w;
-    float* stat = padded + 5 * stride;
-    float* zeros = stat + 6 * w;
-    for (int j = 0; j < 5 * w; ++j) zeros[j] = 0.0f;
-    for (int s = 0; s < 5; ++s)
-        for (int j = 0; j < half; ++j) padded[s * stride + j] = padded[s * stride + half + w + j] = 0.0f;
-    for (int row = first; row < last; ++row) {{
-        sums[row] = 0.0;
-        const float* xr = x + (long)row * w * 3;
-        const float* yr = y + (long)row * w * 3;
-        for (int j = 0; j < 3 * w; ++j) stat[j] = fabsf(xr[j] - yr[j]);
-        l1[row] = sum_lanes(stat, 3 * w);  // the L1 loss's share of the row, read while the pixels are at hand
-    }}
-    for (int c = 0; c < 3; ++c) {{
-        int next = first - half < 0 ? 0 : first - half;  // the next row to blur along
-        for (int row = first; row < last; ++row) {{
-            const int need = row + half < h ? row + half : h - 1;
-            for (; next <= need; ++next) {{
-                const float* xr = x + (long)next * w * 3;
-                const float* yr = y + (long)next * w * 3;
-                float* p = padded + half;
-                for (int j = 0; j < w; ++j) {{
-                    const float xv = xr[3 * j + c], yv = yr[3 * j + c];
-                    p[j] = xv; p[stride + j] = yv; p[2 * stride + j] = xv * xv;
-                    p[3 * stride + j] = yv * yv; p[4 * stride + j] = xv * yv;
-                }}
-                float* slot = ring + (long)(next % window) * 5 * w;
-                for (int s = 0; s < 5; ++s) blur_row(padded + s * stride, slot + s * w);
-            }}
-            blur_column(ring, zeros, 5, row, stat);
-            float* d_mu = partial + (0 * 3 + c) * plane + (long)row * w;
-            float* d_xx = partial + (1 * 3 + c) * plane + (long)row * w;
-            float* d_xy = partial + (2 * 3 + c) * plane + (long)row * w;
-            float* similarity = stat + 5 * w;
-            for (int j = 0; j < w; ++j) {{
-                const float mx = stat[j], my = stat[w + j];
-                const float var_x = stat[2 * w + j] - mx * mx, var_y = stat[3 * w + j] - my * my;
-                const float cov = stat[4 * w + j] - mx * my;
-                const float a = 2.0f * mx * my + {_C1!r}f, b = 2.0f * cov + {_C2!r}f;
-                const float cc = mx * mx + my * my + {_C1!r}f, d = var_x + var_y + {_C2!r}f;
-                const float inv = 1.0f / (cc * d);
-                const float s = a * b * inv;
-                similarity[j] = s;
-                d_mu[j] = 2.0f * my * (b - a) * inv - 2.0f * s * mx / cc + 2.0f * s * mx / d;
-                d_xx[j] = -s / d;
-                d_xy[j] = 2.0f * a * inv;
-            }}
-            sums[row] += sum_lanes(similarity, w);
-        }}
-    }}
-"""
-
-_BACKWARD = _HELPERS + """
-    const float* in = (const float*)partials.data;
-    const float* x = (const float*)image.data;
-    const float* y = (const float*)target.data;
-    float* grad = (float*)grad_image.data;
-    const int stride = w + 2 * half;
-    float* ring = (float*)scratch.data + (long)part * scratch_floats;  // backward_scratch_floats
-    float* padded = ring + window * 3 * w;
-    float* b = padded + stride;
-    float* zeros = b + 3 * w;
-    for (int j = 0; j < 3 * w; ++j) zeros[j] = 0.0f;
-    for (int j = 0; j < half; ++j) padded[j] = padded[half + w + j] = 0.0f;
-    for (int c = 0; c < 3; ++c) {
-        int next = first - half < 0 ? 0 : first - half;
-        for (int row = first; row < last; ++row) {
-            const int need = row + half < h ? row + half : h - 1;
-            for (; next <= need; ++next) {
-                float* slot = ring + (long)(next % window) * 3 * w;
-                for (int q = 0; q < 3; ++q) {
-                    const float* source = in + (q * 3 + c) * plane + (long)next * w;
-                    for (int j = 0; j < w; ++j) padded[half + j] = source[j];
-                    blur_row(padded, slot + q * w);
-                }
-            }
-            blur_column(ring, zeros, 3, row, b);
-            const float* xr = x + (long)row * w * 3;
-            const float* yr = y + (long)row * w * 3;
-            float* g = grad + (long)row * w * 3;
-            for (int j = 0; j < w; ++j) {
-                const float xv = xr[3 * j + c], yv = yr[3 * j + c];
-                const float sign = xv > yv ? 1.0f : xv < yv ? -1.0f : 0.0f;  // |x - y|'s, 0 where they are equal
-                g[3 * j + c] = scale * (b[j] + 2.0f * xv * b[w + j] + yv * b[2 * w + j]) + l1_scale * sign;
-            }
-        }
-    }
-"""
+# row-blurred planes never leave the thread's cache (the passes before wrote and read back 15 full planes). The C++
+# is in ssim_cpu_helpers.h, ssim_cpu_forward.cpp and ssim_cpu_backward.cpp.
+_HELPERS = read_snippet(__package__, "ssim_cpu_helpers.h", {
+    "WINDOW": _WINDOW, "HALF_WINDOW": _WINDOW // 2, "TAP_LIST": "{" + _TAPS + "}"})
+_FORWARD = read_snippet(__package__, "ssim_cpu_forward.cpp", {"HELPERS": _HELPERS, "C1": repr(_C1), "C2": repr(_C2)})
+_BACKWARD = read_snippet(__package__, "ssim_cpu_backward.cpp", {"HELPERS": _HELPERS})
 
 # Fused multiply-add in the blur loops (Warp's default keeps a * b + c as two roundings).
 wp.set_module_options({"cpu_compiler_flags": kernel_flags("-ffp-contract=fast")})

@@ -13,20 +13,17 @@ from typing import Any
 
 import torch
 
-from .appearance import Compensation, check_fits, make_appearance
-from .config import TrainConfig
+from .config import TrainConfig, feature_groups
 from .data import Scene
 from .distributed import Team
+from .features import FeatureParts, FeatureStart, features_named
 from .gaussians import GaussianModel
 from .initialization import initial_model
-from .depth_terms import Schedule, depth_terms
 from .loss_terms import LossTerm, standard_terms
-from .surface import surface_terms
 from .optim import make_optimizers
 from .per_image import PerImageModule
 from .planning import Plan, make_strategy
-from .pose_refinement import PoseRefinement
-from .run_scene import background_of
+from .run_scene import Background
 from .strategy import Strategy
 
 
@@ -89,16 +86,16 @@ class TrainingState:
                 **{module.key: module.state_dict() for module in self.modules}, "config": saved_config}
 
 
-def start(config: TrainConfig, plan: Plan, scene: Scene, device: torch.device, team: Team,
+def start(config: TrainConfig, plan: Plan, scene: Scene, background: Background, device: torch.device, team: Team,
           checkpoint: dict[str, Any] | None = None, progress: bool = False) -> tuple[TrainingState, str]:
     """(the state of step 0, or the one `checkpoint` holds; a note on where it came from), with the optimisers and
-    the strategy of `plan`. Every process calls it; a fresh model is rank 0's on all of them."""
-    check_fits(config.appearance, len(scene.train), device, config.appearance_grid_shape)  # before any work
+    the strategy of `plan`, and what each feature of `config` adds (features.py). Every process calls it; a fresh
+    model is rank 0's on all of them."""
     torch.manual_seed(config.seed)
     generator = torch.Generator(device=device).manual_seed(config.seed)
     sampler = ViewSampler(len(scene.train), config.seed)
     radius, pixels = scene.radius, scene.train_image_pixels
-    white = tuple(background_of(config, scene)) == (1.0, 1.0, 1.0)
+    white = tuple(background) == (1.0, 1.0, 1.0)
     if checkpoint is None:
         model, note = initial_model(config, scene, device, generator, progress)
         team.share_parameters(model)
@@ -119,31 +116,28 @@ def start(config: TrainConfig, plan: Plan, scene: Scene, device: torch.device, t
                               wall_seconds=checkpoint.get("wall_seconds", checkpoint["train_seconds"]))
         note = f"resumed at step {state.step:,}"
     model.antialiased = config.antialiased
-    state.modules = per_image_modules(config, len(scene.train), radius, device)
+    parts = feature_parts(config, FeatureStart(scene, model, device, team.world_size))
+    state.modules = parts.modules
     if checkpoint is not None:
         for module in state.modules:
             module.load_state_dict(checkpoint.get(module.key))  # refuses a checkpoint trained without it
-    state.loss_terms = standard_terms(config.ssim_weight, strategy, state.modules)
-    if config.surface:
-        state.loss_terms += surface_terms(config.surface_flatten, config.surface_normal, config.surface_from, radius,
-                                          config.surface_distortion)
-    if config.sparse_depth > 0 or config.depth_loss != "none":
-        state.loss_terms += depth_terms(
-            scene, model.means, device, mode=config.depth_loss,
-            sparse=Schedule(config.sparse_depth, config.sparse_depth_from, config.sparse_depth_final),
-            dense=Schedule(config.depth_weight, config.depth_from, config.depth_final))
+    state.loss_terms = standard_terms(config.ssim_weight, strategy, state.modules) + parts.loss_terms
     strategy.collective = team.collective
     return state, note
 
 
-def per_image_modules(config: TrainConfig, images: int, scene_radius: float,
-                      device: torch.device) -> list[PerImageModule]:
-    """The per-image modules the options ask for, in the order a step applies them and takes their Adam steps."""
-    modules: list[PerImageModule] = []
-    transforms = make_appearance(config.appearance, images, device, config.appearance_reg, config.appearance_grid_tv,
-                                 config.appearance_grid_shape)
-    if transforms is not None:
-        modules.append(Compensation(transforms, config.appearance_lr, config.appearance_lr_final))
-    if config.pose_opt:
-        modules.append(PoseRefinement(images, scene_radius, device, config.pose_opt_lr, config.pose_opt_reg))
-    return modules
+def feature_facts(config: TrainConfig, modules: list[PerImageModule]) -> dict[str, Any]:
+    """What the features of `config` add to metrics.json at the end of the run (their `facts`)."""
+    return {key: value for group in features_named(feature_groups(config), "facts")
+            for key, value in group.facts(modules).items()}
+
+
+def feature_parts(config: TrainConfig, start: FeatureStart) -> FeatureParts:
+    """What the features of `config` add to the run, in the order of their groups: the per-image modules in the
+    order a step applies them and takes their Adam steps, the loss terms in the order they are summed."""
+    parts = FeatureParts()
+    for group in features_named(feature_groups(config), "setup"):
+        added = group.setup(start)
+        parts.modules += added.modules
+        parts.loss_terms += added.loss_terms
+    return parts

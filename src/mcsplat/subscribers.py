@@ -91,7 +91,7 @@ class ConsoleLog(Subscriber):
         if m.get("auto_cap") is not None and m["auto_cap"] < m["auto_cap_ceiling"]:
             self.write(f"growth stopped at {m['auto_cap']:,} Gaussians, where the views asked for no more (at most "
                        f"{m['auto_cap_ceiling']:,}; --mcmc.relocation paper grows to --cap-max whatever)")
-        if m.get("compensated_psnr") is not None and event.run.config.appearance != "none":
+        if m.get("compensated_psnr") is not None and event.run.config.compensation.appearance != "none":
             self.result(f"compensated (each test view's colour transform fitted on its left half, the right half "
                         f"scored): PSNR {m['compensated_psnr']:.2f} dB, SSIM {m['compensated_ssim']:.4f}")
         if "pose_corrections" in m:

@@ -4,10 +4,10 @@
                      each Gaussian pulled toward a flat surface element, whose shortest axis is then its normal
     depth-normal     from --surface-from of the run on, surface_normal * mean over the pixels of
                      (1 - |image gradient|)^2 * |N(planar depth) - rendered normal|_1: the normal map
-                     (render/normals.py) held to the normal of the depth of its own planes
+                     (render/outputs/normals.py) held to the normal of the depth of its own planes
                      (geometry/depth_normals.py), less at the photo's edges, where depth may jump
     distortion       from DISTORTION_FROM of the run on, surface_distortion * mean over the pixels of 2DGS's depth
-                     distortion (render/distortion.py) times the scene radius squared: each pixel's Gaussians
+                     distortion (render/outputs/distortion.py) times the scene radius squared: each pixel's Gaussians
                      pulled together in (inverse) depth, so that its weight sits on one surface, not in layers
 
 All are loss terms (loss_terms.py) and work with either strategy. For MCMC nothing else changes: its position noise
@@ -17,8 +17,13 @@ relocation scales all three axes by one factor, so a copy stays as flat as its s
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
+from .errors import MCSplatError
+from .option_checks import refuse_non_finite
+from .features import FeatureParts, FeatureStart
 from .geometry.depth_normals import normals_from_depth
 from .loss_terms import StepContext
 
@@ -99,3 +104,41 @@ def surface_terms(flatten: float, normal: float, start_share: float, scene_radiu
                   distortion: float = 0.0) -> list:
     """The --surface terms, in the order they are added after the standard ones."""
     return [Flatten(flatten, scene_radius), DepthNormal(normal, start_share), Distortion(distortion, scene_radius)]
+
+
+@dataclass(frozen=True)
+class SurfaceOptions:
+    """Training for a surface (the options of --surface)."""
+
+    surface: bool = False
+    """Train for a surface a mesh can be made of (PGSR's single-view terms): Gaussians flattened toward surface
+    elements, and from --surface-from on, the rendered normals held to the normals of the rendered (planar) depth.
+    Costs one more compositing pass a step while the second term is on."""
+    surface_flatten: float = 100.0
+    """Weight of the mean smallest scale of the Gaussians a step sees, in scene radii (PGSR's 100)."""
+    surface_normal: float = 0.015
+    """Weight of the depth-normal consistency term (PGSR's 0.015), weighted per pixel by (1 - image gradient)^2."""
+    surface_from: float = 0.23
+    """The share of the steps after which the depth-normal term starts (PGSR: step 7,000 of 30,000)."""
+    surface_distortion: float = 0.0
+    """Weight of 2DGS's depth distortion (a pixel's Gaussians pulled together in inverse depth, in scene radii),
+    from a tenth of the run on; 0: off. Costs one more compositing pass a step while it is on."""
+
+    def __post_init__(self) -> None:
+        refuse_non_finite(self)
+        if not (self.surface_flatten >= 0 and self.surface_normal >= 0 and self.surface_distortion >= 0
+                and 0 <= self.surface_from <= 1):
+            raise MCSplatError("--surface-flatten, --surface-normal and --surface-distortion must be >= 0 and "
+                               "--surface-from within [0, 1]")
+
+    def unused_options(self) -> tuple[str, ...]:
+        return () if self.surface else ("surface_flatten", "surface_normal", "surface_from", "surface_distortion")
+
+    unused_reason = ("the --surface-* options shape the loss terms of --surface, which this run trains without, so "
+                     "they would be ignored; add --surface, or leave them out")
+
+    def setup(self, start: FeatureStart) -> FeatureParts:
+        if not self.surface:
+            return FeatureParts()
+        return FeatureParts(loss_terms=surface_terms(self.surface_flatten, self.surface_normal, self.surface_from,
+                                                     start.scene.radius, self.surface_distortion))

@@ -10,7 +10,8 @@ from .config import TrainConfig
 from .distributed import Team, join
 from .errors import MCSplatError
 from .events import Control, Listener
-from .run_dir import RunDir, folders_to_make, remove_if_empty, train_lock
+from .run_dir import RunDir
+from .run_start import folders_to_make, remove_if_empty, train_lock
 from .subscribers import Checkpointer, ConsoleLog, LogWriter, ProgressBar
 from .trainer import TrainingRun
 
@@ -22,11 +23,12 @@ def standard_subscribers(config: TrainConfig, run_dir: Path) -> list[Listener]:
 
     subscribers = [ProgressBar(config.quiet), ConsoleLog(config.quiet), LogWriter(RunDir(run_dir).log_file),
                    Checkpointer(config.save_every, config.save_every_minutes), ReportWriter()]
-    if config.viewer:
+    viewer = config.live_viewer
+    if viewer.viewer:
         from .viewer import TrainingViewer
 
-        subscribers.append(TrainingViewer(host=config.host, port=config.port, quiet=config.quiet,
-                                          origins=config.viewer_origin))
+        subscribers.append(TrainingViewer(host=viewer.host, port=viewer.port, quiet=config.quiet,
+                                          origins=viewer.viewer_origin))
     return subscribers
 
 
@@ -35,18 +37,18 @@ def train(config: TrainConfig, subscribers: Sequence[Listener] = (), control: Co
     """Run the whole job with the standard consumers plus `subscribers`; returns the final metrics. `team`: the
     processes that train this one model (default: torchrun's, or this process alone; a block's run is alone even
     under torchrun)."""
-    if config.viewer:
+    if config.live_viewer.viewer:
         from .viewer import require_viser
         from .viewer.access import check_listen_address
 
         require_viser()  # before the run directory is made: a missing extra must not leave a half-started run
-        check_listen_address(config.host, config.port)
+        check_listen_address(config.live_viewer.host, config.live_viewer.port)
     team = team or join(config.device, config.dist_timeout)
     lock = train_lock(config)
     made = folders_to_make(config.run_dir) if team.is_main else []
     finished = False
     try:
-        if config.viewer and team.world_size > 1:
+        if config.live_viewer.viewer and team.world_size > 1:
             raise MCSplatError("--viewer does not work with several training processes yet (pausing one would "
                                "stall the others); watch the run's checkpoints with `mcsplat view RUN` instead")
         run = TrainingRun(config, control, team, lock)

@@ -21,7 +21,7 @@ from typing import Any, Callable, Protocol, Sequence
 
 import torch
 
-from . import losses, optim, render, run_dir
+from . import losses, optim, render, run_dir, run_start
 from .appearance import training_kernels as appearance_kernels
 from .compute.compile import compile_kernels, modules_to_compile
 from .config import TrainConfig
@@ -41,6 +41,7 @@ from .per_image import PerImageModule
 from .render import RenderResult
 from .run_metrics import RunFacts, metrics
 from .run_setup import set_up
+from .state import feature_facts
 from .stopping import AgreedRequests, StopSignals
 from .strategy.base import RefineReport, asks_the_scene, changed
 from .strategy.noise import noise_lr_at
@@ -145,7 +146,7 @@ class TrainingRun:
     def __init__(self, config: TrainConfig, control: Control | None = None, team: Team | None = None,
                  lock: FolderLock | None = None):
         self.team = team = team or SingleProcess()
-        self.lock = lock or run_dir.train_lock(config)  # rank 0 takes it as the run is set up; run() releases it
+        self.lock = lock or run_start.train_lock(config)  # rank 0 takes it as the run is set up; run() releases it
         begun = set_up(config, team, self.lock)
         self.config, self.folder, self.device, self.scene = begun.config, begun.folder, begun.device, begun.scene
         self.background, self.state, self.init_note = begun.background, begun.state, begun.init_note
@@ -202,7 +203,7 @@ class TrainingRun:
 
     def _compile_kernels(self, emit: Listener) -> None:
         """Compile (first run on a machine) or load the kernels before the first step, saying so when it compiles."""
-        kernels = step_kernels(self.device, self.config.appearance)
+        kernels = step_kernels(self.device, self.config.compensation.appearance)
         pending = modules_to_compile(kernels, self.device)
         if pending:
             emit(KernelsCompiling(modules=pending))
@@ -291,7 +292,7 @@ class TrainingRun:
                          invisible_gaussians=count_invisible(state.model, seen).as_dict(),
                          budget_seconds=self.planner.budget_seconds,
                          auto_cap=(strategy.chosen_cap, strategy.ceiling) if asks_the_scene(strategy) else None,
-                         pose_corrections=poses.summary() if (poses := state.module("poses")) else None)
+                         features=feature_facts(config, state.modules))
         record = metrics(evaluation, config.lpips_net, state.step, state.model.num_gaussians, facts)
         if team.is_main:
             self.folder.write_metrics(record)

@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from .. import run_dir
+from .. import run_dir, trained_run
 from ..compute.device import resolve_device
 from ..errors import MCSplatError
 from ..evaluation import evaluate
@@ -46,7 +46,7 @@ def merge_blocks(folder: BlocksFolder, device: str = "auto", quiet: bool = False
         if not run_dir.RunDir(path).metrics_file.is_file():
             raise MCSplatError(f"block {block.index} has not finished training ({path}); train it with `mcsplat "
                                f"blocks train {folder.path} --block {block.index}`")
-        run = run_dir.load(path, where)
+        run = trained_run.load(path, where)
         keep = kept_in_core(plan, block.index, run.model)
         parts.append(run.model.subset(keep.to(where)))
         counts.append({"block": block.index, "gaussians": run.model.num_gaussians, "kept": int(keep.sum())})

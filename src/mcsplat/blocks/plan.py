@@ -10,7 +10,7 @@ from ..errors import MCSplatError
 from ..io.disk import writing_into
 from ..partition import BlockPlan, BlocksFolder, make_plan
 from ..partition.make import check_plan_options, plan_table
-from ..run_dir import refuse_scene_folder
+from ..run_scene import refuse_scene_folder
 from ..run_scene import scene_of
 
 

@@ -7,6 +7,7 @@ or failed run leaves no half-written scene that `mcsplat train` would load as if
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import signal
@@ -16,6 +17,9 @@ import warnings
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
 
 from mcsplat.capture import frames
 from mcsplat.capture import masks as capture_masks
@@ -34,20 +38,42 @@ SHOWN_LEFT_OUT = 5  # input photos not used that the summary names (process.json
 SPACE_PER_INPUT_BYTE, SPACE_PER_IMAGE = 3, 100_000
 
 
-@dataclass
+@dataclass(frozen=True)
 class ProcessOptions:
+    """How the photos or the video become a scene."""
+
     matcher: Matcher = "auto"
-    camera_model: str = "SIMPLE_RADIAL"
+    """auto: sequential for a video's frames, exhaustive for photos."""
+    camera_model: Literal["SIMPLE_RADIAL", "RADIAL", "OPENCV", "PINHOLE", "SIMPLE_PINHOLE"] = "SIMPLE_RADIAL"
+    """Lens model estimated by SfM, one camera shared by all images (SIMPLE_RADIAL: COLMAP's default, steadier than
+    OPENCV on few or small images)."""
     sfm_max_size: int = 1600
+    """SIFT runs on images shrunk to at most this many pixels on the long side (the scene keeps full size)."""
     num_frames: int | None = None
+    """Video: how many frames to keep, the sharpest of each stretch (default 200)."""
     fps: float | None = None
-    overlap: int = 15
+    """Video: frames to keep per second of video, instead of --num-frames."""
+    overlap: Annotated[int, tyro.conf.Suppress] = 15  # sequential matching: each frame against this many after it
     threads: int | None = None
+    """CPU threads for pycolmap (default: all cores)."""
     overwrite: bool = False
-    progress: bool = True
-    masks: str | None = None  # a folder of masks (capture/masks.py): SIFT skips what they leave out
+    progress: Annotated[bool, tyro.conf.Suppress] = True
+    masks: str | None = None  # a str: the options travel to the SfM worker as JSON
+    """Photos only: a folder of masks (<photo name>.png, black: leave out, as `mcsplat train --masks`): SIFT finds no
+    features where they leave out (people, sky, the operator), and the scene gets them, undistorted, as masks/."""
     invert_masks: bool = False
-    min_registered: float | None = None  # stop, writing no scene, when a smaller share of the photos registers
+    """The masks are white where the photo is to be left out."""
+    min_registered: float | None = None
+    """Stop, writing no scene, when fewer than this share of the photos register (0.8: four in five); which photos
+    were left out and why is printed (and written to process.json) either way."""
+
+    def __post_init__(self) -> None:
+        if self.num_frames is not None and self.num_frames < 3 or \
+                self.fps is not None and not (self.fps > 0 and math.isfinite(self.fps)):
+            raise MCSplatError("--num-frames must be at least 3 and --fps a positive finite number")
+        if self.invert_masks and self.masks is None:
+            raise MCSplatError("--invert-masks without --masks: there are no masks to invert; give the masks' folder "
+                               "with --masks, or leave --invert-masks out")
 
 
 @dataclass

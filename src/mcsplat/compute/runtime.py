@@ -64,7 +64,7 @@ def ensure_warp() -> None:
             return
         wp.config.log_level = wp.LOG_WARNING
         # Launches with a block size above one run on the CPU as cooperative fibers, as CUDA blocks: the tile
-        # kernels (render/tile_kernels.py) are checked on the CPU this way. Other launches name no block size.
+        # kernels (render/composite/warp_tiles.py) are checked on the CPU this way. Other launches name no block size.
         wp.config.enable_cpu_blocks = True
         wp.config.cpu_compiler_flags = with_target(wp.config.cpu_compiler_flags)  # MCSPLAT_CPU_TARGET, if set
         if _cuda_driver_present():

@@ -1,16 +1,18 @@
 """C++ snippets for SIMD kernels over clang vector types (`wp.func_native`), one item per lane of a LANES-wide vector.
 
-The CPU's SIMD kernels (render/cpu/, geometry/covariance.py) take items in chunks of LANES: chunk c holds items
-[LANES c, LANES (c + 1)) and a short last chunk repeats its last item in the spare lanes. Their per-item arrays are
-interleaved rows (x, y, z of one item, then the next), which lanes_in turns into one vector per component and
-lanes_out back: for a full chunk with whole-vector loads or stores and one shuffle per vector (clang picks the
-permutes), for a short one lane by lane. The snippets expect `first` (the chunk's first item) and `count` (its items)
-in scope, and VECTOR_TYPES's typedefs.
+The CPU's SIMD kernels over items (render/project/cpu_simd.py, geometry/covariance.py) take them in chunks of LANES:
+chunk c holds items [LANES c, LANES (c + 1)) and a short last chunk repeats its last item in the spare lanes. Their
+per-item arrays are interleaved rows (x, y, z of one item, then the next), which lanes_in turns into one vector per
+component and lanes_out back: for a full chunk with whole-vector loads or stores and one shuffle per vector (clang
+picks the permutes), for a short one lane by lane. The snippets expect `first` (the chunk's first item) and `count`
+(its items) in scope, and VECTOR_TYPES's typedefs (simd_vector_types.h).
 """
 
 from __future__ import annotations
 
 import os
+
+from .cpp_snippets import read_snippet
 
 # 16 on every CPU: built for AVX2 (a 16-lane vector is two 256-bit registers), 8 lanes measured no faster
 # (benchmarks/README.md, "The CPU kernels built for AVX2", 2026-11-28). MCSPLAT_SIMD_LANES (4, 8 or 16) sets another
@@ -19,12 +21,7 @@ LANES = int(os.environ.get("MCSPLAT_SIMD_LANES", "16"))
 assert LANES in (4, 8, 16), "MCSPLAT_SIMD_LANES must be 4, 8 or 16"
 
 # vf / vi: LANES floats / ints; the _u variants allow unaligned loads and stores (rows start anywhere).
-VECTOR_TYPES = f"""
-    typedef float vf __attribute__((ext_vector_type({LANES})));
-    typedef int vi __attribute__((ext_vector_type({LANES})));
-    typedef float vf_u __attribute__((ext_vector_type({LANES}), aligned(4)));
-    typedef int vi_u __attribute__((ext_vector_type({LANES}), aligned(4)));
-"""
+VECTOR_TYPES = read_snippet(__package__, "simd_vector_types.h", {"LANES": LANES})
 
 
 def concatenated(parts: list[str]) -> str:

@@ -7,7 +7,7 @@ from typing import Any
 import torch
 
 from .. import __version__
-from ..config import PROCESS_OPTIONS, TrainConfig, to_jsonable
+from ..config import TrainConfig, resume_policy, to_jsonable
 from ..data import Scene
 
 
@@ -15,7 +15,7 @@ def setup_of(config: TrainConfig) -> dict[str, Any]:
     """The options (not the per-process ones, nor the data path, which may differ between machines, but those that
     decide when the processes talk) and the versions that compute the steps."""
     options = {key: value for key, value in to_jsonable(config).items()
-               if key not in PROCESS_OPTIONS + ("data", "out")}
+               if resume_policy(key) != "process" and key not in ("data", "out")}
     return {**options, "eval_every": config.eval_every, "save_every": config.save_every, "device": config.device,
             "mcsplat": __version__, "torch": torch.__version__}
 

@@ -7,7 +7,7 @@
     selection.py  which Gaussians a Gaussian format holds, and what leaving the others out costs on the test views
     gaussians.py  a Gaussian format's file (the byte layouts are io/formats/)
     mesh.py       the mesh's file (mesh/), and the run's report made again to picture it
-    options.py    ExportOptions: what the command is asked
+    options.py    ExportOptions: what the command is asked, declared once
     job.py        ExportJob: what a writer is handed
 
 The CLI imports this package when it starts (for --format's choices): the run's heavy modules load inside functions.
@@ -17,6 +17,7 @@ from .formats import DEFAULT_FORMAT, EXPORT_FORMATS, FORMAT_NAMES, ExportFormat,
 from .from_run import export_run
 from .job import ExportJob
 from .options import ExportOptions
+from .selection import SelectionOptions
 
-__all__ = ["export_run", "ExportOptions", "ExportFormat", "ExportJob", "EXPORT_FORMATS", "FORMAT_NAMES",
-           "DEFAULT_FORMAT", "format_help"]
+__all__ = ["export_run", "ExportOptions", "SelectionOptions", "ExportFormat", "ExportJob", "EXPORT_FORMATS",
+           "FORMAT_NAMES", "DEFAULT_FORMAT", "format_help"]

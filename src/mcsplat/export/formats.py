@@ -18,7 +18,6 @@ from ..io.formats import FORMATS, GaussianFormat
 from .gaussians import export_gaussians
 from .job import ExportJob
 from .mesh import check_mesh_file, export_mesh
-from .options import MESH_OPTIONS, SELECTION_OPTIONS
 
 if TYPE_CHECKING:
     from ..run_dir import RunDir
@@ -37,7 +36,8 @@ class ExportFormat:
     ending: str | None = None               # an --out name ending so chooses it without --format (None: --format only)
     check_path: Callable[[Path], None] | None = None  # refuses, in one line, a file it cannot be written as
     companions: Callable[[Path], tuple[Path, ...]] = lambda path: ()  # the files written beside it (a .gltf's .bin)
-    reads: frozenset[str] = frozenset()     # the options of ExportOptions it reads, beyond those every format reads
+    reads: frozenset[str] = frozenset()     # the fields of ExportOptions it reads (a group by its name: selection,
+    #                                         mesh), beyond those every format reads
 
 
 def _gaussian_format(codec: GaussianFormat) -> ExportFormat:
@@ -45,13 +45,13 @@ def _gaussian_format(codec: GaussianFormat) -> ExportFormat:
     return ExportFormat(codec.name, codec.summary, default_file=lambda folder: folder.export_file(codec.ending),
                         write=functools.partial(export_gaussians, codec), ending=codec.ending,
                         check_path=codec.check_path, companions=codec.companions,
-                        reads=frozenset(SELECTION_OPTIONS) | settings)
+                        reads=frozenset({"selection"}) | settings)
 
 
 # Only --format chooses the mesh: its .ply would read as a 3DGS .ply by the ending.
 MESH = ExportFormat("mesh", "the surface the training views see (median depth fused into a signed distance volume, "
                     "marching cubes), with vertex colours.", default_file=lambda folder: folder.mesh_file,
-                    write=export_mesh, check_path=check_mesh_file, reads=frozenset(MESH_OPTIONS))
+                    write=export_mesh, check_path=check_mesh_file, reads=frozenset({"mesh"}))
 
 EXPORT_FORMATS: dict[str, ExportFormat] = {entry.name: entry for entry in (*map(_gaussian_format, FORMATS.values()),
                                                                            MESH)}

@@ -12,14 +12,15 @@ from .target import export_target
 from .unread import refuse_unread_options
 
 if TYPE_CHECKING:
-    from ..run_dir import TrainedRun
+    from ..trained_run import TrainedRun
 
 
 def export_run(path: str | Path, options: ExportOptions = ExportOptions()) -> Path:
     """Write the run in `path` as `options` say; returns the file written. Every refusal is one MCSplatError, and
     nothing is written before the checks that can refuse have passed."""
     from ..compute.device import resolve_device
-    from ..run_dir import RunDir, load
+    from ..run_dir import RunDir
+    from ..trained_run import load
 
     folder = RunDir(path)
     folder.read_config()  # a run folder, or the one-line error, before any work
@@ -27,7 +28,7 @@ def export_run(path: str | Path, options: ExportOptions = ExportOptions()) -> Pa
     refuse_unread_options(chosen, options)
     run = load(path, resolve_device(options.device))
     _refuse_non_finite(run)  # one check for every format, the mesh's included
-    chosen.write(ExportJob(run, target, options))
+    chosen.write(ExportJob(run, target, options.selection, options.mesh, options.spz_version, options.device))
     return target
 
 

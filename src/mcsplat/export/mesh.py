@@ -21,15 +21,11 @@ def check_mesh_file(path: Path) -> None:
 
 
 def export_mesh(job: ExportJob) -> None:
-    from ..mesh import MeshOptions, extract, write_mesh
+    from ..mesh import extract, write_mesh
 
-    run, options, path = job.run, job.options, job.path
-    mesh_options = MeshOptions(voxel_size=options.voxel_size, voxel_budget=options.voxel_budget,
-                               alpha_min=options.alpha_min, min_component=options.min_component,
-                               depth=options.depth, truncation=options.truncation,
-                               consistent_views=options.consistent_views)
+    run, path = job.run, job.path
     started = time.perf_counter()
-    mesh = extract(run.model, run.scene.train, mesh_options, sh_degree=run.sh_degree, progress=True)
+    mesh = extract(run.model, run.scene.train, job.mesh, sh_degree=run.sh_degree, progress=True)
     with job.writing():
         write_mesh(path, mesh)
     made = mesh.metadata["mcsplat"]
@@ -38,7 +34,7 @@ def export_mesh(job: ExportJob) -> None:
           f"neighbours, {time.perf_counter() - started:.0f} s)")
     folder = run.folder
     if path == folder.mesh_file and folder.report_file.is_file():
-        _remake_report(folder, options.device)
+        _remake_report(folder, job.device)
 
 
 def _remake_report(folder, device_name: str) -> None:

@@ -1,39 +1,36 @@
-"""What `mcsplat export` is asked: the options of cli.Export but the run folder, with the same defaults."""
+"""What `mcsplat export` is asked, declared once: the command takes these fields as its options (the docstrings are
+their help), the library the same value. The choice of Gaussians (selection.py) and the mesh's options
+(mesh/options.py) are groups declared beside what reads them; their flags keep no prefix."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated, Literal
 
-from ..gaussians import DEAD_OPACITY
+import tyro
+
 from ..io.formats.spz import DEFAULT_VERSION as DEFAULT_SPZ_VERSION
+from ..mesh.options import MeshOptions
+from .formats import FORMAT_NAMES, format_help
+from .selection import SelectionOptions
 
 
 @dataclass(frozen=True)
 class ExportOptions:
-    """Checked where they are used (after the run is read), so that the errors come in the order they always did."""
+    """Which file to write, and where."""
 
-    format: str | None = None         # a name of formats.EXPORT_FORMATS; None: the one --out's name ends with, else ply
-    out: Path | None = None           # the file to write; None: the format's default file in the run folder
-    # Which Gaussians a Gaussian format holds (selection.py)
-    min_opacity: float = DEAD_OPACITY  # the dead ones MCMC relocates are left out
-    max_gaussians: int | None = None  # at most this many, those that contribute most
-    prune: bool = False               # leave out those no training view shows
-    max_scale: float | None = None    # scene radii
-    max_distance: float | None = None  # scene radii from the training cameras' centre
-    spz_version: int = DEFAULT_SPZ_VERSION  # the .spz container: 3 (gzip) or 4 (zstd)
-    # The mesh (mesh.py; mesh/extract.py's MeshOptions)
-    voxel_size: float | None = None
-    voxel_budget: int = 1 << 24
-    alpha_min: float = 0.5
-    min_component: float = 0.02
-    depth: str = "median"             # "median" or "planar"
-    truncation: float = 4.0           # voxels
-    consistent_views: int = 4         # of the 6 nearest views, how many must confirm a pixel's depth
-    device: str = "auto"              # "auto", "cpu" or "cuda"
+    # Checked where they are used (after the run is read), so that the errors come in the order they always did; the
+    # mesh's own checks come as the options are made.
 
-
-# The options only some formats read (export/formats.py's `reads`); format, out and device every format reads.
-SELECTION_OPTIONS = ("min_opacity", "max_gaussians", "prune", "max_scale", "max_distance")  # the Gaussian formats
-MESH_OPTIONS = ("voxel_size", "voxel_budget", "alpha_min", "min_component", "depth", "truncation",
-                "consistent_views")
+    # Its choices and help come from the table of export formats (formats.py): a new format adds no line here.
+    format: Annotated[Literal[FORMAT_NAMES] | None, tyro.conf.arg(help=format_help())] = None
+    out: Path | None = None
+    """Output file, named .ply, .splat, .compressed.ply, .spz, .sog, .glb or .gltf (default: RUN/point_cloud.<that
+    ending>); with --format mesh, .ply, .glb or .obj (default: RUN/mesh.ply)."""
+    selection: Annotated[SelectionOptions, tyro.conf.OmitArgPrefixes] = field(default_factory=SelectionOptions)
+    spz_version: Literal[3, 4] = DEFAULT_SPZ_VERSION
+    """spz: 3 (gzip, read by every .spz reader) or 4 (zstd, a little smaller; splat-transform and three.js read it,
+    Spark 2.2 does not)."""
+    mesh: Annotated[MeshOptions, tyro.conf.OmitArgPrefixes] = field(default_factory=MeshOptions)
+    device: Literal["auto", "cpu", "cuda"] = "auto"

@@ -8,22 +8,42 @@ The run's heavy modules load inside the functions: the CLI imports this package 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from ..errors import MCSplatError
+from ..gaussians import DEAD_OPACITY
 from ..io.formats import outliers, select_gaussians
-from .options import ExportOptions
 
 if TYPE_CHECKING:
-    from ..run_dir import TrainedRun
+    from ..trained_run import TrainedRun
 
 Params = dict[str, np.ndarray]
 
 
-def chosen_gaussians(run: TrainedRun, params: Params, options: ExportOptions) -> np.ndarray:
+@dataclass(frozen=True)
+class SelectionOptions:
+    """Which Gaussians a Gaussian format holds (every format but the mesh)."""
+
+    min_opacity: float = DEAD_OPACITY
+    """Leave out Gaussians of this opacity or less (0.005: the dead ones MCMC relocates)."""
+    max_gaussians: int | None = None
+    """Keep at most N: those that contribute most (opacity x largest cross-section)."""
+    prune: bool = False
+    """Also leave out the Gaussians composited into no pixel of any training view (needs the run's scene), and
+    print the test PSNR with and without them."""
+    max_scale: float | None = None
+    """Leave out Gaussians whose largest axis exceeds this many scene radii (the training cameras' extent): viewers
+    draw very large splats badly. Prints the test PSNR with and without them."""
+    max_distance: float | None = None
+    """Leave out Gaussians farther than this many scene radii from the training cameras' centre: very far splats
+    leave viewers that sort by depth too little precision for the scene. Prints the test PSNR with and without."""
+
+
+def chosen_gaussians(run: TrainedRun, params: Params, options: SelectionOptions) -> np.ndarray:
     """Indices (ascending) of the Gaussians to write, of `params` (the run's model as numpy arrays)."""
     limits = options.max_scale is not None or options.max_distance is not None
     extent = _extent(run, required=limits)

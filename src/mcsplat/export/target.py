@@ -52,7 +52,7 @@ def _check_companion(folder: RunDir, companion: Path, path: Path) -> None:
 
 
 def _refuse_run_file_or_scene(folder: RunDir, file: Path, what: str) -> None:
-    from ..run_dir import refuse_writing_into_scene
+    from ..run_scene import refuse_writing_into_scene
 
     if folder.is_own_file(file):
         raise MCSplatError(f"{what} would replace the run's own {file.name}; choose another name")

@@ -11,6 +11,7 @@ import functools
 import torch
 import warp as wp
 
+from ..compute.cpp_snippets import read_snippet
 from ..compute.cpu_target import kernel_flags
 from ..compute.runtime import ensure_warp, flat_view, run_ranges, warp_scalar, warp_view
 from ..compute.simd_lanes import LANES, VECTOR_TYPES, lanes_in, lanes_out
@@ -51,28 +52,12 @@ def _covariance_kernel(dtype):
     return covariance_times_kernel
 
 
-# The CPU's float32 version: 16 Gaussians per vector (compute/simd_lanes.py), the same maths.
-_COVARIANCE_SIMD = VECTOR_TYPES + f"""
-    const int first = {LANES} * chunk;
-    const int count = n - first < {LANES} ? n - first : {LANES};
-    if (count <= 0) return;
-    const float* quats_ = (const float*)quats.data;
-    const float* scales_ = (const float*)scales.data;
-    const float* vectors_ = (const float*)vectors.data;
-    float* out_ = (float*)out.data;
-    vf q[4], s[3], v[3];
-""" + lanes_in("q", "quats_", 4) + lanes_in("s", "scales_", 3) + lanes_in("v", "vectors_", 3) + """
-    vf norm = __builtin_elementwise_sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-    norm = __builtin_elementwise_max(norm, (vf)1e-12f);
-    const vf w = q[0] / norm, x = q[1] / norm, y = q[2] / norm, z = q[3] / norm;
-    const vf r[3][3] = {
-        {1.0f - 2.0f * (y * y + z * z), 2.0f * (x * y - w * z), 2.0f * (x * z + w * y)},
-        {2.0f * (x * y + w * z), 1.0f - 2.0f * (x * x + z * z), 2.0f * (y * z - w * x)},
-        {2.0f * (x * z - w * y), 2.0f * (y * z + w * x), 1.0f - 2.0f * (x * x + y * y)}};
-    vf local[3], result[3];  // R^T v scaled by s^2, then R of that
-    for (int c = 0; c < 3; ++c) local[c] = (r[0][c] * v[0] + r[1][c] * v[1] + r[2][c] * v[2]) * s[c] * s[c];
-    for (int k = 0; k < 3; ++k) result[k] = r[k][0] * local[0] + r[k][1] * local[1] + r[k][2] * local[2];
-""" + lanes_out(["result[0]", "result[1]", "result[2]"], "out_")
+# The CPU's float32 version: 16 Gaussians per vector (compute/simd_lanes.py), the same maths (C++ in
+# covariance_simd.cpp).
+_COVARIANCE_SIMD = read_snippet(__package__, "covariance_simd.cpp", {
+    "VECTOR_TYPES": VECTOR_TYPES, "LANES": LANES, "LOAD_Q": lanes_in("q", "quats_", 4),
+    "LOAD_S": lanes_in("s", "scales_", 3), "LOAD_V": lanes_in("v", "vectors_", 3),
+    "STORE_OUT": lanes_out(["result[0]", "result[1]", "result[2]"], "out_")})
 
 wp.set_module_options({"cpu_compiler_flags": kernel_flags("-mprefer-vector-width=512")})
 _float_array = wp.array(dtype=wp.float32)

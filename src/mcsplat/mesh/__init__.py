@@ -8,13 +8,30 @@ trimesh.Trimesh; `write_mesh` writes it as .ply, .glb or .obj. `mcsplat export R
     fusion.py       the signed distance volume, the fusion of one view, the closing of narrow gaps
     surface.py      marching cubes (scikit-image) and vertex colours
     clean.py        dropping small pieces
-    extract.py      the pipeline
+    pipeline.py     extract(): the pipeline
+    options.py      MeshOptions: how a mesh is made (the export command's mesh options)
     files.py        mesh files
     raster.py       a depth-buffer rasterizer for pictures and checks of a mesh
 """
 
-from .extract import DEFAULT_VOXEL_BUDGET, MeshOptions, extract
-from .files import MESH_ENDINGS, check_mesh_path, holds_mesh, read_mesh, write_mesh
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from .options import DEFAULT_VOXEL_BUDGET, MeshOptions
+
+# The pipeline loads on first use (trimesh, scikit-image): the CLI imports options.py for its options, and
+# `mcsplat --help` stays quick.
+_LAZY = {"extract": ".pipeline", "write_mesh": ".files", "read_mesh": ".files", "holds_mesh": ".files",
+         "check_mesh_path": ".files", "MESH_ENDINGS": ".files"}
 
 __all__ = ["extract", "MeshOptions", "DEFAULT_VOXEL_BUDGET", "write_mesh", "read_mesh", "holds_mesh",
            "check_mesh_path", "MESH_ENDINGS"]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = globals()[name] = getattr(importlib.import_module(_LAZY[name], __name__), name)
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -21,8 +21,8 @@ import torch
 
 from ..camera import Camera
 from ..geometry.depth_normals import points_from_depth
+from .options import NEIGHBOURS
 
-NEIGHBOURS = 6       # the nearest views (by camera centre) a pixel is checked against
 TOLERANCE = 0.01     # relative depth difference within which a neighbour agrees
 CHECK_SIZE = 1024    # long side, in pixels, of the kept depth maps at most
 

@@ -19,11 +19,11 @@ from ..camera import Camera
 from ..compute.device import free_memory
 from ..errors import MCSplatError
 from ..render.constants import NEAR_PLANE
+from .options import TRUNCATION_VOXELS
 
 OPAQUE = 0.1           # Gaussians at least this opaque decide the box
 IN_VIEW_SHARE = 0.5    # ... when at least this share of the views has them in its field of view
 BOX_QUANTILE = 0.01    # ... the box holds all but this share of them on each side, along each axis
-TRUNCATION_VOXELS = 4  # half-width of the signed distance band, in voxels (the default; see docs/outputs.md)
 # Per voxel: signed distance and weight (float32), colour (3 x float16), two masks when meshing (bool).
 BYTES_PER_VOXEL = 4 + 4 + 3 * 2 + 2
 MEMORY_SHARE = 0.8     # of the free memory the volume may take (the rest: renders, marching cubes, the mesh)

@@ -126,6 +126,12 @@ def load_run_config(path: Path) -> tuple[TrainConfig, Plan]:
     return read_record(_load_json(path))
 
 
+def load_run_record(path: Path) -> tuple[TrainConfig, Plan, dict[str, Any] | None]:
+    """The configuration, the plan and the scene's fingerprint of a config.json, from one reading of it."""
+    data = _load_json(path)
+    return (*read_record(data), read_scene_entry(data))
+
+
 def load_scene_entry(path: Path) -> dict[str, Any] | None:
     """The fingerprint of the run's scene saved in a config.json; None in a file written before it."""
     return read_scene_entry(_load_json(path))

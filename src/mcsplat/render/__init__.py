@@ -1,10 +1,13 @@
 """Differentiable Gaussian rasterizer: `render(gaussians, camera, background, sh_degree) -> RenderResult`.
 
-Projection and SH colour run in one kernel (project_kernel.py: SIMD kernels on the CPU, cpu/project.py; a Warp
-kernel on CUDA and for float64), binning in Warp kernels and a radix sort (binning.py), and alpha compositing in Warp
-kernels with a hand-written backward: SIMD kernels on the CPU (cpu/), tile kernels on CUDA (tile_kernels.py), scalar
-kernels for float64 on the CPU (kernels.py). Everything runs on every CPU core or on CUDA, wherever the tensors are.
-The three stages are one choosable value (paths.py); the fixed numbers are in constants.py.
+Three stages, each a package holding its torch, Warp and CPU versions side by side. Projection and SH colour run in
+one kernel (project/warp_kernel.py: SIMD kernels on the CPU, project/cpu_simd.py; a Warp kernel on CUDA and for
+float64), binning in Warp kernels and a radix sort (bin/warp_kernels.py; C++ loops on the CPU, bin/cpu_loops.py), and
+alpha compositing in Warp kernels with a hand-written backward (composite/function.py): SIMD kernels on the CPU
+(composite/cpu_simd.py), tile kernels on CUDA (composite/warp_tiles.py), scalar kernels for float64 on the CPU
+(composite/warp_scalar.py). The outputs given only when asked are in outputs/. Everything runs on every CPU core or on
+CUDA, wherever the tensors are. The three stages are one choosable value (paths.py); the fixed numbers are in
+constants.py.
 """
 
 from __future__ import annotations
@@ -17,11 +20,11 @@ import torch
 from ..camera import Camera
 from ..compute.runtime import cpu_threads, ensure_warp, set_cpu_threads
 from ..geometry.sh import degree_from_bases
-from .binning import TileBins
+from .bin.warp_kernels import TileBins
 from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
-from .distortion import distortion_from_sums, inverse_depths
-from .median import median_depth as _median_depth
-from .normals import depth_from_planes, gaussian_normals, plane_distances
+from .outputs.distortion import distortion_from_sums, inverse_depths
+from .outputs.median import median_depth as _median_depth
+from .outputs.normals import depth_from_planes, gaussian_normals, plane_distances
 from .paths import RenderPath, current_render_path
 
 __all__ = ["render", "RenderResult", "Splats", "GaussiansLike", "set_cpu_threads", "cpu_threads", "ensure_warp",
@@ -65,18 +68,19 @@ class RenderResult:
     num_pairs: int             # (tile, Gaussian) intersections
     # [H, W] with render(median_depth=True), else None: the depth along the pixel's ray where the Gaussian at which
     # the accumulated alpha first reaches 0.5 (the last one composited where it never does) is densest; 0 where none
-    # is composited. No gradient. See median.py.
+    # is composited. No gradient. See outputs/median.py.
     median_depth: torch.Tensor | None = None
     # [H, W, 3] with render(normals=True), else None: each Gaussian's camera-space normal (its shortest axis, facing
     # the camera) composited like the colour over zero, with gradients. A second compositing pass, so that a render
-    # without it costs nothing more. See normals.py.
+    # without it costs nothing more. See outputs/normals.py.
     normal: torch.Tensor | None = None
     # [H, W] with render(planar_depth=True), else None: where each pixel's ray meets the plane of its composited normal
     # and plane distance (PGSR's unbiased depth), with gradients; 0 where none. The plane distances ride in the
     # normal map's pass.
     planar_depth: torch.Tensor | None = None
     # [H, W] with render(distortion=True), else None: 2DGS's depth distortion, sum over the pixel's pairs of
-    # Gaussians of w_i w_j (1/z_i - 1/z_j)^2 (units^-2), with gradients. A compositing pass of its own. distortion.py.
+    # Gaussians of w_i w_j (1/z_i - 1/z_j)^2 (units^-2), with gradients. A compositing pass of its own.
+    # outputs/distortion.py.
     distortion: torch.Tensor | None = None
 
     @property
@@ -95,8 +99,8 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
     also gives the median depth (forward kernels of their own, so that a render without it costs nothing more);
     `antialiased` draws with Mip-Splatting's 2D filter (None: as the Gaussians' own `antialiased` flag says);
     `normals` also gives the normal map (a second compositing pass, differentiable), `planar_depth` the depth of the
-    composited planes (in the same pass; normals.py), `distortion` 2DGS's depth distortion (a pass of its own;
-    distortion.py)."""
+    composited planes (in the same pass; outputs/normals.py), `distortion` 2DGS's depth distortion (a pass of its own;
+    outputs/distortion.py)."""
     stages = path or current_render_path()
     means, quats, scales, opacities = gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities
     sh, sh_rest = _sh_arrays(gaussians)
@@ -181,17 +185,18 @@ def _check_inputs(means, quats, scales, opacities, sh, sh_rest=None) -> None:
 def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -> list:
     """The Warp kernels one render and its backward launch on `device` (compute.compile loads them ahead)."""
     from ..compute.runtime import warp_scalar
-    from . import binning, kernels, project_kernel, tile_kernels
-    from .cpu import binning as cpu_binning, composite, project
+    from .bin import cpu_loops, warp_kernels as bin_warp
+    from .composite import cpu_simd as composite_simd, warp_scalar as composite_scalar, warp_tiles
     from .kernel_choice import kernels_for
+    from .project import cpu_simd as project_simd, warp_kernel as project_warp
 
     scalar = warp_scalar(dtype)
     choice = kernels_for(torch.empty(0, dtype=dtype, device=device))
     if choice == "simd":
-        return [project.project_simd, project.project_backward_simd, cpu_binning.count_pairs_cpu,
-                cpu_binning.slot_offsets_cpu, cpu_binning.write_pairs_cpu, cpu_binning.split_pairs_cpu,
-                composite.composite_forward_simd, composite.composite_backward_simd]
-    found = [*project_kernel.projection_kernels(scalar), binning._count_pairs, binning._write_pairs]
+        return [project_simd.project_simd, project_simd.project_backward_simd, cpu_loops.count_pairs_cpu,
+                cpu_loops.slot_offsets_cpu, cpu_loops.write_pairs_cpu, cpu_loops.split_pairs_cpu,
+                composite_simd.composite_forward_simd, composite_simd.composite_backward_simd]
+    found = [*project_warp.projection_kernels(scalar), bin_warp._count_pairs, bin_warp._write_pairs]
     if choice == "tile":
-        return found + [tile_kernels.forward_kernel(scalar), tile_kernels.backward_kernel(scalar)]
-    return found + list(kernels.composite_kernels(scalar))
+        return found + [warp_tiles.forward_kernel(scalar), warp_tiles.backward_kernel(scalar)]
+    return found + list(composite_scalar.composite_kernels(scalar))

@@ -3,7 +3,7 @@ from here (the tests check that the fast and the reference paths agree, so they 
 
 TILE_SIZE = 16                     # pixels per side of a tile (one CUDA block, one CPU work item)
 PIXELS_PER_TILE = TILE_SIZE * TILE_SIZE
-BLOCK_SIZE = 4                     # pixels per side of the blocks a (tile, Gaussian) pair masks (binning.py)
+BLOCK_SIZE = 4                     # pixels per side of the blocks a (tile, Gaussian) pair masks (bin/)
 ALL_BLOCKS = 0xFFFF                # the mask of all 16 blocks of a tile
 
 ALPHA_MIN = 1.0 / 255.0            # a Gaussian is skipped at a pixel where its alpha is below this

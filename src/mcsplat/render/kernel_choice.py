@@ -1,11 +1,11 @@
 """Which kernels the renderer runs: one choice for the CPU and one for CUDA, read by every stage.
 
-On the CPU, 'simd' (the default) runs the CPU's own kernels of render/cpu/: the SIMD projection and compositing for
-float32 tensors (float64 gets the scalar Warp kernels) and the binning's C++ loops. 'scalar' runs the Warp kernels
-instead (the projection and binning as CUDA runs them, the scalar compositing): the benchmarks' in-process baseline
-and the tests' second opinion. 'tile' is 'scalar' with CUDA's tile compositing run as cooperative fibers (how the
-tests check it without a GPU). On CUDA, 'tile' (the default) or 'tile-all' compositing, or 'scalar' (the GPU
-benchmarks' in-process baseline).
+On the CPU, 'simd' (the default) runs the CPU's own kernels (each stage's cpu_*.py): the SIMD projection and compositing
+for float32 tensors (float64 gets the scalar Warp kernels) and the binning's C++ loops. 'scalar' runs the Warp kernels
+instead (the projection and binning as CUDA runs them, the scalar compositing): the benchmarks' in-process baseline and
+the tests' second opinion. 'tile' is 'scalar' with CUDA's tile compositing run as cooperative fibers (how the tests
+check it without a GPU). On CUDA, 'tile' (the default) or 'tile-all' compositing, or 'scalar' (the GPU benchmarks'
+in-process baseline).
 """
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ from __future__ import annotations
 import torch
 
 CPU_KERNELS = ("simd", "scalar", "tile")
-# "tile-all": the tile backward without its skip of pairs no pixel of a warp uses (tile_kernels.backward_kernel).
+# "tile-all": the tile backward without its skip of pairs no pixel of a warp uses (composite/warp_tiles.py's
+# backward_kernel).
 CUDA_KERNELS = ("tile", "tile-all", "scalar")
 _cpu_kernels = "simd"
 _cuda_kernels = "tile"

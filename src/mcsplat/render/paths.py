@@ -19,11 +19,11 @@ from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import Callable, Iterator
 
-from .binning import bin_gaussians
-from .binning_torch import torch_bin_gaussians
-from .launch import composite
-from .project import project_and_shade_torch
-from .project_kernel import project_and_shade
+from .bin.torch_oracle import torch_bin_gaussians
+from .bin.warp_kernels import bin_gaussians
+from .composite.function import composite
+from .project.torch_autograd import project_and_shade_torch
+from .project.warp_kernel import project_and_shade
 
 __all__ = ["RenderPath", "KERNEL_PATH", "TORCH_BASELINE_PATH", "current_render_path", "use_render_path"]
 

@@ -6,7 +6,7 @@ tile rectangles (a Gaussian only reaches pixels of the tiles its rectangle cover
 sqrt(det Sigma2D / det(Sigma2D + 0.3 I)) when antialiased, the tiles still from o alone), skip
 alpha < 1/255, stop before transmittance falls below 1e-4. Gradients come from autograd alone. The median Gaussian
 of a pixel is the last one composited while the transmittance in front of it is above 0.5; the median depth is where
-the pixel's ray meets its density's peak (render/median.py), here through the inverse of the 3D covariance.
+the pixel's ray meets its density's peak (render/outputs/median.py), here through the inverse of the 3D covariance.
 """
 
 from __future__ import annotations
@@ -240,7 +240,7 @@ def reference_median_depth(median_ids, means, quats, scales, camera: Camera):
 
 
 def reference_normals(means, quats, scales, camera: Camera):
-    """[N, 3]: each Gaussian's normal in camera space, found another way than normals.py: the eigenvector of the
+    """[N, 3]: each Gaussian's normal in camera space, found another way than outputs/normals.py: the eigenvector of the
     smallest eigenvalue of its 3D covariance, seen from the camera, turned towards it."""
     _, vectors = torch.linalg.eigh(covariance_3d(quats, scales))  # eigenvalues ascending
     w2c = camera.world_to_camera.to(means.dtype)

@@ -11,7 +11,7 @@ from typing import Sequence
 
 import torch
 
-from .. import run_dir
+from .. import trained_run
 from ..errors import MCSplatError
 from ..gaussians import GaussianModel
 from ..io.formats import format_named_by, read_gaussians
@@ -25,7 +25,7 @@ from .server import ViewerServer
 def load_for_viewing(path: Path, device: torch.device):
     """(model, training cameras, background, scene radius) of a run directory or a file of Gaussians."""
     if path.is_dir():
-        run = run_dir.load(path, device)
+        run = trained_run.load(path, device)
         model = finite_gaussians(run.model, path)
         try:
             scene = run.scene

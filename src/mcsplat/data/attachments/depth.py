@@ -8,7 +8,7 @@ views only (NeRF-synthetic renders it for its test views alone).
 Decoded to float32 [H, W]: the distance along the camera's optical axis (z, as render()'s depth is), in the scene's
 units (the capture's times the loader's scale: IDR's scale_mat shrinks the object into the unit sphere); 0 where the
 file has no depth (0, NaN or inf). A `.npy` holds floats in the capture's units; a 16-bit PNG holds steps of
-`png_step` (0.001: millimetres of a capture in metres); NeRF-synthetic's 8-bit PNGs hold 8 (1 - R/255) along the
+`depth_png_step` (0.001: millimetres of a capture in metres); NeRF-synthetic's 8-bit PNGs hold 8 (1 - R/255) along the
 ray (shared/data/nerf_synthetic_lego_400/SOURCE.md), R = 0 where there is no object.
 
 A depth is a value, not a weight: it follows its image by NEAREST (resampling.py), never averaged across an edge.
@@ -17,9 +17,9 @@ A depth is a value, not a weight: it follows its image by NEAREST (resampling.py
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Literal, Sequence
 
 import numpy as np
 import torch
@@ -29,6 +29,7 @@ from mcsplat.data import images, undistort
 from mcsplat.data.attachments.kind import Found, Kind
 from mcsplat.data.attachments.resampling import NEAREST
 from mcsplat.errors import DataError
+from mcsplat.option_checks import refuse_non_finite
 
 DEPTH_FOLDER = "depths"
 BESIDE_PHOTO = ("{stem}_depth.npy", "{stem}_depth.png", "{stem}_depth_0001.png")
@@ -41,38 +42,43 @@ NERF_SYNTHETIC_FAR = 8.0  # R = 0 would be this far; the dataset's renders put 0
 
 @dataclass(frozen=True)
 class DepthOptions:
-    """Where a scene's depth maps are and how their numbers read.
+    """Depth maps beside the photos (--depths), and how their numbers read."""
 
-    source: "auto" (beside each photo, or SCENE/depths/), a folder of `<view name>.npy` / `.png`, or "none" (no
-        depth maps: `mcsplat train`'s default, --depths).
-    encoding: "metric" (`.npy` floats, or 16-bit PNG steps of `png_step`, in the capture's units) or
-        "nerf-synthetic" (8-bit PNG, 8 (1 - R/255) along the ray, R = 0: no object).
-    measure: what a metric file measures: "z" (along the optical axis) or "ray" (from the camera centre along the
-        pixel's ray); nerf-synthetic's are along the ray.
-    png_step: a 16-bit PNG's step in the capture's units.
-    """
-
-    source: str = "auto"
-    encoding: str = "metric"
-    measure: str = "z"
-    png_step: float = 0.001
+    depths: str = field(default="auto", metadata={"folder_unless": ("auto", "none")})
+    """Depth maps loaded onto the views, for --depth-loss: 'none', 'auto' (beside each photo as <photo
+    stem>_depth.npy / .png, or the scene's depths/ folder) or a folder of <image name>.npy / .png. A view without one
+    has none."""
+    depth_encoding: Literal["metric", "nerf-synthetic"] = "metric"
+    """metric: .npy floats, or 16-bit PNG steps of --depth-png-step, in the capture's units; nerf-synthetic: its
+    8-bit renders (8 (1 - R/255) along the ray, R = 0: no object)."""
+    depth_measure: Literal["z", "ray"] = "z"
+    """What a metric depth map measures: z (along the optical axis) or ray (from the camera along the pixel's ray)."""
+    depth_png_step: float = 0.001
+    """A 16-bit PNG depth map's step in the capture's units (0.001: millimetres of a capture in metres)."""
 
     def __post_init__(self) -> None:
-        if not self.source.strip():
-            raise DataError(f"--depths {self.source!r} names no folder: give 'auto', 'none' or the folder that holds "
+        refuse_non_finite(self)
+        if not self.depths.strip():
+            raise DataError(f"--depths {self.depths!r} names no folder: give 'auto', 'none' or the folder that holds "
                             "one depth map per image")
-        if self.encoding not in ENCODINGS:
-            raise DataError(f"depth encoding {self.encoding!r} is not known: give one of {', '.join(ENCODINGS)}")
-        if self.measure not in MEASURES:
-            raise DataError(f"depth measure {self.measure!r} is not known: give 'z' (along the optical axis) or "
-                            "'ray' (along the pixel's ray)")
-        if not (isinstance(self.png_step, (int, float)) and math.isfinite(self.png_step) and self.png_step > 0):
-            raise DataError(f"depth png_step {self.png_step!r} must be a positive number (the capture's units per "
-                            "step of a 16-bit PNG: 0.001 for millimetres of a capture in metres)")
+        if self.depth_encoding not in ENCODINGS:
+            raise DataError(f"--depth-encoding {self.depth_encoding!r} is not known: give one of "
+                            f"{', '.join(ENCODINGS)}")
+        if self.depth_measure not in MEASURES:
+            raise DataError(f"--depth-measure {self.depth_measure!r} is not known: give 'z' (along the optical axis) "
+                            "or 'ray' (along the pixel's ray)")
+        step = self.depth_png_step
+        if not (isinstance(step, (int, float)) and math.isfinite(step) and step > 0):
+            raise DataError(f"--depth-png-step {step!r} must be a positive number (the capture's units per step of a "
+                            "16-bit PNG: 0.001 for millimetres of a capture in metres)")
+
+    def per_view_input(self) -> DepthOptions:
+        """What a run's feature seam (features.py) loads beside the photos for it: these options."""
+        return self
 
     @property
     def along_ray(self) -> bool:
-        return self.encoding == "nerf-synthetic" or self.measure == "ray"
+        return self.depth_encoding == "nerf-synthetic" or self.depth_measure == "ray"
 
 
 class DepthKind(Kind):
@@ -83,9 +89,9 @@ class DepthKind(Kind):
 
     def find(self, options: DepthOptions, scene: Any) -> Found | None:
         views = scene.train + scene.test
-        if options.source == "none":
+        if options.depths == "none":
             return None
-        if options.source == "auto":
+        if options.depths == "auto":
             folder = scene.root / DEPTH_FOLDER
             folder = folder if folder.is_dir() else None
             beside = [_beside(view.source.photo) for view in views]
@@ -95,9 +101,9 @@ class DepthKind(Kind):
             places = (["beside the photos"] if any(beside) else []) + \
                 ([str(folder)] if any(file and not near for file, near in zip(files, beside)) else [])
             return Found(files, " and ".join(places))
-        folder = Path(options.source).expanduser()
+        folder = Path(options.depths).expanduser()
         if not folder.is_dir():
-            raise DataError(f"--depths {options.source}: no such folder; give the folder that holds one depth map "
+            raise DataError(f"--depths {options.depths}: no such folder; give the folder that holds one depth map "
                             "per image, 'auto' (beside the photos, or the scene's depths/) or 'none'")
         files = [_in_folder(folder, view) for view in views]
         if not any(files):
@@ -124,7 +130,7 @@ class DepthKind(Kind):
         known = torch.cat([depth[depth > 0] for depth in present])
         pixels = sum(depth.numel() for depth in present)
         span = f"{float(known.min()):.3g} to {float(known.max()):.3g} scene units" if known.numel() else "all empty"
-        return (f"depth maps for {len(present)} of {len(values)} images from {found.where} ({options.encoding}): "
+        return (f"depth maps for {len(present)} of {len(values)} images from {found.where} ({options.depth_encoding}): "
                 f"{span}, {100 * (1 - known.numel() / max(pixels, 1)):.1f}% of their pixels without one")
 
 
@@ -153,8 +159,8 @@ def _in_folder(folder: Path, view: Any) -> Path | None:
 def _read(file: Path, options: DepthOptions) -> np.ndarray:
     """The file's numbers as float64 [H, W] in the capture's units, as the encoding says (before ray to z)."""
     if file.suffix == ".npy":
-        if options.encoding != "metric":
-            raise DataError(f"depth map {file} is a .npy, but the {options.encoding} encoding is a PNG's; give "
+        if options.depth_encoding != "metric":
+            raise DataError(f"depth map {file} is a .npy, but the {options.depth_encoding} encoding is a PNG's; give "
                             "encoding 'metric' for .npy files")
         try:
             array = np.load(file, allow_pickle=False)
@@ -178,7 +184,7 @@ def _read(file: Path, options: DepthOptions) -> np.ndarray:
     except Exception as exc:
         raise DataError(f"cannot decode depth map {file}: {images._reason(exc)}; replace the file") from None
     sixteen_bit = mode.startswith("I;16") or mode == "I"
-    if options.encoding == "nerf-synthetic":
+    if options.depth_encoding == "nerf-synthetic":
         if sixteen_bit or array.dtype != np.uint8:
             raise DataError(f"depth map {file} is a {mode} PNG, but NeRF-synthetic's are 8-bit; give encoding "
                             "'metric' for 16-bit PNGs")
@@ -187,7 +193,7 @@ def _read(file: Path, options: DepthOptions) -> np.ndarray:
     if not sixteen_bit:
         raise DataError(f"depth map {file} is an 8-bit {mode} PNG, whose 256 steps cannot hold a depth; save it as "
                         "a 16-bit PNG or a .npy, or give encoding 'nerf-synthetic' for NeRF-synthetic's renders")
-    return array.astype(np.float64) * options.png_step
+    return array.astype(np.float64) * options.depth_png_step
 
 
 def _ray_lengths(view: Any, size: images.Size) -> np.ndarray:

@@ -13,7 +13,7 @@ as uint8 [H, W] keep weights (255: kept), a third of the images' size.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -32,32 +32,40 @@ NOTE_PREFIX = "masks for"  # how the Scene note on masks starts (the console rep
 
 @dataclass(frozen=True)
 class MaskOptions:
-    """Where a scene's masks come from: "auto" (SCENE/masks/ when it exists), "none", "alpha" or a folder."""
+    """Training masks: the pixels the loss leaves out (--masks, --invert-masks)."""
 
-    source: str = "auto"
-    invert: bool = False
+    masks: str = field(default="auto", metadata={"folder_unless": ("auto", "none", "alpha")})
+    """Pixels the loss leaves out: 'auto' takes the scene's masks/ folder when it has one (a PNG per image,
+    masks/<image name>.png, black: left out), 'none' ignores it, 'alpha' takes the images' alpha channel, or give a
+    folder. Evaluation reports masked PSNR / SSIM beside the plain ones."""
+    invert_masks: bool = False
+    """Masks are white where the pixel is left out (and black where it is kept)."""
 
     def __post_init__(self) -> None:
-        if not self.source.strip():
-            raise DataError(f"--masks {self.source!r} names no folder: give 'auto', 'none', 'alpha' or the folder "
+        if not self.masks.strip():
+            raise DataError(f"--masks {self.masks!r} names no folder: give 'auto', 'none', 'alpha' or the folder "
                             "that holds one mask PNG per image")
-        if self.invert and self.source == "none":
+        if self.invert_masks and self.masks == "none":
             raise DataError("--invert-masks with --masks none: there are no masks to invert; leave one of them out")
+
+    def per_view_input(self) -> MaskOptions:
+        """What a run's feature seam (features.py) loads beside the photos for it: these options."""
+        return self
 
     @property
     def alpha(self) -> bool:
-        return self.source == "alpha"
+        return self.masks == "alpha"
 
     def folder(self, root: Path) -> Path | None:
         """The mask folder to read, or None (no masks, or the alpha channel)."""
-        if self.source in ("none", "alpha"):
+        if self.masks in ("none", "alpha"):
             return None
-        if self.source == "auto":
+        if self.masks == "auto":
             folder = root / MASK_FOLDER
             return folder if folder.is_dir() else None
-        folder = Path(self.source).expanduser()
+        folder = Path(self.masks).expanduser()
         if not folder.is_dir():
-            raise DataError(f"--masks {self.source}: no such folder; give the folder that holds one mask PNG per "
+            raise DataError(f"--masks {self.masks}: no such folder; give the folder that holds one mask PNG per "
                             "image, or --masks none")
         return folder
 
@@ -78,7 +86,7 @@ class MaskKind(Kind):
             return Found([view.source.photo for view in views], "the images' alpha channel")
         folder = options.folder(scene.root)
         if folder is None:
-            if options.invert:
+            if options.invert_masks:
                 raise DataError(f"--invert-masks: {scene.root} has no {MASK_FOLDER}/ folder, so there are no masks to "
                                 "invert; give the masks' folder with --masks, or leave --invert-masks out")
             return None
@@ -90,7 +98,7 @@ class MaskKind(Kind):
 
     def decode(self, file: Path, view: Any, options: MaskOptions) -> np.ndarray:
         keep = read_keep(file, options.alpha)
-        return 255 - keep if options.invert else keep
+        return 255 - keep if options.invert_masks else keep
 
     def as_float(self, values: torch.Tensor, device: torch.device | str) -> torch.Tensor:
         return values.to(device, non_blocking=True).to(torch.float32).div_(255.0)[:, :, None]
@@ -100,7 +108,7 @@ class MaskKind(Kind):
         check_something_kept(values, found, [view.name for view in views], options)
 
     def note(self, values: Sequence[torch.Tensor | None], found: Found, options: MaskOptions) -> str:
-        return describe(values, found.where + (", inverted" if options.invert else ""))
+        return describe(values, found.where + (", inverted" if options.invert_masks else ""))
 
 
 def mask_file(folder: Path, view_name: str, image: Path) -> Path | None:
@@ -126,7 +134,7 @@ def check_something_kept(keep: Sequence[torch.Tensor | None], found: Found, name
     empty = [i for i, mask in enumerate(keep) if mask is not None and not bool(mask.any())]
     if not empty:
         return
-    invert = options.invert
+    invert = options.invert_masks
     if len(empty) == len(keep):
         fix = ("--invert-masks made them black: run without --invert-masks" if invert else
                "if yours are black where the image is to be kept, add --invert-masks")

@@ -6,7 +6,7 @@ import numpy as np
 
 from ...errors import MCSplatError
 
-SH_C0 = 0.28209479177387814  # the degree-0 SH basis value: colour = 0.5 + SH_C0 * f_dc (render/sh.py)
+SH_C0 = 0.28209479177387814  # the degree-0 SH basis value: colour = 0.5 + SH_C0 * f_dc (geometry/sh.py)
 # The 3DGS frame (y down, z forward) turned 180 degrees about x into a y-up one (.spz, glTF): y -> -y, z -> -z, and
 # the sign change of each SH rest coefficient (3DGS order) under it: odd total power of y and z.
 AXES_FLIP = np.array([1.0, -1.0, -1.0])

@@ -1,0 +1,243 @@
+"""The benchmarks as one small framework: an experiment declares its arms, runs one, and writes a page from the
+records; one runner does the rest.
+
+An experiment is a module of benchmarks/ (its name is its subcommand and its results folder) that defines what
+`Experiment` lists. The runner (`python -m benchmarks NAME ...`, or the module's own `python benchmarks/NAME.py ...`):
+
+- parses the experiment's `Options` with tyro, as `mcsplat` parses its commands (`Common` holds the options every
+  experiment takes: --out, --report, --rerun, --threads, --jobs, --data-root);
+- runs every arm that results.jsonl does not hold yet (all of them with --rerun), each in a fresh process (a worker:
+  its own memory, its own environment, a crash stops that arm only) that answers with one JSON line;
+- appends a record per arm: the common fields (SCHEMA_FIELDS), the arm's labels and the figures `run()` returned;
+- writes results.md from the last record of every arm (`report()`), also with --report alone.
+"""
+
+from __future__ import annotations
+
+import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
+
+import dataclasses
+import importlib
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, Sequence
+
+import tyro
+
+import _common as C
+
+# The converted experiments, by module name (each module's docstring says what it measures).
+EXPERIMENTS = ("antialiasing", "appearance", "auto_cap", "budget", "collapse", "defaults_before_after",
+               "depth_accuracy", "masks", "pose_refinement")
+SCHEMA = 1
+SCHEMA_FIELDS = ("name", "script", "schema", "date", "commit", "machine", "load_average_before", "options", "worker")
+NOT_READY = 3  # a worker's exit status for NotReady
+WORKER_ENV = ("OMP_NUM_THREADS", "CUDA_VISIBLE_DEVICES")  # besides every MCSPLAT_* variable, recorded per arm
+MAIN = Path(__file__).resolve().with_name("__main__.py")
+
+
+@dataclass(frozen=True)
+class Common:
+    """Options of every experiment."""
+
+    out: Path | None = None
+    """Results folder (default: benchmarks/results/<experiment>/)."""
+    report: bool = False
+    """Run nothing: only write results.md (and its pictures) again from results.jsonl."""
+    rerun: bool = False
+    """Run again the arms results.jsonl already holds (the last record of an arm is the one reported)."""
+    threads: int | None = None
+    """CPU threads of each arm's process (default: all cores)."""
+    jobs: int = 1
+    """Arms run at a time, each in its own process."""
+    data_root: Path = C.DATA_ROOT
+    """The shared data folder."""
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One configuration of an experiment: what its run() needs, as plain JSON values."""
+
+    name: str
+    """Unique within the experiment; the run folder's name where it trains one."""
+    labels: dict[str, Any]
+    """Recorded with the figures; they hold the experiment's KEY fields, which tell its records apart."""
+    config: dict[str, Any] = field(default_factory=dict)
+    """TrainConfig options as config.json names them, the nested groups' with a dot (C.make_config)."""
+    env: dict[str, str] = field(default_factory=dict)
+    """Environment variables of the arm's process (MCSPLAT_CPU_TARGET, ...)."""
+
+
+class NotReady(Exception):
+    """An arm that cannot run with this checkout or at this point (the message says why): left out, not failed."""
+
+
+class Experiment(Protocol):
+    """What an experiment module defines."""
+
+    Options: type
+    """A frozen dataclass parsed by tyro, with a field `common: Annotated[Common, tyro.conf.OmitArgPrefixes]`."""
+    KEY: tuple[str, ...]
+    """The record fields that tell one arm's records from another's (old records too: they may lack `name`)."""
+
+    def arms(self, options: Any) -> list[Arm]:
+        """The arms these options ask for, declared (nothing is run or read here)."""
+
+    def run(self, arm: Arm, options: Any, folder: Path) -> dict:
+        """Run one arm in this (worker) process; its figures, JSON values. Raise NotReady to leave it out."""
+
+    def report(self, records: list[dict], folder: Path) -> str:
+        """results.md's text from the last record of every arm (pictures may be written into `folder`)."""
+
+    # Optional: finish(arms, options, folder) runs in the runner after the arms (pictures across arms).
+
+
+class Records:
+    """A JSON-lines file of records, appended; the last record of a key wins (in the place of its first)."""
+
+    def __init__(self, path: Path, key: Sequence[str] = ("name",)) -> None:
+        self.path, self.key = path, tuple(key)
+        self.by_key = {self.key_of(r): r for r in C.read_jsonl(path)}
+
+    def key_of(self, record: dict) -> tuple:
+        return tuple(record.get(k) for k in self.key)
+
+    def add(self, record: dict) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        C.append_jsonl(self.path, [record])
+        self.by_key[self.key_of(record)] = record
+
+    def get(self, *values: Any) -> dict | None:
+        return self.by_key.get(tuple(values))
+
+    def latest(self) -> list[dict]:
+        return list(self.by_key.values())
+
+
+# ------------------------------------------------------------------------------------------------ the runner
+def experiment(name: str) -> Experiment:
+    """The experiment module `name` (a module of benchmarks/, or any on the path: the tests' toy one)."""
+    return importlib.import_module(name)
+
+
+def results_folder(name: str, options: Any) -> Path:
+    return Path(options.common.out) if options.common.out else C.RESULTS / name
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m benchmarks NAME [OPTIONS]`: one subcommand per experiment."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["--worker"]:
+        return worker(json.loads(argv[1]))
+    modules = {name: experiment(name) for name in EXPERIMENTS}
+    options = tyro.extras.subcommand_cli_from_dict(
+        {name: module.Options for name, module in modules.items()}, prog="python -m benchmarks", args=argv,
+        description="Run a benchmark experiment (benchmarks/README.md): its arms not yet recorded, then its page.")
+    name = next(name for name, module in modules.items() if type(options) is module.Options)
+    return run_experiment(name, options, argv[argv.index(name) + 1:])
+
+
+def script(name: str, argv: Sequence[str] | None = None) -> int:
+    """`python benchmarks/NAME.py [OPTIONS]`: the experiment's options without a subcommand."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    module = experiment(name)
+    options = tyro.cli(module.Options, args=argv, prog=f"benchmarks/{name}.py", description=module.__doc__)
+    return run_experiment(name, options, argv)
+
+
+def run_experiment(name: str, options: Any, args: list[str]) -> int:
+    """Run the arms not yet recorded (each in a worker given `args`, the experiment's own options), then write
+    results.md; 1 when an arm failed."""
+    module = experiment(name)
+    folder = results_folder(name, options)
+    records = Records(folder / "results.jsonl", module.KEY)
+    failed = 0
+    if not options.common.report:
+        arms = module.arms(options)
+        todo = [arm for arm in arms if options.common.rerun or records.get(*keys(module, arm)) is None]
+        for arm in arms:
+            if arm not in todo:
+                print(f"{name}: {arm.name} is recorded (--rerun runs it again)", file=sys.stderr)
+        common = {"script": name, "schema": SCHEMA, "load_average_before": C.warn_if_busy() if todo else None,
+                  "machine": C.machine(getattr(options, "device", "cpu")) if todo else None,
+                  "commit": C.git_commit(), "options": json.loads(json.dumps(dataclasses.asdict(options), default=str))}
+        folder.mkdir(parents=True, exist_ok=True)
+        with ThreadPoolExecutor(max(1, options.common.jobs)) as pool:
+            for arm, answer in zip(todo, pool.map(lambda arm: run_worker(name, arm, args, folder), todo)):
+                if "error" in answer:
+                    failed += answer["error"] != "not ready"
+                    continue
+                record = {"name": arm.name, **common, "date": C.timestamp(), **arm.labels, **answer["figures"],
+                          "worker": answer["worker"]}
+                records.add(record)
+                C.emit({k: v for k, v in record.items() if k not in ("machine", "options")})
+        if hasattr(module, "finish"):
+            module.finish(arms, options, folder)
+    if not records.latest():
+        hint = ": run it without --report first" if options.common.report else ""
+        print(f"{name}: nothing yet in {records.path}{hint}", file=sys.stderr)
+        return 1 if failed else 0
+    C.write_text(folder / "results.md", module.report(records.latest(), folder))
+    print(f"{name}: wrote {folder / 'results.md'}", file=sys.stderr)
+    if failed:
+        print(f"{name}: {failed} arm(s) failed (see above)", file=sys.stderr)
+    return 1 if failed else 0
+
+
+def keys(module: Experiment, arm: Arm) -> list:
+    """The arm's KEY values (its labels must hold every KEY field)."""
+    missing = [k for k in module.KEY if k not in arm.labels]
+    if missing:
+        raise ValueError(f"arm {arm.name}: its labels lack the key fields {missing}")
+    return [arm.labels[k] for k in module.KEY]
+
+
+def run_worker(name: str, arm: Arm, args: list[str], folder: Path) -> dict:
+    """Run `arm` in a fresh process; its answer ({"figures", "worker"}), or {"error": ...}."""
+    print(f"{name}: {arm.name}", file=sys.stderr, flush=True)
+    payload = {"experiment": name, "args": args, "folder": str(folder), "arm": dataclasses.asdict(arm)}
+    done = subprocess.run([sys.executable, str(MAIN), "--worker", json.dumps(payload)], stdout=subprocess.PIPE,
+                          text=True, env=dict(os.environ, **arm.env))
+    if done.returncode == NOT_READY:
+        print(f"{name}: {arm.name} left out (see above)", file=sys.stderr)
+        return {"error": "not ready"}
+    lines = done.stdout.strip().splitlines()
+    if done.returncode != 0 or not lines:
+        print(f"{name}: {arm.name} failed (exit status {done.returncode}; its output is above)", file=sys.stderr)
+        return {"error": f"exit status {done.returncode}"}
+    return json.loads(lines[-1])
+
+
+def worker(payload: dict) -> int:
+    """In the arm's own process: run it and print one JSON line, its figures and the process's own facts."""
+    module = experiment(payload["experiment"])
+    options = tyro.cli(module.Options, args=payload["args"])
+    arm = Arm(**payload["arm"])
+    if options.common.threads is not None:
+        C.set_threads(options.common.threads)
+    answer, sys.stdout = sys.stdout, sys.stderr  # what the run prints goes to stderr: stdout carries the answer
+    started = time.perf_counter()
+    try:
+        figures = module.run(arm, options, Path(payload["folder"]))
+    except NotReady as error:
+        print(f"{payload['experiment']}: {arm.name}: {error}", file=sys.stderr)
+        return NOT_READY
+    finally:
+        sys.stdout = answer
+    facts = {"seconds": round(time.perf_counter() - started, 1), "peak_rss_mb": round(C.peak_rss_mb()),
+             "env": {k: v for k, v in os.environ.items() if k.startswith("MCSPLAT_") or k in WORKER_ENV}}
+    print(json.dumps({"figures": figures, "worker": facts}, default=_plain), flush=True)
+    return 0
+
+
+def _plain(value: Any) -> Any:
+    """JSON for the values figures often hold: numpy scalars and arrays, paths."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    return str(value)

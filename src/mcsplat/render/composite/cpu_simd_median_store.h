@@ -1,0 +1,1 @@
+            median_out[pixel] = median[b][l];

@@ -1,0 +1,2 @@
+"""The outputs a render gives only when asked, computed around the compositing stage: the median depth (median.py),
+the normal map and planar depth (normals.py), 2DGS's depth distortion (distortion.py)."""
