@@ -5,7 +5,7 @@
 
 Each configuration starts its processes afresh (spawn; gloo over a file store, connections on the loopback
 interface), 1 CPU thread each, as `torchrun --nproc-per-node N` would run `mcsplat train`: the trainer's step
-(`train_step`) with the team's reduce (distributed/team.py: one flat all-reduce of every gradient per step), the
+(`mcsplat.step.Step`) with the team's reduce (distributed/team.py: one flat all-reduce of every gradient per step), the
 schedules and learning rates scaled for N views per step, on lego 400x400 views and train_speed.py's calibrated
 stand-in for a trained model (no refinement, so the size stays put). Rank 0 reports:
 
@@ -54,7 +54,7 @@ def worker(rank: int, world_size: int, store: str, size: int, steps: int, out: s
     from mcsplat.run_scene import background_of
     from mcsplat.state import ViewSampler
     from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
-    from mcsplat.trainer import step_kernels, train_step
+    from mcsplat.step import Step, step_kernels
 
     os.environ["GLOO_SOCKET_IFNAME"] = "lo"
     if world_size > 1:
@@ -86,11 +86,11 @@ def worker(rank: int, world_size: int, store: str, size: int, steps: int, out: s
 
     step_seconds = []
     first = 5000 // world_size  # past the SH warm-up: degree 3, as most of a run
+    one_step = Step(model, optimizers, strategy, config, scene.radius, background, device, reduce=timed_reduce)
     for i in range(WARMUP + steps):
         view = scene.train[team.pick(sampler.take(world_size))]
         tick = time.perf_counter()
-        train_step(first + i, model, optimizers, strategy, view, config=config, plan=plan, scene_radius=scene.radius,
-                   background=background, device=device, reduce=timed_reduce)
+        one_step(first + i, view, plan)
         step_seconds.append(time.perf_counter() - tick)
     numel = sum(model.params[key].numel() for key in PARAM_KEYS) + 2
     bare = []

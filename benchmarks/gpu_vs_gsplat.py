@@ -3,7 +3,7 @@
     python benchmarks/gpu_vs_gsplat.py --data PATH/TO/lego --cap 300000 --steps 5000 [--init 150000]
 
 Both arms run the same loop over the same view order, from the same random initialisation (mcsplat's, seed 0):
-    mcsplat   mcsplat.trainer.train_step, the trainer's own step (Warp rasterizer, mcsplat's MCMC strategy)
+    mcsplat   mcsplat.step.Step, the trainer's own step (Warp rasterizer, mcsplat's MCMC strategy)
     gsplat    gsplat.rasterization (packed=False, classic, eps2d 0.3, as gsplat's simple_trainer) and
               gsplat.strategy.MCMCStrategy, called after the Adam step as simple_trainer does
 Shared by both: one fused torch Adam per parameter with mcsplat's learning rates (the paper's), the position rate's
@@ -39,7 +39,7 @@ from mcsplat.initialization import initial_model
 from mcsplat.run_scene import background_of
 from mcsplat.planning import Plan, make_strategy
 from mcsplat.state import ViewSampler
-from mcsplat.trainer import train_step
+from mcsplat.step import Step
 
 
 class Setup:
@@ -78,8 +78,7 @@ class McsplatArm:
 
     def step(self, step: int, view) -> None:
         s = self.setup
-        train_step(step, self.model, self.optimizers, self.strategy, view, config=s.config, plan=s.plan,
-                   scene_radius=s.radius, background=s.background, device=s.device)
+        Step(self.model, self.optimizers, self.strategy, s.config, s.radius, s.background, s.device)(step, view, s.plan)
 
     def count(self) -> int:
         return self.model.num_gaussians

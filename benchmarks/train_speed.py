@@ -4,7 +4,7 @@
     .venv/bin/python benchmarks/train_speed.py --sizes 100000 --threads 2 --repeats 5
     .venv/bin/python benchmarks/train_speed.py --device cuda                    # skips cleanly without CUDA
 
-A step is the trainer's own (mcsplat.trainer.train_step): render a lego 400x400 training view, 0.8 L1 + 0.2 D-SSIM +
+A step is the trainer's own (mcsplat.step.Step): render a lego 400x400 training view, 0.8 L1 + 0.2 D-SSIM +
 the MCMC regularizers, backward, one Adam step per parameter, strategy.step_post_optimizer (SGLD noise; relocation
 every 100 steps). The same step is also run with a PhaseClock, which the step tells where it is (StepPhases) and
 which reads the clock after a device sync between phases; render() runs a render path (mcsplat.render.paths) whose
@@ -60,7 +60,7 @@ from mcsplat.strategy.adc import ADCConfig, ADCStrategy
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
 from mcsplat.planning import Plan
 from mcsplat.run_dir import RunDir
-from mcsplat.trainer import train_step
+from mcsplat.step import Step
 
 PHASES = ("projection", "binning", "composite_forward", "loss", "backward_loss", "backward_composite",
           "backward_projection", "optimizer", "strategy", "other")
@@ -175,7 +175,7 @@ class StepMarks:
 
 
 class PhaseClock(StepMarks):
-    """Times the phases of the trainer's train_step: the step marks its phases (lap), the render path's three
+    """Times the phases of the trainer's step: the step marks its phases (lap), the render path's three
     stages are wrapped with timers (`timed_path`), and every reading of the clock follows a device synchronisation."""
 
     def __init__(self, device: torch.device):
@@ -258,14 +258,13 @@ class PhaseClock(StepMarks):
 
 
 def bench_step(b: Bench, step: int, i: int, marks: StepMarks | None = None) -> int:
-    """One training step through the trainer's own train_step on view i; returns its tile pairs. With a
+    """One training step through the trainer's own Step on view i; returns its tile pairs. With a
     PhaseClock (and its timed render path in force) the phases are timed."""
     marks = marks or StepMarks()
     if isinstance(marks, PhaseClock):
         marks.start()
-    train_step(step, b.model, b.optimizers, b.strategy, b.views[i % len(b.views)], config=b.config,
-               plan=Plan.literal(b.config), scene_radius=b.radius, background=b.background, device=b.device,
-               phases=marks)
+    one_step = Step(b.model, b.optimizers, b.strategy, b.config, b.radius, b.background, b.device, phases=marks)
+    one_step(step, b.views[i % len(b.views)], Plan.literal(b.config))
     return marks.pairs
 
 

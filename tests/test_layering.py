@@ -20,7 +20,7 @@ LAYERS = [
     ("interface", ("__main__", "cli")),
     ("session", ("blocks", "train", "export")),
     ("consumers", ("viewer", "report")),
-    ("loop", ("trainer", "stopping", "subscribers")),
+    ("loop", ("trainer", "step", "stopping", "subscribers")),
     ("run", ("run_setup", "run_start", "state", "trained_run", "run_dir", "run_scene", "events", "run_metrics",
              "evaluation")),
     ("set-up", ("distributed", "initialization", "partition", "planning", "config", "config_types")),
@@ -192,7 +192,7 @@ def test_the_check_inside_a_layer_sees_what_it_guards(tmp_path):
 
 
 def test_the_trainer_holds_the_step_and_the_loop_only():
-    """trainer.py is the step and the loop; setting a run up (run_setup.py), planning it (planning/), stopping it
-    (stopping.py) and metrics.json's layout (run_metrics.py) live in modules of their own, and keep it short."""
+    """trainer.py is the loop; the step (step.py), setting a run up (run_setup.py), planning it (planning/), stopping
+    it (stopping.py) and metrics.json's layout (run_metrics.py) live in modules of their own, and keep it short."""
     lines = (PACKAGE / "trainer.py").read_text().splitlines()
     assert len(lines) <= 300, f"trainer.py has {len(lines)} lines: move what is not the step or the loop out"

@@ -110,7 +110,7 @@ def test_compile_kernels_leaves_nothing_to_compile(tmp_path, device):
     import warp as wp
 
     from mcsplat.compute.compile import compile_kernels, modules_to_compile
-    from mcsplat.trainer import step_kernels
+    from mcsplat.step import step_kernels
 
     kernels = step_kernels(device)
     compile_kernels(kernels, device)

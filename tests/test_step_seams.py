@@ -1,5 +1,5 @@
-"""The two seams of a training step: a per-image learned module (per_image.py) plugs in through train_step's
-`modules` alone, and a loss term (loss_terms.py) is one more entry in the list train_step sums."""
+"""The two seams of a training step: a per-image learned module (per_image.py) plugs in through the Step's
+`modules` alone, and a loss term (loss_terms.py) is one more entry in the list the step sums."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from mcsplat.pose_refinement import PoseRefinement
 from mcsplat.run_scene import background_of
 from mcsplat.state import TrainingState, ViewSampler
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
-from mcsplat.trainer import train_step
+from mcsplat.step import Step
 
 CPU = torch.device("cpu")
 
@@ -71,9 +71,8 @@ def _setup(scene):
 
 
 def _step(scene, step, model, optimizers, strategy, config, index, **seams):
-    return train_step(step, model, optimizers, strategy, scene.train[index], config=config,
-                      plan=Plan.literal(config), scene_radius=scene.radius, background=background_of(config, scene),
-                      device=CPU, view_index=index, **seams)
+    one_step = Step(model, optimizers, strategy, config, scene.radius, background_of(config, scene), CPU, **seams)
+    return one_step(step, scene.train[index], Plan.literal(config), index)
 
 
 def test_a_toy_per_image_module_trains_through_the_seam_and_its_state_round_trips(scene):
@@ -133,7 +132,7 @@ def test_a_loss_term_added_to_the_list_adds_its_gradient(scene):
     assert seen == [(2, (50, 50, 3), None)], "the term sees the step's view, its render and its (absent) mask"
 
 
-def test_the_standard_terms_are_the_loss_train_step_sums_by_default(scene):
+def test_the_standard_terms_are_the_loss_the_step_sums_by_default(scene):
     """Passing the standard list is the same step as passing none: bit for bit."""
     losses = []
     for seams in ({}, {"loss_terms": None}, "standard"):

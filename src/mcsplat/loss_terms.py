@@ -1,4 +1,4 @@
-"""The training loss as a list of terms: trainer.train_step sums what each term returns for the step's view.
+"""The training loss as a list of terms: the step (step.Step) sums what each term returns for the step's view.
 
 A term is any callable taking the step's `StepContext` (the render, the photo, the mask, the model, ...) and
 returning a scalar tensor, or None when it has nothing to add for that view. The standard loss is three kinds of
@@ -8,7 +8,7 @@ term, in this order (the order of the additions, so that a CPU run is bit for bi
     strategy               the strategy's regularizers (MCMC's opacity and scale L1; ADC's, zero by default)
     each module's          a per-image module's regularizer (per_image.py), e.g. --appearance's pull to identity
 
-A new loss is one more term in the list that state.start makes (docs/extending.md, "A loss term"); train_step does
+A new loss is one more term in the list that state.start makes (docs/extending.md, "A loss term"); the step does
 not change (--surface's terms are in surface.py, the depth priors' in depth_terms.py). A term that reads an output
 the render gives only on request (the normal map, the median depth) names it in `render_outputs`, render()'s
 keyword: the step asks for the union of its terms' outputs, so that a run whose terms read none pays for none.

@@ -2,7 +2,7 @@
 changes how that image's view is rendered or compared (--appearance's colour transforms, --pose-opt's pose
 corrections; next: an image's exposure, its rolling shutter).
 
-A module is indexed by the training view's index in `scene.train`. In a step (trainer.train_step) it may move the
+A module is indexed by the training view's index in `scene.train`. In a step (step.Step) it may move the
 camera before the render (`camera`), change the render before the loss (`apply`), add to the loss (`regularization`,
 summed as one loss term: loss_terms.py) and, after the scene's Adam step, take its own (`step`). Its parameters are
 its own business (the scene's optimisers never see them), and so is its checkpoint state: `state_dict` is saved under

@@ -69,7 +69,7 @@ class TrainingState:
     # Learned per training image with the scene (per_image.py): --appearance's colour transforms, --pose-opt's
     # pose corrections, each with its own Adam and its own entry in the checkpoint.
     modules: list[PerImageModule] = field(default_factory=list)
-    loss_terms: list[LossTerm] = field(default_factory=list)  # what train_step sums (loss_terms.py)
+    loss_terms: list[LossTerm] = field(default_factory=list)  # what the step sums (loss_terms.py)
 
     def module(self, key: str) -> PerImageModule | None:
         """The module saved under `key` ("appearance", "poses"), if the run has it."""

@@ -92,7 +92,7 @@ class AgreedRequests:
         self._stop = self._checkpoint = False  # the votes of the last step's reduce
 
     def reduce(self, model: GaussianModel, values: list[float]) -> list[float]:
-        """The step's reduce (trainer.train_step): the values averaged, the requests voted."""
+        """The step's reduce (step.Step): the values averaged, the requests voted."""
         control = self.control
         *averaged, stop, checkpoint = self.team.reduce_step(
             model, values + [float(control.stop_requested), float(control.checkpoint_requested)])

@@ -1,11 +1,4 @@
-"""The training loop: one step (`train_step`) and the run that repeats it (`TrainingRun`), emitting events.py's events.
-
-One step (docs/method.md, "One training step"; in gsplat's order, see strategy/mcmc.py for how the official code
-differs):
-    render a training view (camera and render through the per-image modules, per_image.py: --pose-opt, --appearance)
-    -> loss = the sum of the loss terms (loss_terms.py: 0.8 L1 + 0.2 D-SSIM over the pixels a mask keeps, strategy
-    and module regularizers) -> backward -> strategy.step_post_backward (ADC gradient statistics) -> Adam steps
-    -> strategy.step_post_optimizer (MCMC: relocate / grow every 100 steps, then SGLD noise; ADC: densify / prune)
+"""The training loop: the run (`TrainingRun`) that repeats one step (step.py's `Step`), emitting events.py's events.
 
 Where the run's files go is run_dir.py's business, how its state starts and what a checkpoint holds state.py's, what
 the run decides (its steps, schedules and cap) its planner's (planning/), scoring evaluation.py's and metrics.json's
@@ -14,18 +7,12 @@ layout run_metrics.py's; train.py puts a run together with its consumers.
 
 from __future__ import annotations
 
-import math
 import time
-from dataclasses import dataclass
-from typing import Any, Callable, Protocol, Sequence
+from typing import Any, Sequence
 
-import torch
-
-from . import losses, optim, render, run_dir, run_start
-from .appearance import training_kernels as appearance_kernels
+from . import run_dir, run_start
 from .compute.compile import compile_kernels, modules_to_compile
 from .config import TrainConfig
-from .data import View
 from .distributed import SingleProcess, Team, command_for
 from .errors import MCSplatError
 from .evaluation import Evaluation, evaluate, seen_in_views
@@ -33,107 +20,16 @@ from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Lis
                      RunStarted, StepDone, close_all)
 from .gaussians import GaussianModel
 from .io.lock import FolderLock
-from .loss_terms import LossTerm, StepContext, render_outputs, standard_terms, total_loss
-from .metrics import psnr
-from .optim import means_lr_at, set_means_lr
 from .planning import Plan, run_record
-from .per_image import PerImageModule
-from .render import RenderResult
 from .run_metrics import RunFacts, metrics
 from .run_setup import set_up
 from .state import feature_facts
+from .step import Step, step_kernels
 from .stopping import AgreedRequests, StopSignals
-from .strategy.base import RefineReport, asks_the_scene, changed
-from .strategy.noise import noise_lr_at
+from .strategy.base import asks_the_scene, changed
 from .visibility import count_invisible
 
 PREFETCH_VIEWS = 2  # images decoded in the background ahead of their step (a no-op when all are in memory)
-
-
-@dataclass
-class StepResult:
-    loss: float
-    train_psnr: float
-    refine: RefineReport  # what the strategy did after the optimizer step
-
-
-Reduce = Callable[[GaussianModel, list[float]], list[float]]
-
-
-def _alone(model: GaussianModel, values: list[float]) -> list[float]:
-    return values
-
-
-class StepPhases(Protocol):
-    """Told where a step is: benchmarks/train_speed.py times the phases with it (the trainer passes none)."""
-
-    def rendered(self, result: RenderResult) -> None:
-        """After render(), before the loss."""
-        ...
-
-    def lap(self, phase: str) -> None:
-        """The work since the previous mark was `phase`: other, render, loss, backward, strategy, reduce,
-        optimizer."""
-        ...
-
-
-def train_step(step: int, model: GaussianModel, optimizers: dict, strategy, view: View, *, config: TrainConfig,
-               plan: Plan, scene_radius: float, background, device: torch.device, reduce: Reduce = _alone,
-               phases: StepPhases | None = None, modules: Sequence[PerImageModule] = (),
-               loss_terms: Sequence[LossTerm] | None = None, view_index: int = 0) -> StepResult:
-    """One optimisation step on one training view (the module docstring lists its parts, in order), as `plan` has
-    it at this step (learning rates, resolution, SH degree; the strategy follows the plan's schedule).
-
-    `reduce(model, [loss, psnr])` runs between the backward and the Adam step: with several processes it averages
-    the gradients (and the two values) over them (distributed/team.py). Each of `modules` sees training view
-    `view_index`'s camera and render, in order, and takes its own step after the scene's. The loss is the sum of
-    `loss_terms` (by default loss_terms.standard_terms: photometric, the strategy's, each module's)."""
-    lap = phases.lap if phases is not None else (lambda phase: None)
-    set_means_lr(optimizers, means_lr_at(step, plan.steps, plan.optim, scene_radius))
-    camera = view.camera_at(plan.resolution_at(step)).to(device)  # coarse to fine, when configured
-    for module in modules:
-        camera = module.camera(view_index, camera)
-    target = view.image_float(device, size=(camera.width, camera.height))
-    keep = view.mask_float(device, size=(camera.width, camera.height))  # None unless the scene has masks
-    terms = loss_terms if loss_terms is not None else standard_terms(config.ssim_weight, strategy, modules)
-    lap("other")
-    result = render.render(model, camera, background, plan.sh_degree_at(step),
-                           **render_outputs(terms, step, plan.steps))
-    lap("render")
-    rgb = result.rgb
-    for module in modules:
-        rgb = module.apply(view_index, rgb)
-    loss = total_loss(terms, StepContext(step, view, view_index, camera, rgb, target, keep, model, result,
-                                         plan.steps))
-    lap("loss")
-    if phases is not None:
-        phases.rendered(result)
-    loss.backward()
-    lap("backward")
-    strategy.step_post_backward(step, model, result, camera.width, camera.height)
-    lap("strategy")
-    loss_value, train_psnr = reduce(model, [loss.item(), psnr(rgb.detach(), target)])
-    if not math.isfinite(loss_value):  # checked after the reduce, so that every process stops at the same step
-        raise MCSplatError(f"step {step}: the loss became {loss_value}; lower the learning rates or the loss terms' "
-                           f"weights (--surface-*, --appearance-*, --*depth*), or check the input images")
-    lap("reduce")
-    optim.step_optimizers(optimizers)  # and the gradients dropped
-    for module in modules:
-        module.step(step, plan)
-    lap("optimizer")
-    # The noise uses the position learning rate after this step's decay, as gsplat does (docs/method.md), or the
-    # schedule an ablation puts in its place (strategy/noise.py).
-    refine = strategy.step_post_optimizer(step, model, optimizers,
-                                          noise_lr_at(config.mcmc.noise_schedule, step + 1, plan.steps, plan.optim,
-                                                      scene_radius))
-    lap("strategy")
-    return StepResult(loss=loss_value, train_psnr=train_psnr, refine=refine)
-
-
-def step_kernels(device: torch.device, appearance: str = "none") -> list:
-    """Every Warp kernel a training step launches on `device` (compiled before the first step)."""
-    return (render.training_kernels(device) + losses.training_kernels(device) + optim.training_kernels(device)
-            + appearance_kernels(appearance))
 
 
 class TrainingRun:
@@ -152,6 +48,10 @@ class TrainingRun:
         self.background, self.state, self.init_note = begun.background, begun.state, begun.init_note
         self.planner, self.run_dir, self.control = begun.planner, begun.folder.path, control or Control()
         self.requests = AgreedRequests(self.control, team)  # stop / checkpoint, agreed between the processes
+        state = self.state
+        self.one_step = Step(state.model, state.optimizers, state.strategy, self.config, self.scene.radius,
+                             self.background, self.device, reduce=self.requests.reduce, modules=state.modules,
+                             loss_terms=state.loss_terms)
         self._written_plan = self.plan  # what config.json holds
         self._saved_at = -1  # the step of the last checkpoint written
         self._emit: Listener = lambda event: None
@@ -192,7 +92,7 @@ class TrainingRun:
         try:
             emit(RunStarted(run=self, start_step=self.state.step, init_note=self.init_note))
             self.team.first_on_each_machine(lambda: self._compile_kernels(emit))
-            self.planner.begin(self.state, self.scene, self.background, self.device, train_step)
+            self.planner.begin(self.state, self.scene, self.one_step)
             with StopSignals(self.control) as signals:
                 self._steps(emit)
                 return self._finish(emit, signals)
@@ -224,10 +124,7 @@ class TrainingRun:
                 for index in state.sampler.upcoming(PREFETCH_VIEWS * n)[team.rank::n]:  # decode ahead when images
                     self.scene.train[index].prefetch()                                   # are not all in memory
                 count, scale = state.model.num_gaussians, plan.resolution_at(state.step)
-                done = train_step(state.step, state.model, state.optimizers, state.strategy, view, config=config,
-                                  plan=plan, scene_radius=self.scene.radius, background=self.background,
-                                  device=self.device, reduce=self.requests.reduce, modules=state.modules,
-                                  loss_terms=state.loss_terms, view_index=view_index)
+                done = self.one_step(state.step, view, plan, view_index)
                 if changed(done.refine):
                     emit(RefineDone(step=state.step, report=done.refine))
                 state.step += 1

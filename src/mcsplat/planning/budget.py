@@ -50,7 +50,6 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import torch
 from scipy.optimize import nnls
 
 from ..config import TrainConfig, budget_seconds
@@ -60,7 +59,7 @@ from ..strategy.auto_cap import pixel_ceiling
 from ..strategy.mcmc import prune_to_cap
 from .calibration import timed_steps
 from .plan import Plan
-from .seam import Background, RunState, StepFunction
+from .seam import RunState, RunStep
 from .schedule import PAPER_STEPS, growth_rate_reaching, refine_steps_between, scale_schedules
 
 BALANCE = 2.0                     # balanced_cap: Gaussians' time in a full-size step over the pixels'
@@ -167,13 +166,12 @@ class BudgetPlanner:
         self.first_size = float(record.get("resolution_first", self.plan.resolution_start))
 
     # --------------------------------------------------------------------------------------------- the run
-    def begin(self, state: RunState, scene: Scene, background: Background, device: torch.device,
-              step_function: StepFunction) -> None:
+    def begin(self, state: RunState, scene: Scene, step: RunStep) -> None:
         """Before the clock starts: time a few steps, make the first plan, and cut an initialisation larger than
         it affords."""
         self.strategy = state.strategy  # whether the scene has stopped asking for more (its automatic cap)
-        for seconds, gaussians, scale in timed_steps(self.config, self.plan, state.model, scene, background, device,
-                                                     step_function, start=self.plan.resolution_at(state.step)):
+        for seconds, gaussians, scale in timed_steps(self.config, self.plan, state.model, scene, step,
+                                                     start=self.plan.resolution_at(state.step)):
             self.calibrate(seconds, gaussians, scale)
         self.start(state.step, state.wall_seconds, state.model.num_gaussians)
         if self.config.strategy == "mcmc" and state.step == 0:

@@ -14,14 +14,14 @@ from ..data import Scene
 from ..gaussians import PARAM_KEYS, GaussianModel
 from ..optim import make_optimizers
 from .plan import Plan
-from .seam import Background, StepFunction
+from .seam import RunStep
 from .strategy import make_strategy
 
 CALIBRATION_SMALL, CALIBRATION_LARGE = 2000, 3  # models of 2,000 and of 3x the starting Gaussians are timed
 
 
-def timed_steps(config: TrainConfig, plan: Plan, model: GaussianModel, scene: Scene, background: Background,
-                device: torch.device, step_function: StepFunction, start: float) -> Iterator[tuple[float, int, float]]:
+def timed_steps(config: TrainConfig, plan: Plan, model: GaussianModel, scene: Scene, step: RunStep,
+                start: float) -> Iterator[tuple[float, int, float]]:
     """(seconds, Gaussians, share of the image size) of each timed step, at full size and at `start` (the size the
     run trains at first: at its current step when it resumes); the first step of each size is a warm-up and not
     counted. The run's own model and state are left as they are."""
@@ -31,11 +31,11 @@ def timed_steps(config: TrainConfig, plan: Plan, model: GaussianModel, scene: Sc
         probe = replace(plan, resolution_start=scale, resolution_full_at=1.0, steps=10**9)
         copy = resized(model, gaussians)
         optimizers = make_optimizers(copy, probe.optim, scene.radius)
-        strategy = make_strategy(config, probe, scene.radius, torch.Generator(device).manual_seed(0))
+        strategy = make_strategy(config, probe, scene.radius, torch.Generator(step.device).manual_seed(0))
+        on_copy = step.on(copy, optimizers, strategy)
         for i, view in enumerate(scene.train[:2]):
             tick = time.perf_counter()
-            step_function(0, copy, optimizers, strategy, view, config=config, plan=probe, scene_radius=scene.radius,
-                          background=background, device=device)
+            on_copy(0, view, probe)
             if i:  # the first is a warm-up
                 yield time.perf_counter() - tick, copy.num_gaussians, scale
 

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import torch
 
 from ..config import TrainConfig
 from ..data import Scene
 from ..strategy import Strategy
 from .plan import Plan
 from .processes import for_processes
-from .seam import Background, RunState, StepFunction
+from .seam import RunState, RunStep
 from .schedule import fitted_to_steps, planned_growth_rate
 
 
@@ -42,8 +41,7 @@ class FixedSteps:
     def __init__(self, plan: Plan):
         self.plan = plan
 
-    def begin(self, state: RunState, scene: Scene, background: Background, device: torch.device,
-              step_function: StepFunction) -> None:
+    def begin(self, state: RunState, scene: Scene, step: RunStep) -> None:
         """Nothing to measure before the first step."""
 
     def after_step(self, seconds: float, gaussians: int, scale: float, *, step: int, wall_seconds: float,

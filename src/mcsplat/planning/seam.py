@@ -8,7 +8,6 @@ from typing import Any, Protocol
 
 import torch
 
-from ..config import TrainConfig
 from ..data import Scene
 from ..gaussians import GaussianModel
 from ..strategy import Strategy
@@ -27,12 +26,16 @@ class RunState(Protocol):
     wall_seconds: float
 
 
-class StepFunction(Protocol):
-    """trainer.train_step: one optimisation step."""
+class RunStep(Protocol):
+    """step.Step: the run's optimisation step, and the same step on another model."""
 
-    def __call__(self, step: int, model: GaussianModel, optimizers: dict, strategy: Any, view: Any, *,
-                 config: TrainConfig, plan: Plan, scene_radius: float, background: Background,
-                 device: torch.device) -> Any:
+    device: torch.device
+    background: Background
+
+    def __call__(self, step: int, view: Any, plan: Plan, view_index: int = 0) -> Any:
+        ...
+
+    def on(self, model: GaussianModel, optimizers: dict, strategy: Any) -> RunStep:
         ...
 
 
@@ -42,8 +45,7 @@ class Planner(Protocol):
     plan: Plan  # as it stands: the step and the strategy follow it
     budget_seconds: float | None  # --budget's time (metrics.json has it), or None
 
-    def begin(self, state: RunState, scene: Scene, background: Background, device: torch.device,
-              step_function: StepFunction) -> None:
+    def begin(self, state: RunState, scene: Scene, step: RunStep) -> None:
         """Before the first step (--budget: time a few steps and make the first plan)."""
         ...
 

@@ -1,0 +1,146 @@
+"""One training step: `Step`, built once for a run with what every step shares, then called with what changes from
+step to step, `step(index, view, plan)`.
+
+One step (docs/method.md, "One training step"; in gsplat's order, see strategy/mcmc.py for how the official code
+differs):
+    render a training view (camera and render through the per-image modules, per_image.py: --pose-opt, --appearance)
+    -> loss = the sum of the loss terms (loss_terms.py: 0.8 L1 + 0.2 D-SSIM over the pixels a mask keeps, strategy
+    and module regularizers, the features' terms) -> backward -> strategy.step_post_backward (ADC gradient
+    statistics) -> Adam steps -> strategy.step_post_optimizer (MCMC: relocate / grow every 100 steps, then SGLD
+    noise; ADC: densify / prune)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Callable, Protocol, Sequence
+
+import torch
+
+from . import losses, optim, render
+from .appearance import training_kernels as appearance_kernels
+from .config import TrainConfig
+from .data import View
+from .errors import MCSplatError
+from .gaussians import GaussianModel
+from .loss_terms import LossTerm, StepContext, render_outputs, standard_terms, total_loss
+from .metrics import psnr
+from .optim import means_lr_at, set_means_lr
+from .per_image import PerImageModule
+from .planning import Plan
+from .render import RenderResult
+from .strategy import Strategy
+from .strategy.base import RefineReport
+from .strategy.noise import noise_lr_at
+
+
+@dataclass
+class StepResult:
+    loss: float
+    train_psnr: float
+    refine: RefineReport  # what the strategy did after the optimizer step
+
+
+Reduce = Callable[[GaussianModel, list[float]], list[float]]
+
+
+def _alone(model: GaussianModel, values: list[float]) -> list[float]:
+    return values
+
+
+class StepPhases(Protocol):
+    """Told where a step is: benchmarks/train_speed.py times the phases with it (the trainer passes none)."""
+
+    def rendered(self, result: RenderResult) -> None:
+        """After render(), before the loss."""
+        ...
+
+    def lap(self, phase: str) -> None:
+        """The work since the previous mark was `phase`: other, render, loss, backward, strategy, reduce,
+        optimizer."""
+        ...
+
+
+@dataclass
+class Step:
+    """What every step of a run shares: the model, its Adam, the strategy, the options, the scene's radius and
+    background, the device; `reduce(model, [loss, psnr])` runs between the backward and the Adam step (with several
+    processes it averages the gradients and the two values, distributed/team.py); each of `modules` sees the
+    view's camera and render, in order, and takes its own step after the scene's; the loss is the sum of
+    `loss_terms` (by default loss_terms.standard_terms: photometric, the strategy's, each module's); `phases`, when
+    given, is told where each step is. The model's parameters and Adam's state change as the run goes (row surgery
+    replaces them in place in `model.params` and the optimizers), never the objects themselves."""
+
+    model: GaussianModel
+    optimizers: dict[str, torch.optim.Optimizer]
+    strategy: Strategy
+    config: TrainConfig
+    scene_radius: float
+    background: tuple[float, float, float] | torch.Tensor
+    device: torch.device
+    reduce: Reduce = _alone
+    modules: Sequence[PerImageModule] = ()
+    loss_terms: Sequence[LossTerm] | None = None
+    phases: StepPhases | None = None
+
+    def on(self, model: GaussianModel, optimizers: dict, strategy: Strategy) -> Step:
+        """The same step on another model, alone and without the run's modules and terms (--budget times throwaway
+        copies of the run's model with it, leaving the run's own state as it is)."""
+        return dataclasses.replace(self, model=model, optimizers=optimizers, strategy=strategy, reduce=_alone,
+                                   modules=(), loss_terms=None, phases=None)
+
+    def __call__(self, step: int, view: View, plan: Plan, view_index: int = 0) -> StepResult:
+        """Step `step` on training view `view` (index `view_index` of the scene's, for the per-image modules), as
+        `plan` has it at this step (learning rates, resolution, SH degree; the strategy follows the plan's
+        schedule)."""
+        model, optimizers, strategy, modules = self.model, self.optimizers, self.strategy, self.modules
+        lap = self.phases.lap if self.phases is not None else (lambda phase: None)
+        set_means_lr(optimizers, means_lr_at(step, plan.steps, plan.optim, self.scene_radius))
+        camera = view.camera_at(plan.resolution_at(step)).to(self.device)  # coarse to fine, when configured
+        for module in modules:
+            camera = module.camera(view_index, camera)
+        target = view.image_float(self.device, size=(camera.width, camera.height))
+        keep = view.mask_float(self.device, size=(camera.width, camera.height))  # None unless the scene has masks
+        terms = self.loss_terms
+        if terms is None:
+            terms = standard_terms(self.config.ssim_weight, strategy, modules)
+        lap("other")
+        result = render.render(model, camera, self.background, plan.sh_degree_at(step),
+                               **render_outputs(terms, step, plan.steps))
+        lap("render")
+        rgb = result.rgb
+        for module in modules:
+            rgb = module.apply(view_index, rgb)
+        loss = total_loss(terms, StepContext(step, view, view_index, camera, rgb, target, keep, model, result,
+                                             plan.steps))
+        lap("loss")
+        if self.phases is not None:
+            self.phases.rendered(result)
+        loss.backward()
+        lap("backward")
+        strategy.step_post_backward(step, model, result, camera.width, camera.height)
+        lap("strategy")
+        loss_value, train_psnr = self.reduce(model, [loss.item(), psnr(rgb.detach(), target)])
+        if not math.isfinite(loss_value):  # checked after the reduce, so that every process stops at the same step
+            raise MCSplatError(f"step {step}: the loss became {loss_value}; lower the learning rates or the loss "
+                               f"terms' weights (--surface-*, --appearance-*, --*depth*), or check the input images")
+        lap("reduce")
+        optim.step_optimizers(optimizers)  # and the gradients dropped
+        for module in modules:
+            module.step(step, plan)
+        lap("optimizer")
+        # The noise uses the position learning rate after this step's decay, as gsplat does (docs/method.md), or
+        # the schedule an ablation puts in its place (strategy/noise.py).
+        refine = strategy.step_post_optimizer(step, model, optimizers,
+                                              noise_lr_at(self.config.mcmc.noise_schedule, step + 1, plan.steps,
+                                                          plan.optim, self.scene_radius))
+        lap("strategy")
+        return StepResult(loss=loss_value, train_psnr=train_psnr, refine=refine)
+
+
+def step_kernels(device: torch.device, appearance: str = "none") -> list:
+    """Every Warp kernel a training step launches on `device` (compiled before the first step)."""
+    return (render.training_kernels(device) + losses.training_kernels(device) + optim.training_kernels(device)
+            + appearance_kernels(appearance))
