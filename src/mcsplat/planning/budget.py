@@ -60,7 +60,7 @@ from ..strategy.mcmc import prune_to_cap
 from .calibration import timed_steps
 from .plan import Plan
 from .seam import RunState, RunStep
-from .schedule import PAPER_STEPS, growth_rate_reaching, refine_steps_between, scale_schedules
+from .schedule import PAPER_STEPS, growth_rate_reaching, refine_steps_between
 
 BALANCE = 2.0                     # balanced_cap: Gaussians' time in a full-size step over the pixels'
 MIN_STEPS, MAX_STEPS = 1000, 30_000  # the cap leaves at least MIN_STEPS; the search for steps stops at 10 x MAX
@@ -347,7 +347,7 @@ class BudgetPlanner:
 
     def _fitted(self, steps: int) -> Plan:
         """The plan's base schedules fitted to `steps` (the SH schedule kept once the degree has risen)."""
-        fitted = scale_schedules(replace(self.plan.with_schedule(self.base), steps=steps), steps, PAPER_STEPS)
+        fitted = replace(self.plan.with_schedule(self.base), steps=steps).scaled(steps, PAPER_STEPS)
         return replace(fitted, sh_increase_every=self.plan.sh_increase_every) if self.sh_fixed else fitted
 
     def _apply(self, choice: Choice, step: int) -> None:

@@ -9,7 +9,7 @@ of it, and config.json and the checkpoint keep it beside the options (config_fil
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any, Mapping
 
 from ..config import RESOLUTION_FULL_AT, TrainConfig, to_jsonable
@@ -17,14 +17,15 @@ from ..config_types import checked_dataclass
 from ..optim import OptimConfig
 from ..strategy import ADCSchedule, MCMCSchedule
 
+# The strategies' schedules, by the group config.json keeps each in: the plan holds one of each, fitted alike.
+SCHEDULES = {"mcmc": MCMCSchedule, "adc": ADCSchedule}
 # The schedule values each plan fits to its steps, named as config.json names them (--budget keeps the values it
-# started from under these keys, its "base").
-SCHEDULE_KEYS = ("sh_increase_every", "mcmc.refine_start", "mcmc.refine_stop", "mcmc.refine_every",
-                 "adc.densify_start", "adc.densify_stop", "adc.densify_every", "adc.reset_every", "mcmc.grow_rate",
-                 "mcmc.param_noise_decay")
+# started from under these keys, its "base"): the SH increase, and each strategy's scheduled fields (their metadata).
+SCHEDULE_KEYS = ("sh_increase_every",) + tuple(f"{group}.{f.name}" for group, cls in SCHEDULES.items()
+                                               for f in fields(cls) if "schedule" in f.metadata)
 # What a --budget run plans again as it goes: config.json may hold another plan than the one its checkpoint took.
-REPLANNED_KEYS = frozenset(("steps", "mcmc.cap_max", "adc.cap_max", "resolution_start", "resolution_full_at")
-                           + SCHEDULE_KEYS)
+REPLANNED_KEYS = frozenset(("steps", "resolution_start", "resolution_full_at", *SCHEDULE_KEYS)
+                           + tuple(f"{group}.cap_max" for group in SCHEDULES))
 
 
 @dataclass(frozen=True)
@@ -61,33 +62,38 @@ class Plan:
     def from_record(cls, record: Any, source: str = "config.json") -> Plan:
         """The plan that `record()` wrote (a value of another type, a key missing or unknown: one line naming it)."""
         return checked_dataclass(cls, record, source, "plan.", complete=True,
-                                 nested={"mcmc": MCMCSchedule, "adc": ADCSchedule, "optim": OptimConfig})
+                                 nested={**SCHEDULES, "optim": OptimConfig})
+
+    def schedules(self) -> dict[str, MCMCSchedule | ADCSchedule]:
+        """Each strategy's schedule, by its group's name."""
+        return {group: getattr(self, group) for group in SCHEDULES}
 
     def schedule_entries(self) -> dict[str, Any]:
         """The SCHEDULE_KEYS values of the plan."""
-        m, a = self.mcmc, self.adc
-        return {"sh_increase_every": self.sh_increase_every, "mcmc.refine_start": m.refine_start,
-                "mcmc.refine_stop": m.refine_stop, "mcmc.refine_every": m.refine_every,
-                "adc.densify_start": a.densify_start, "adc.densify_stop": a.densify_stop,
-                "adc.densify_every": a.densify_every, "adc.reset_every": a.reset_every, "mcmc.grow_rate": m.grow_rate,
-                "mcmc.param_noise_decay": m.param_noise_decay}
+        return {"sh_increase_every": self.sh_increase_every,
+                **{f"{group}.{name}": value for group, schedule in self.schedules().items()
+                   for name, value in schedule.entries().items()}}
 
     def with_schedule(self, entries: Mapping[str, Any]) -> Plan:
         """The plan with the schedule values `entries` gives (all of SCHEDULE_KEYS)."""
-        e = entries
-        mcmc = replace(self.mcmc, refine_start=e["mcmc.refine_start"], refine_stop=e["mcmc.refine_stop"],
-                       refine_every=e["mcmc.refine_every"], grow_rate=e["mcmc.grow_rate"],
-                       param_noise_decay=e["mcmc.param_noise_decay"])
-        adc = replace(self.adc, densify_start=e["adc.densify_start"], densify_stop=e["adc.densify_stop"],
-                      densify_every=e["adc.densify_every"], reset_every=e["adc.reset_every"])
-        return replace(self, sh_increase_every=e["sh_increase_every"], mcmc=mcmc, adc=adc)
+        changed = {group: schedule.with_entries({name: entries[f"{group}.{name}"] for name in schedule.entries()})
+                   for group, schedule in self.schedules().items()}
+        return replace(self, sh_increase_every=entries["sh_increase_every"], **changed)
+
+    def scaled(self, numerator: int, denominator: int) -> Plan:
+        """The plan with every step schedule multiplied by numerator / denominator, as each field's kind says
+        (strategy/base.py: intervals stay at least one step, decays keep their decay over the run). The steps are
+        not among them, nor the position learning rate, whose decay follows the steps."""
+        every = max(1, round(self.sh_increase_every * numerator / denominator))
+        return replace(self, sh_increase_every=every, **{group: schedule.scaled(numerator, denominator)
+                                                        for group, schedule in self.schedules().items()})
 
     def entries(self) -> dict[str, Any]:
         """The plan's values under the options' keys ("mcmc.cap_max"): the places they take in the older layout of
         config.json, and in the settings compared on resume (config_file.options_with_plan)."""
         return {"steps": self.steps, **self.schedule_entries(), "resolution_start": self.resolution_start,
-                "resolution_full_at": self.resolution_full_at, "mcmc.cap_max": self.mcmc.cap_max,
-                "adc.cap_max": self.adc.cap_max}
+                "resolution_full_at": self.resolution_full_at,
+                **{f"{group}.cap_max": schedule.cap_max for group, schedule in self.schedules().items()}}
 
     def schedule_for(self, strategy: str) -> MCMCSchedule | ADCSchedule:
         """The part of the plan the strategy named `strategy` follows."""

@@ -15,7 +15,6 @@ import math
 from dataclasses import replace
 
 from .plan import Plan
-from .schedule import scale_schedules
 
 LEARNING_RATES = ("means_lr", "means_lr_final", "sh0_lr", "shN_lr", "opacity_lr", "scales_lr", "quats_lr")
 
@@ -28,5 +27,5 @@ def for_processes(plan: Plan, world_size: int) -> Plan:
     rates = {name: getattr(optim, name) * factor for name in LEARNING_RATES}
     scaled_optim = replace(optim, **rates, eps=optim.eps / factor,
                            betas=tuple(max(0.0, 1.0 - world_size * (1.0 - beta)) for beta in optim.betas))
-    return replace(scale_schedules(plan, 1, world_size), steps=math.ceil(plan.steps / world_size),  # at least the
+    return replace(plan.scaled(1, world_size), steps=math.ceil(plan.steps / world_size),  # at least the
                    optim=scaled_optim, world_size=world_size)                                     # views asked for

@@ -9,35 +9,14 @@ rate's decay always spans the run's own steps.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 from .plan import Plan
 
 PAPER_STEPS = 30_000
 
 
-def scale_schedules(plan: Plan, numerator: int, denominator: int) -> Plan:
-    """`plan` with every step schedule multiplied by numerator / denominator (intervals stay at least one step). The
-    steps are not among them, nor the position learning rate, whose decay follows the steps."""
-
-    def every(steps: int) -> int:
-        return max(1, round(steps * numerator / denominator))
-
-    def at(step: int) -> int:
-        return round(step * numerator / denominator)
-
-    m, a = plan.mcmc, plan.adc
-    mcmc = replace(m, refine_start=at(m.refine_start), refine_stop=at(m.refine_stop),
-                   refine_every=every(m.refine_every),
-                   param_noise_decay=m.param_noise_decay ** (denominator / numerator))  # the same decay over the run
-    adc = replace(a, densify_start=at(a.densify_start), densify_stop=at(a.densify_stop),
-                  densify_every=every(a.densify_every), reset_every=every(a.reset_every))
-    return replace(plan, sh_increase_every=every(plan.sh_increase_every), mcmc=mcmc, adc=adc)
-
-
 def fitted_to_steps(plan: Plan) -> Plan:
     """`plan` with the paper's schedules (its values) fitted to its steps."""
-    return scale_schedules(plan, plan.steps, PAPER_STEPS)
+    return plan.scaled(plan.steps, PAPER_STEPS)
 
 
 def planned_growth_rate(plan: Plan, growth_share: float, num_initial: int, cap: int) -> float:

@@ -29,7 +29,7 @@ Differences from the reference code (graphdeco-inria/gaussian-splatting):
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Mapping
 
 import torch
@@ -37,7 +37,7 @@ import torch
 from ..gaussians import PARAM_KEYS, GaussianModel
 from ..geometry.rotation import quaternion_to_rotation
 from ..optim import append_rows, remove_rows, set_rows, zero_moments
-from .base import ALONE, RefineReport, l1_regularizers
+from .base import ALONE, AT_STEP, EVERY, RefineReport, Schedule, l1_regularizers
 from .screen_gradients import ScreenGradients
 
 __all__ = ["ADCConfig", "ADCSchedule", "ADCStrategy", "ADCReport"]
@@ -93,14 +93,14 @@ class ADCConfig:
 
 
 @dataclass(frozen=True)
-class ADCSchedule:
+class ADCSchedule(Schedule):
     """When ADC densifies and resets opacities, and its budget: what a run's plan decides (the options' values fitted
     to the run's length, a planned cap; mcsplat.planning)."""
 
-    densify_start: int = 500
-    densify_stop: int = 15_000
-    densify_every: int = 100
-    reset_every: int = 3000
+    densify_start: int = field(default=500, metadata=AT_STEP)
+    densify_stop: int = field(default=15_000, metadata=AT_STEP)
+    densify_every: int = field(default=100, metadata=EVERY)
+    reset_every: int = field(default=3000, metadata=EVERY)
     cap_max: int | None = None
 
     @classmethod

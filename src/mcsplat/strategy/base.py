@@ -25,7 +25,43 @@ import torch
 
 from ..gaussians import GaussianModel
 
-__all__ = ["Strategy", "Collective", "ALONE", "RefineReport", "asks_the_scene", "changed", "l1_regularizers"]
+__all__ = ["Strategy", "Collective", "ALONE", "RefineReport", "Schedule", "AT_STEP", "EVERY", "DECAY", "PLANNED",
+           "asks_the_scene", "changed", "l1_regularizers"]
+
+# What a field of a strategy's schedule is, as its metadata: how a run's plan fits it to the run's length (a run of N
+# steps takes the paper's 30,000-step values times N / 30,000: planning/schedule.py) and plans it again (--budget).
+AT_STEP = {"schedule": "at step"}  # a step of the run: scaled and rounded
+EVERY = {"schedule": "every"}  # an interval: scaled, rounded, at least one step
+DECAY = {"schedule": "decay"}  # a factor per step: raised to the inverse scale, the same decay over the run
+PLANNED = {"schedule": "planned"}  # planned with the others (a growth rate), not scaled
+
+
+class Schedule:
+    """A strategy's schedule (a frozen dataclass whose fields say what they are in their metadata): it scales and
+    lists itself, so that the plan (planning/) handles any strategy's the same way."""
+
+    def scaled(self, numerator: int, denominator: int) -> Any:
+        """Every scheduled field times numerator / denominator, as its kind says (the others as they are)."""
+        def value(f: Any) -> Any:
+            kind, current = f.metadata.get("schedule"), getattr(self, f.name)
+            if kind == "at step":
+                return round(current * numerator / denominator)
+            if kind == "every":
+                return max(1, round(current * numerator / denominator))
+            if kind == "decay":
+                return current ** (denominator / numerator)
+            return current
+
+        return type(self)(**{f.name: value(f) for f in fields(self)})
+
+    def entries(self) -> dict[str, Any]:
+        """The scheduled fields' values, by name (what --budget plans again)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if "schedule" in f.metadata}
+
+    def with_entries(self, values: Mapping[str, Any]) -> Any:
+        """The schedule with the scheduled fields of `values`."""
+        return type(self)(**{f.name: values.get(f.name, getattr(self, f.name)) if "schedule" in f.metadata
+                             else getattr(self, f.name) for f in fields(self)})
 
 
 class Collective(Protocol):

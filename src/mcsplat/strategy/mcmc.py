@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Callable, ClassVar, Literal, Mapping
 
 import torch
@@ -37,7 +37,7 @@ from ..gaussians import DEAD_OPACITY, PARAM_KEYS, GaussianModel
 from ..optim import append_rows, copy_rows, remove_rows, set_rows, zero_moments
 from .auto_cap import (DEFAULT_DEMAND_SHARE, DEFAULT_DEMAND_THRESHOLD, DEFAULT_GAUSSIANS_PER_PIXEL, growth_demand,
                        pixel_ceiling)
-from .base import ALONE, RefineReport, l1_regularizers
+from .base import ALONE, AT_STEP, DECAY, EVERY, PLANNED, RefineReport, Schedule, l1_regularizers
 from .noise import (NOISE_GATE_CENTER, NOISE_GATE_K, NOISE_SCHEDULES, NoiseSchedule, inject_parameter_noise,
                     inject_position_noise, noise_gate)
 from .health import HEALTH_LEVELS, SeenWindow, refine_health
@@ -130,16 +130,16 @@ class MCMCConfig:
 
 
 @dataclass(frozen=True)
-class MCMCSchedule:
+class MCMCSchedule(Schedule):
     """When MCMC refines, up to how many Gaussians and how fast it grows: what a run's plan decides (the options'
     values fitted to the run's length, a planned cap and growth rate; mcsplat.planning)."""
 
-    refine_start: int = 500
-    refine_stop: int = 25_000
-    refine_every: int = 100
+    refine_start: int = field(default=500, metadata=AT_STEP)
+    refine_stop: int = field(default=25_000, metadata=AT_STEP)
+    refine_every: int = field(default=100, metadata=EVERY)
     cap_max: int = 1_000_000
-    grow_rate: float = 1.05
-    param_noise_decay: float = 0.9995
+    grow_rate: float = field(default=1.05, metadata=PLANNED)
+    param_noise_decay: float = field(default=0.9995, metadata=DECAY)
 
     @classmethod
     def of(cls, config: MCMCConfig) -> "MCMCSchedule":
