@@ -13,7 +13,7 @@ synthetic scenes) from the default 100,000 random points, into results/depth_acc
 then scored at the full 400x400 on every test view: the dataset's depth (8-bit renders decoded as in
 shared/data/nerf_synthetic_lego_400/SOURCE.md: about 0.009 units of noise a pixel, one 8-bit step is 0.031) against
 the model's median depth (what the mesh export fuses), its alpha-weighted mean depth and the depth of its composited
-planes (render(planar_depth=True), what --surface's normal term differentiates), over the pixels where both
+planes (render(outputs={"planar_depth"}), what --surface's normal term differentiates), over the pixels where both
 see the object (the truth's depth above 0 and the model's alpha at least 0.5). Printed per arm: the median and 90th
 percentile of the absolute z error, the share of pixels within 0.02 units, the bias (the median of the signed error:
 positive where the model's surface lies behind the truth), the share of the truth's object pixels the model covers,
@@ -129,7 +129,8 @@ def score(run: Path, views) -> tuple[dict, dict]:
     maps = {}
     for index, view in enumerate(views):
         truth = view.attachment("depth")[..., 0]
-        out = render(trained.model, view.camera, None, trained.sh_degree, median_depth=True, planar_depth=True)
+        out = render(trained.model, view.camera, None, trained.sh_degree,
+                     outputs={"median_depth", "planar_depth"})
         both = (truth > 0) & (out.alpha >= ALPHA_SEEN)
         seen += int((truth > 0).sum())
         covered += int(both.sum())

@@ -226,7 +226,7 @@ def depth_agreement(trained, vertices: np.ndarray, faces: np.ndarray) -> dict:
     v, f = torch.from_numpy(vertices).float(), torch.from_numpy(faces)
     agreeing = covered = surface = 0
     for view in views:
-        splats = render(trained.model, view.camera, None, trained.sh_degree, median_depth=True)
+        splats = render(trained.model, view.camera, None, trained.sh_degree, outputs={"median_depth"})
         drawn = rasterize(v, f, view.camera).depth
         shown = splats.alpha >= 0.5
         both = shown & torch.isfinite(drawn)

@@ -49,7 +49,7 @@ def signed_differences(run: Path) -> tuple[np.ndarray, float]:
     kept = []
     for view in scene.train[::VIEW_STRIDE]:
         camera = view.camera
-        out = render(trained.model, camera, median_depth=True)
+        out = render(trained.model, camera, outputs={"median_depth"})
         local = camera.to_camera_space(points)
         z = local[:, 2]
         u, v, inside = camera.pixels_of(local)

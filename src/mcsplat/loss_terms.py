@@ -52,14 +52,14 @@ class LossTerm(Protocol):
         ...
 
 
-def render_outputs(terms: Sequence[LossTerm], step: int = 0, steps: int = 0) -> dict[str, bool]:
-    """render()'s keywords for the optional outputs the terms read at `step` (`normals=True`, ...): none for the
+def render_outputs(terms: Sequence[LossTerm], step: int = 0, steps: int = 0) -> frozenset[str]:
+    """The outputs a render gives on request (render(outputs=...)) that the terms read at `step`: none for the
     standard loss."""
     wanted: set[str] = set()
     for term in terms:
         outputs = getattr(term, "render_outputs", ())
         wanted.update(outputs(step, steps) if callable(outputs) else outputs)
-    return {name: True for name in sorted(wanted)}
+    return frozenset(wanted)
 
 
 class Photometric:

@@ -108,7 +108,7 @@ class Step:
             terms = standard_terms(self.config.ssim_weight, strategy, modules)
         lap("other")
         result = render.render(model, camera, self.background, plan.sh_degree_at(step),
-                               **render_outputs(terms, step, plan.steps))
+                               outputs=render_outputs(terms, step, plan.steps))
         lap("render")
         rgb = result.rgb
         for module in modules:

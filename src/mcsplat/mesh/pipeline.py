@@ -93,7 +93,7 @@ def surface_of_view(model: GaussiansLike, camera: Camera, alpha_min: float, sh_d
     view."""
     planar = which == "planar"
     # Black background: rgb is the foreground.
-    out = render(model, camera, None, sh_degree, median_depth=not planar, planar_depth=planar)
+    out = render(model, camera, None, sh_degree, outputs={"planar_depth" if planar else "median_depth"})
     surface = out.planar_depth if planar else out.median_depth
     depth = torch.where((out.alpha >= alpha_min) & (surface > 0), surface, torch.full_like(surface, -float("inf")))
     rgb = out.rgb / out.alpha.clamp(min=1e-6)[..., None]

@@ -13,7 +13,7 @@ constants.py.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, Sequence
+from typing import Collection, Protocol, Sequence
 
 import torch
 
@@ -22,9 +22,7 @@ from ..compute.runtime import cpu_threads, ensure_warp, set_cpu_threads
 from ..geometry.sh import degree_from_bases
 from .bin.warp_kernels import TileBins
 from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
-from .outputs.distortion import distortion_from_sums, inverse_depths
-from .outputs.median import median_depth as _median_depth
-from .outputs.normals import depth_from_planes, gaussian_normals, plane_distances
+from .outputs.passes import PassInputs, passes_for
 from .paths import RenderPath, current_render_path
 
 __all__ = ["render", "RenderResult", "Splats", "GaussiansLike", "set_cpu_threads", "cpu_threads", "ensure_warp",
@@ -66,21 +64,18 @@ class RenderResult:
     depths: torch.Tensor       # [N] camera-space z of each Gaussian
     contributed: torch.Tensor  # [N] bool: the Gaussian was composited into at least one pixel
     num_pairs: int             # (tile, Gaussian) intersections
-    # [H, W] with render(median_depth=True), else None: the depth along the pixel's ray where the Gaussian at which
-    # the accumulated alpha first reaches 0.5 (the last one composited where it never does) is densest; 0 where none
-    # is composited. No gradient. See outputs/median.py.
+    # The outputs given only when asked (render(outputs={...}); outputs/passes.py), else None:
+    # [H, W] "median_depth": the depth along the pixel's ray where the Gaussian at which the accumulated alpha first
+    # reaches 0.5 (the last one composited where it never does) is densest; 0 where none is composited. No gradient.
     median_depth: torch.Tensor | None = None
-    # [H, W, 3] with render(normals=True), else None: each Gaussian's camera-space normal (its shortest axis, facing
-    # the camera) composited like the colour over zero, with gradients. A second compositing pass, so that a render
-    # without it costs nothing more. See outputs/normals.py.
+    # [H, W, 3] "normals": each Gaussian's camera-space normal (its shortest axis, facing the camera) composited like
+    # the colour over zero, with gradients. A second compositing pass.
     normal: torch.Tensor | None = None
-    # [H, W] with render(planar_depth=True), else None: where each pixel's ray meets the plane of its composited normal
-    # and plane distance (PGSR's unbiased depth), with gradients; 0 where none. The plane distances ride in the
-    # normal map's pass.
+    # [H, W] "planar_depth": where each pixel's ray meets the plane of its composited normal and plane distance
+    # (PGSR's unbiased depth), with gradients; 0 where none. The plane distances ride in the normal map's pass.
     planar_depth: torch.Tensor | None = None
-    # [H, W] with render(distortion=True), else None: 2DGS's depth distortion, sum over the pixel's pairs of
-    # Gaussians of w_i w_j (1/z_i - 1/z_j)^2 (units^-2), with gradients. A compositing pass of its own.
-    # outputs/distortion.py.
+    # [H, W] "distortion": 2DGS's depth distortion, sum over the pixel's pairs of Gaussians of w_i w_j (1/z_i -
+    # 1/z_j)^2 (units^-2), with gradients. A compositing pass of its own.
     distortion: torch.Tensor | None = None
 
     @property
@@ -90,17 +85,16 @@ class RenderResult:
 
 
 def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float] | torch.Tensor | None = None,
-           sh_degree: int | None = None, *, near: float = NEAR_PLANE, far: float = FAR_PLANE,
-           eps2d: float = LOW_PASS, opacity_aware_radius: bool = False, path: RenderPath | None = None,
-           median_depth: bool = False, antialiased: bool | None = None, normals: bool = False,
-           planar_depth: bool = False, distortion: bool = False) -> RenderResult:
-    """Render one view. `sh_degree` None uses every SH coefficient given; `background` defaults to black; `path`
-    the stages to run (default: current_render_path(), the kernels unless a caller chose otherwise); `median_depth`
-    also gives the median depth (forward kernels of their own, so that a render without it costs nothing more);
-    `antialiased` draws with Mip-Splatting's 2D filter (None: as the Gaussians' own `antialiased` flag says);
-    `normals` also gives the normal map (a second compositing pass, differentiable), `planar_depth` the depth of the
-    composited planes (in the same pass; outputs/normals.py), `distortion` 2DGS's depth distortion (a pass of its own;
-    outputs/distortion.py)."""
+           sh_degree: int | None = None, *, outputs: Collection[str] = (), near: float = NEAR_PLANE,
+           far: float = FAR_PLANE, eps2d: float = LOW_PASS, opacity_aware_radius: bool = False,
+           path: RenderPath | None = None, antialiased: bool | None = None) -> RenderResult:
+    """Render one view. `sh_degree` None uses every SH coefficient given; `background` defaults to black; `outputs`
+    the outputs given only on request, besides the colour, alpha and depth ("median_depth", "normals",
+    "planar_depth", "distortion": outputs/passes.py, each a pass that a render without it does not run); `path`
+    the stages to run (default: current_render_path(), the kernels unless a caller chose otherwise); `antialiased`
+    draws with Mip-Splatting's 2D filter (None: as the Gaussians' own `antialiased` flag says)."""
+    asked = frozenset(outputs)
+    passes = passes_for(asked)
     stages = path or current_render_path()
     means, quats, scales, opacities = gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities
     sh, sh_rest = _sh_arrays(gaussians)
@@ -127,33 +121,21 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
     tiles_y = -(-camera.height // TILE_SIZE)
     bins: TileBins = stages.bin(projection.tile_min, projection.tile_max, projection.depths, projection.radii,
                                 tiles_x, tiles_y, means2d=means2d, alpha_extent=projection.alpha_extent)
+    with_median = any(output_pass.needs_median_ids for output_pass in passes)
     rgb, alpha, depth_sum, contributed, *median_ids = stages.composite(
         means2d, projection.conics, opacities, colors, projection.depths, bg, bins, camera.width, camera.height,
-        **({"median_gaussian": True} if median_depth else {}))
+        **({"median_gaussian": True} if with_median else {}))
     depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))
-    median = _median_depth(median_ids[0], means, quats, scales, camera) if median_depth else None
 
     def composited(values: torch.Tensor, scalars: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(sum w_i values_i [H, W, 3], alpha, sum w_i scalars_i) with the colour's weights, over zero."""
         return stages.composite(means2d, projection.conics, opacities, values, scalars, torch.zeros_like(bg), bins,
                                 camera.width, camera.height)[:3]
 
-    normal = planes = spread = None
-    if normals or planar_depth:
-        each = gaussian_normals(means, quats, scales, camera)
-        distances = plane_distances(each, means, camera) if planar_depth else torch.zeros_like(opacities)
-        normal, _, distance_map = composited(each, distances)
-        if planar_depth:
-            planes = depth_from_planes(normal, distance_map, camera)
-    if distortion:
-        inverse = inverse_depths(means, camera, near)
-        sums, weight, _ = composited(torch.stack([inverse, inverse * inverse, torch.zeros_like(inverse)], dim=-1),
-                                     torch.zeros_like(inverse))
-        spread = distortion_from_sums(weight, sums[..., 0], sums[..., 1])
+    inputs = PassInputs(means, quats, scales, opacities, camera, near, composited,
+                        median_ids[0] if with_median else None)
+    given = {field: value for output_pass in passes for field, value in output_pass.run(inputs, asked).items()}
     return RenderResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=projection.radii,
-                        depths=projection.depths, contributed=contributed, num_pairs=bins.num_pairs,
-                        median_depth=median, normal=normal if normals else None, planar_depth=planes,
-                        distortion=spread)
+                        depths=projection.depths, contributed=contributed, num_pairs=bins.num_pairs, **given)
 
 
 def _sh_arrays(gaussians: GaussiansLike) -> tuple[torch.Tensor, torch.Tensor | None]:

@@ -1,5 +1,5 @@
-"""2DGS's depth distortion: how far apart in depth the Gaussians a pixel composites lie, what render(distortion=True)
-gives and what --surface-distortion pulls down.
+"""2DGS's depth distortion: how far apart in depth the Gaussians a pixel composites lie, what
+render(outputs={"distortion"}) gives and what --surface-distortion pulls down.
 
 For a pixel with compositing weights w_i and mapped depths m_i (front to back), 2DGS's term is
 

@@ -1,4 +1,4 @@
-"""Each Gaussian's normal in camera space: what render(normals=True) composites into a normal map.
+"""Each Gaussian's normal in camera space: what render(outputs={"normals"}) composites into a normal map.
 
 A Gaussian pulled flat toward a surface element (2DGS, PGSR) has its shortest axis across the surface, so that axis
 is its normal. It is turned to face the camera (a surface is seen from its front), then composited with the same
