@@ -73,7 +73,7 @@ def export_all(run: Path, files: Path) -> list[dict]:
 
 
 def splat_transform_cli() -> list[str] | None:
-    """The command that runs splat-transform (as tests/test_export_gltf.py finds npm packages), None without it."""
+    """The command that runs splat-transform (as tests/export/test_gltf.py finds npm packages), None without it."""
     if shutil.which("node") is None or shutil.which("npm") is None:
         return None
     root = Path(subprocess.run(["npm", "root", "-g"], capture_output=True, text=True, timeout=60).stdout.strip())

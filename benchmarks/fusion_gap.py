@@ -131,7 +131,7 @@ def fuse(grid, cameras, depths, colours, free_weight: float = 1.0):
 def volume_figures(volume, points: torch.Tensor, has_depth: np.ndarray) -> dict:
     """The fused volume at the SfM points: inside the grid, observed (all 8 surrounding grid points), within the
     band, and |signed distance| (world units, at most the band) of the points the depth has."""
-    from mcsplat.mesh.surface import trilinear
+    from mcsplat.mesh.marching_cubes import trilinear
 
     grid = volume.grid
     position = ((points.double() - torch.tensor(grid.origin, dtype=torch.float64)) / grid.voxel_size).float()
@@ -171,7 +171,7 @@ def our_mesh(volume) -> tuple:
 
     from mcsplat.mesh.clean import drop_small_pieces
     from mcsplat.mesh import MeshOptions
-    from mcsplat.mesh.surface import zero_surface
+    from mcsplat.mesh.marching_cubes import zero_surface
 
     vertices, faces, colours = zero_surface(volume)
     mesh = trimesh.Trimesh(vertices=vertices, faces=faces, vertex_colors=colours)

@@ -61,8 +61,8 @@ LEAST_SECONDS = {"tests": 30, "parity": 60, "kernels": 20, "profile": 20, "lego"
 # The training PSNR the parity phase reports at these steps (the log has it every 100 steps).
 PARITY_STEPS = (100, 500, 1000, 2500, 5000, 10000, 15000, 20000, 25000, 30000)
 # The lego and capture phases are the end-to-end training runs on the GPU (their test PSNR beside gsplat's).
-TEST_FILES = ["tests/test_render_tile.py", "tests/test_render.py", "tests/test_render_kernels.py",
-              "tests/test_ssim_warp.py"]
+TEST_FILES = ["tests/render/test_composite_tiles.py", "tests/render/test_render.py",
+              "tests/render/test_warp_kernels.py", "tests/training/test_ssim_warp.py"]
 
 
 class Clock:

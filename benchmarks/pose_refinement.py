@@ -71,15 +71,16 @@ def arms(options: Options) -> list[Arm]:
 
 
 def perturbed_copy(options: Options, target: Path) -> dict[str, list[float]]:
-    """The cup with its training poses moved, as tests/test_pose_refinement.py moves them (tests/helpers.py), made
-    once for these --degrees and --radius-share; each moved image's rotation vector (radians)."""
+    """The cup with its training poses moved, as tests/training/test_pose_refinement.py moves them
+    (tests/support/helpers.py), made once for these --degrees and --radius-share; each moved image's rotation vector
+    (radians)."""
     from mcsplat.data import load_scene
 
     asked = {"degrees": options.degrees, "radius_share": options.radius_share, "downscale": options.downscale}
     made = target / "moved.json"
     if made.is_file() and json.loads(made.read_text())["asked"] == asked:
         return json.loads(made.read_text())["moved"]
-    sys.path.insert(0, str(C.REPO / "tests"))
+    sys.path.insert(0, str(C.REPO / "tests" / "support"))
     from helpers import perturbed_cup
 
     scene = load_scene(options.common.data_root / CUP, downscale=options.downscale)

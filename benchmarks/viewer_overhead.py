@@ -1,8 +1,8 @@
 """Training speed with the live viewer open in a browser against without it (issue 12: at least 80%).
 
 Trains the bundled lego demo with the `make demo` model size twice, the same steps and seed: once alone, once with
-the viewer serving a headless Chromium (tests/browser.py) that stays connected, so that the viewer re-renders the
-changing model all the time at its bounded rate. Speed is wall-clock steps per second after a warm-up. On a machine
+the viewer serving a headless Chromium (tests/support/browser.py) that stays connected, so that the viewer re-renders
+the changing model all the time at its bounded rate. Speed is wall-clock steps per second after a warm-up. On a machine
 without a GPU the browser's software WebGL also takes CPU from training, so this is a pessimistic figure.
 
     .venv/bin/python benchmarks/viewer_overhead.py [--steps 400] [--threads N]
@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO / "tests" / "support"))
 
 from browser import Browser  # noqa: E402
 

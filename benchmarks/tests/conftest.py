@@ -1,4 +1,5 @@
-"""The benchmark tests import the benchmark modules as the scripts do: top-level, from benchmarks/ on the path."""
+"""The benchmark tests import the benchmark modules as the scripts do: top-level, from benchmarks/ on the path. The
+package's own tests' fixtures that these use come from tests/conftest.py (the repository's root on the path)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,9 @@ import mcsplat  # noqa: F401  (before torch: it lets torch's OpenMP threads slee
 import sys
 from pathlib import Path
 
-BENCHMARKS = str(Path(__file__).resolve().parents[1])
-if BENCHMARKS not in sys.path:
-    sys.path.insert(0, BENCHMARKS)
+BENCHMARKS = Path(__file__).resolve().parents[1]
+for folder in (str(BENCHMARKS), str(BENCHMARKS.parent)):
+    if folder not in sys.path:
+        sys.path.insert(0, folder)
+
+from tests.conftest import shared_data  # noqa: E402, F401

@@ -14,7 +14,7 @@ build compiles it, so that the result is the same to the bit:
 The two forms of v are where GCC contracted torch's `v * beta2 + c * g * g` into a fused multiply-add: its vector
 loops (16 wide, then 8 wide over the remainder) one way, its scalar loop over the last n % 8 the other (measured
 against torch 2.13's AVX-512 and AVX2 kernels, ATEN_CPU_CAPABILITY; its DEFAULT kernels contract nothing and keep
-torch's own Adam: `matches_torch`). tests/test_adam_cpu.py compares the two bit for bit.
+torch's own Adam: `matches_torch`). tests/training/test_adam_cpu.py compares the two bit for bit.
 
 The state stays torch's (optim.py keeps torch.optim.Adam objects: state_dict and checkpoints as before); the caller
 counts the step counters up first, as torch does, and the kernel reads them from their tensors (no host read). Each

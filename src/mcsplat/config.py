@@ -29,7 +29,7 @@ from .optim import OptimConfig
 from .pose_refinement import PoseOptions
 from .strategy.adc import ADCConfig
 from .strategy.mcmc import MCMCConfig
-from .surface import SurfaceOptions
+from .surface_terms import SurfaceOptions
 
 # How an option is treated on --resume, as metadata of its field (`resume_policy`): "process" options only affect
 # how this process runs, and come from the command line; "place" options say where the scene and the run folder are
@@ -248,7 +248,7 @@ def feature_groups(config: TrainConfig) -> list[Any]:
 def unused_options(config: TrainConfig) -> list[tuple[list[str], str]]:
     """The options the command line gave (`config.named`) to a new run that its groups say would be ignored (the
     --surface-* options without --surface), as it gave them, each group's with the reason (a resumed run's options are
-    its own: run_dir compares the options given with them)."""
+    its own: run_start compares the options given with them)."""
     if config.resume or not config.named:
         return []
     found = []
@@ -279,17 +279,12 @@ def resume_policy(key: str) -> str | None:
 
 @functools.cache
 def _policies() -> dict[str, str]:
-    found = {}
-    for owner, prefix in [(TrainConfig, "")] + [(group, "") for group in _flat_group_types()]:
-        for f in dataclasses.fields(owner):
-            if "resume" in f.metadata:
-                found[prefix + f.name] = f.metadata["resume"]
-    return found
-
-
-def _flat_group_types() -> list[type]:
+    """{config.json's key: its field's resume policy}, for TrainConfig's fields and those of its groups without
+    prefix (whose keys are their fields' names)."""
     hints = typing.get_type_hints(TrainConfig)
-    return [hints[name] for name in flat_groups(TrainConfig)]
+    owners = [TrainConfig, *(hints[name] for name in flat_groups(TrainConfig))]
+    return {f.name: f.metadata["resume"] for owner in owners for f in dataclasses.fields(owner)
+            if "resume" in f.metadata}
 
 
 def process_options(config: TrainConfig) -> dict[str, Any]:

@@ -75,8 +75,9 @@ def begin(config: TrainConfig, lock: FolderLock, world_size: int = 1) -> RunStar
         raise MCSplatError(f"{run.checkpoint_file} holds a model only (a merge of blocks), not the state a run "
                            f"continues from; it cannot be resumed")
     refuse_changes(config, given, saved, plan, checkpoint.get("config"), run.config_file)
-    # This command line's process options; where the run is now (the folder may have been moved).
-    continuing = with_options(saved, **process_options(config), out=run.path, resume=True)
+    # This command line's process options; where the run is now (the folder may have been moved); a run begun with
+    # --overwrite is resumed, not overwritten again.
+    continuing = with_options(saved, **process_options(config), out=run.path, resume=True, overwrite=False)
     return RunStart(continuing, plan, checkpoint, Path(saved.data), fingerprint)
 
 

@@ -45,7 +45,8 @@ class RowAdam:
     (their moments too, as torch's SparseAdam does; each row keeps its own step count for the bias correction). The
     second moment is one number per row (the mean over its entries): a cell that few pixels reach then moves in
     proportion to its gradient rather than by a full learning rate. (Per-entry moments, as plain Adam keeps them,
-    scored within 0.3 dB of this on the vignette test of tests/test_bilateral_grid.py at 16x16x8, one seed.)"""
+    scored within 0.3 dB of this on the vignette test of tests/appearance/test_bilateral_grid.py at 16x16x8, one
+    seed.)"""
 
     def __init__(self, rows: torch.Tensor, lr: float, betas=(0.9, 0.999), eps: float = 1e-15):
         self.rows, self.betas, self.eps = rows, betas, eps

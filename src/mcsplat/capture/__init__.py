@@ -6,6 +6,6 @@ orchestrates them, undistorts the best model and moves the finished scene into p
 says which photos SfM left out and why (in the worker, from the features' database and the models).
 """
 
-from mcsplat.capture.process import ProcessOptions, ProcessSummary, process
+from .process import ProcessOptions, ProcessSummary, process
 
 __all__ = ["ProcessOptions", "ProcessSummary", "process"]

@@ -23,8 +23,8 @@ import threading
 from pathlib import Path
 from typing import Iterator
 
-from mcsplat.errors import MCSplatError
-from mcsplat.io.disk import NEARLY_FULL, free_bytes, no_space, size_text
+from ..errors import MCSplatError
+from ..io.disk import NEARLY_FULL, free_bytes, no_space, size_text
 
 PROGRESS_BARS = ("features", "matching", "mapping")  # the worker's tqdm descriptions (sfm.py)
 _SEGMENT = re.compile(rb"[^\r\n]*(?:\r\n|\r|\n)")

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from mcsplat.data import images, repeats
-from mcsplat.errors import DataError
+from ..data import images, repeats
+from ..errors import DataError
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 # Image formats a folder of photos may hold that SfM's reader (pycolmap's) does not take, or that process does not

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from mcsplat.data.attachments import masks as training_masks
-from mcsplat.errors import MCSplatError
+from ..data.attachments import masks as training_masks
+from ..errors import MCSplatError
 
 SIFT_MASKS = "sift_masks"          # work/sift_masks/<photo name>.png: what pycolmap's mask_path reads
 MASKS_AS_PHOTOS = "masks_as_photos"  # work/masks_as_photos/<photo name>: undistorted as the photos are

@@ -21,13 +21,13 @@ from typing import Annotated, Literal
 
 import tyro
 
-from mcsplat.capture import frames
-from mcsplat.capture import masks as capture_masks
-from mcsplat.capture.child import run_worker, terminate_as_interrupt
-from mcsplat.capture.registration import LeftOut, by_reason
-from mcsplat.capture.sfm import Matcher, describe_cameras
-from mcsplat.errors import MCSplatError
-from mcsplat.io.disk import writing_into
+from . import frames
+from . import masks as capture_masks
+from .child import run_worker, terminate_as_interrupt
+from .registration import LeftOut, by_reason
+from .sfm import Matcher, describe_cameras
+from ..errors import MCSplatError
+from ..io.disk import writing_into
 
 MIN_SFM_SIZE = 1000  # long side in pixels under which SIFT starts to fragment the model (the cup at 200x150 did)
 SCENE_MARKERS = ("images", "sparse", "transforms.json", "transforms_train.json", "poses_bounds.npy")

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from mcsplat.capture.frames import sharpness
+from .frames import sharpness
 
 MIN_INLIERS = 15          # COLMAP's min_num_inliers: a pair with fewer verified matches does not count as overlapping
 BLUR_SHARE = 0.25         # blurred: sharpness under this share of the registered photos' median

@@ -28,12 +28,12 @@ from typing import Sequence
 import numpy as np
 from PIL import Image
 
-from mcsplat.capture.child import terminate_as_interrupt
-from mcsplat.capture.sfm import extract_features, match_features, uses_gpu
-from mcsplat.data import View
-from mcsplat.data.undistort import CACHE_ENV, cache_root
-from mcsplat.errors import MCSplatError
-from mcsplat.io.hashed import NotARegularFile, read_intact, write_hashed
+from .child import terminate_as_interrupt
+from .sfm import extract_features, match_features, uses_gpu
+from ..data import View
+from ..data.undistort import CACHE_ENV, cache_root
+from ..errors import MCSplatError
+from ..io.hashed import NotARegularFile, read_intact, write_hashed
 
 CACHE_VERSION = "points-v2"  # bump when the output (or the entry's files) change for the same input
 MAX_VIEWS = 100              # more views add little to an initialisation and cost pairs squared in matching

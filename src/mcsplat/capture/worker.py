@@ -16,10 +16,10 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from mcsplat.capture import registration
-from mcsplat.capture.masks import write_scene_masks
-from mcsplat.capture.sfm import SfmOptions, describe_cameras, run_sfm, too_few
-from mcsplat.errors import MCSplatError
+from . import registration
+from .masks import write_scene_masks
+from .sfm import SfmOptions, describe_cameras, run_sfm, too_few
+from ..errors import MCSplatError
 
 
 def reconstruct(work: Path, folder: Path, names: list[str], sizes: list[tuple[int, int]], from_video: bool,

@@ -20,8 +20,8 @@ from typing import Sequence  # noqa: E402
 
 import tyro  # noqa: E402
 
-from mcsplat.config import TrainConfig  # noqa: E402
-from mcsplat.errors import MCSplatError  # noqa: E402
+from ..config import TrainConfig  # noqa: E402
+from ..errors import MCSplatError  # noqa: E402
 
 from .blocks import blocks  # noqa: E402
 from .scene import Info, Process  # noqa: E402
@@ -40,11 +40,11 @@ def _run(command, args: list[str]) -> int:
     if isinstance(command, TrainConfig):  # train, and blocks plan (whose blocks train with these options)
         from dataclasses import replace
 
-        from mcsplat.config import named_options
+        from ..config import named_options
 
         command = replace(command, named=named_options(args))  # what --resume and --budget check: the options given
     if type(command) is TrainConfig:
-        from mcsplat.train import train  # the trainer pulls in Warp: only when training
+        from ..train import train  # the trainer pulls in Warp: only when training
 
         train(command)
         return 0
@@ -62,7 +62,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = list(sys.argv[1:] if argv is None else argv)
         command = tyro.extras.subcommand_cli_from_dict(COMMANDS, prog="mcsplat", description=DESCRIPTION, args=args)
-        from mcsplat.stopping import signals_interrupt
+        from ..stopping import signals_interrupt
 
         with signals_interrupt():  # SIGTERM and SIGHUP stop every command as Ctrl-C does
             return _run(command, args)

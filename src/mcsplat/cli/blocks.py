@@ -8,7 +8,7 @@ from typing import Annotated, Union
 
 import tyro
 
-from mcsplat.config import TrainConfig, ViewerOptions
+from ..config import TrainConfig, ViewerOptions
 
 from .trained import Device
 
@@ -41,8 +41,8 @@ class BlocksPlan(TrainConfig):
     def run_command(self) -> int:
         import dataclasses
 
-        from mcsplat.blocks import plan_blocks
-        from mcsplat.partition import parse_bytes
+        from ..blocks import plan_blocks
+        from ..partition import parse_bytes
 
         training = TrainConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(TrainConfig)})
         out = self.out or Path("runs") / f"{Path(self.data).resolve().name}-blocks"
@@ -67,8 +67,8 @@ class BlocksTrain:
     quiet: bool = False
 
     def run_command(self) -> int:
-        from mcsplat.blocks import train_blocks
-        from mcsplat.partition import BlocksFolder as Folder
+        from ..blocks import train_blocks
+        from ..partition import BlocksFolder as Folder
 
         train_blocks(Folder(self.out), None if self.block is None else [self.block], device=self.device,
                      threads=self.threads, quiet=self.quiet)
@@ -86,8 +86,8 @@ class BlocksMerge:
     quiet: bool = False
 
     def run_command(self) -> int:
-        from mcsplat.blocks import merge_blocks
-        from mcsplat.partition import BlocksFolder as Folder
+        from ..blocks import merge_blocks
+        from ..partition import BlocksFolder as Folder
 
         merge_blocks(Folder(self.out), device=self.device, quiet=self.quiet)
         return 0

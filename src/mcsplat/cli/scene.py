@@ -8,8 +8,8 @@ from typing import Annotated
 
 import tyro
 
-from mcsplat.capture import ProcessOptions
-from mcsplat.data.attachments.masks import MaskOptions
+from ..capture import ProcessOptions
+from ..data.attachments.masks import MaskOptions
 
 
 @dataclass
@@ -27,8 +27,8 @@ class Info:
     training_masks: Annotated[MaskOptions, tyro.conf.OmitArgPrefixes] = field(default_factory=MaskOptions)
 
     def run_command(self) -> int:
-        from mcsplat.data import load_scene
-        from mcsplat.initialization import start_without_points
+        from ..data import load_scene
+        from ..initialization import start_without_points
 
         background = None if self.background.strip().lower() == "auto" else self.background
         scene = load_scene(self.data, downscale=self.downscale, background=background, test_every=self.test_every,
@@ -49,7 +49,7 @@ class Process:
     process: Annotated[ProcessOptions, tyro.conf.OmitArgPrefixes] = field(default_factory=ProcessOptions)
 
     def run_command(self) -> int:
-        from mcsplat.capture import process
+        from ..capture import process
 
         print("\n".join(process(self.input, self.out, self.process).lines()))
         return 0

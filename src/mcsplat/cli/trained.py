@@ -9,8 +9,8 @@ from typing import Annotated, Literal
 
 import tyro
 
-from mcsplat.errors import MCSplatError
-from mcsplat.export import ExportOptions
+from ..errors import MCSplatError
+from ..export import ExportOptions
 
 RunDir = Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]
 Device = Literal["auto", "cpu", "cuda"]
@@ -29,10 +29,10 @@ class Eval:
     """Also write the test renders as PNG under RUN/renders/test/."""
 
     def run_command(self) -> int:
-        from mcsplat import run_dir, trained_run
-        from mcsplat.compute.device import resolve_device
-        from mcsplat.evaluation import evaluate
-        from mcsplat.run_metrics import metrics
+        from .. import run_dir, trained_run
+        from ..compute.device import resolve_device
+        from ..evaluation import evaluate
+        from ..run_metrics import metrics
 
         with run_dir.RunDir(self.run).lock("mcsplat eval"):
             run = trained_run.load(self.run, resolve_device(self.device))
@@ -73,7 +73,7 @@ class Render:
     def _frame(model, camera, background, degree):
         import torch
 
-        from mcsplat.render import render
+        from ..render import render
 
         with torch.no_grad():
             return render(model, camera, background, degree).rgb
@@ -81,8 +81,8 @@ class Render:
     def run_command(self) -> int:
         import contextlib
 
-        from mcsplat import run_scene, trained_run
-        from mcsplat.compute.device import resolve_device
+        from .. import run_scene, trained_run
+        from ..compute.device import resolve_device
 
         if self.frames < 2 or self.fps < 1:
             raise MCSplatError("--frames must be at least 2 and --fps at least 1")
@@ -106,8 +106,8 @@ class Render:
     def _pngs(self, run, views, folder: Path) -> None:
         from tqdm import tqdm
 
-        from mcsplat import run_dir
-        from mcsplat.evaluation import save_png
+        from .. import run_dir
+        from ..evaluation import save_png
 
         for view in tqdm(views, desc="rendering", unit="view"):
             image = self._frame(run.model, view.camera.to(run.device), run.background, run.sh_degree)
@@ -118,9 +118,9 @@ class Render:
         import imageio.v2 as imageio
         from tqdm import tqdm
 
-        from mcsplat.camera_path import loop_path
-        from mcsplat.data.images import uint8_pixels
-        from mcsplat.io.atomic import atomic_path
+        from ..camera_path import loop_path
+        from ..data.images import uint8_pixels
+        from ..io.atomic import atomic_path
 
         cameras = loop_path([v.camera for v in views], self.frames)
         with atomic_path(path) as tmp:
@@ -141,7 +141,7 @@ class Export:
     export: Annotated[ExportOptions, tyro.conf.OmitArgPrefixes] = field(default_factory=ExportOptions)
 
     def run_command(self) -> int:
-        from mcsplat.export import export_run
+        from ..export import export_run
 
         export_run(self.run, self.export)
         return 0
@@ -161,10 +161,10 @@ class Report:
     def run_command(self) -> int:
         import contextlib
 
-        from mcsplat.report import make_report
-        from mcsplat.report.views import saved_run_views
-        from mcsplat.run_dir import RunDir
-        from mcsplat.run_scene import refuse_writing_into_scene
+        from ..report import make_report
+        from ..report.views import saved_run_views
+        from ..run_dir import RunDir
+        from ..run_scene import refuse_writing_into_scene
 
         if self.out is not None:
             for run in map(RunDir, self.runs):
@@ -198,11 +198,11 @@ class ViewSaved:
     device: Device = "auto"
 
     def run_command(self) -> int:
-        from mcsplat.viewer import require_viser
+        from ..viewer import require_viser
 
         require_viser()
-        from mcsplat.compute.device import resolve_device
-        from mcsplat.viewer.saved import view_saved
+        from ..compute.device import resolve_device
+        from ..viewer.saved import view_saved
 
         if not self.path.exists():
             raise MCSplatError(f"{self.path}: no such run directory or .ply file")

@@ -17,11 +17,11 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from mcsplat.data import images, repeats, undistort
-from mcsplat.data.image_store import ImageStore, store_note
-from mcsplat.data.poses import make_camera
-from mcsplat.data.scene import NAMED_BACKGROUNDS, Background, ImageSource, Scene, View, make_scene, split_every
-from mcsplat.errors import DataError
+from . import images, repeats, undistort
+from .image_store import ImageStore, store_note
+from .poses import make_camera
+from .scene import NAMED_BACKGROUNDS, Background, ImageSource, Scene, View, make_scene, split_every
+from ..errors import DataError
 
 
 @dataclass

@@ -10,11 +10,11 @@ from typing import Any
 
 import numpy as np
 
-from mcsplat.data import images, undistort
-from mcsplat.data.assemble import Frame, assemble
-from mcsplat.data.poses import intrinsic_matrix, opengl_c2w_to_opencv_w2c, scale_intrinsics
-from mcsplat.data.scene import Background, Scene
-from mcsplat.errors import DataError
+from . import images, undistort
+from .assemble import Frame, assemble
+from .poses import intrinsic_matrix, opengl_c2w_to_opencv_w2c, scale_intrinsics
+from .scene import Background, Scene
+from ..errors import DataError
 
 SPLIT_FILES = ("transforms_train.json", "transforms_test.json", "transforms_val.json")
 SINGLE_FILE = "transforms.json"

@@ -7,11 +7,11 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from mcsplat.data import colmap_files, images, undistort
-from mcsplat.data.assemble import Frame, Points, assemble
-from mcsplat.data.poses import check_translation, intrinsic_matrix, rigid_rotation, scale_intrinsics
-from mcsplat.data.scene import Background, Scene
-from mcsplat.errors import DataError
+from . import colmap_files, images, undistort
+from .assemble import Frame, Points, assemble
+from .poses import check_translation, intrinsic_matrix, rigid_rotation, scale_intrinsics
+from .scene import Background, Scene
+from ..errors import DataError
 
 MODEL_FILES = ("cameras", "images", "points3D")
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mcsplat.errors import DataError
+from ..errors import DataError
 
 # COLMAP camera models: id -> (name, number of parameters).
 CAMERA_MODELS: dict[int, tuple[str, int]] = {

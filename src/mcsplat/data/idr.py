@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg
 
-from mcsplat.data import images
-from mcsplat.data.assemble import Frame, assemble
-from mcsplat.data.poses import scale_intrinsics
-from mcsplat.data.scene import Background, Scene
-from mcsplat.errors import DataError
+from . import images
+from .assemble import Frame, assemble
+from .poses import scale_intrinsics
+from .scene import Background, Scene
+from ..errors import DataError
 
 CAMERAS_FILE = "cameras.npz"
 DTU_CAPTURE = (1600, 1200)  # the DTU camera's image size (width, height), MonoSDF's crop source

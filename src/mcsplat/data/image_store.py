@@ -18,8 +18,8 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from mcsplat.data import images
-from mcsplat.errors import DataError
+from . import images
+from ..errors import DataError
 
 BUDGET_ENV = "MCSPLAT_IMAGE_CACHE_MB"
 PREFETCH_WORKERS = 2

@@ -11,11 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
-from mcsplat.data import colmap_files, images
-from mcsplat.data.assemble import Frame, Points, assemble
-from mcsplat.data.poses import intrinsic_matrix, llff_to_opencv_w2c
-from mcsplat.data.scene import Background, Scene
-from mcsplat.errors import DataError
+from . import colmap_files, images
+from .assemble import Frame, Points, assemble
+from .poses import intrinsic_matrix, llff_to_opencv_w2c
+from .scene import Background, Scene
+from ..errors import DataError
 
 POSES_FILE = "poses_bounds.npy"
 

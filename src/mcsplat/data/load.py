@@ -7,10 +7,10 @@ import struct
 from pathlib import Path
 from typing import Sequence
 
-from mcsplat.data import blender, colmap, idr, llff
-from mcsplat.data.attachments import MaskOptions, attach, with_defaults
-from mcsplat.data.scene import NAMED_BACKGROUNDS, Scene, check_options, parse_background
-from mcsplat.errors import DataError
+from . import blender, colmap, idr, llff
+from .attachments import MaskOptions, attach, with_defaults
+from .scene import NAMED_BACKGROUNDS, Scene, check_options, parse_background
+from ..errors import DataError
 
 LOOKED_FOR = ("sparse/0/ or sparse/ with cameras, images, points3D .bin/.txt (COLMAP), transforms_train.json or "
               "transforms.json (Blender/NeRF), poses_bounds.npy (LLFF), cameras.npz (IDR, NeuS, MonoSDF)")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from mcsplat.camera import Camera
-from mcsplat.errors import DataError
+from ..camera import Camera
+from ..errors import DataError
 
 # Column signs that take OpenGL/Blender camera axes (x right, y up, looking along -z) to OpenCV ones.
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0])

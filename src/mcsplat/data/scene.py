@@ -8,12 +8,12 @@ from typing import TYPE_CHECKING, Sequence
 
 import torch
 
-from mcsplat.camera import Camera
-from mcsplat.data.image_store import LazyImage
-from mcsplat.errors import MCSplatError
+from ..camera import Camera
+from .image_store import LazyImage
+from ..errors import MCSplatError
 
 if TYPE_CHECKING:
-    from mcsplat.data.attachments.kind import Attachment
+    from .attachments.kind import Attachment
 
 KINDS = ("colmap", "blender", "llff", "idr")
 
@@ -79,7 +79,7 @@ class View:
         for a view without one."""
         attached = self.attachments.get(kind)
         if attached is None:
-            from mcsplat.data.attachments.registry import KINDS
+            from .attachments.registry import KINDS
 
             if kind not in KINDS:  # a misspelt kind would otherwise read as "this view has none"
                 raise KeyError(f"no attachment kind {kind!r}: the kinds are {', '.join(KINDS)}")

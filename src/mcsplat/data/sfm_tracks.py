@@ -18,8 +18,8 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from mcsplat.data import colmap, colmap_files
-from mcsplat.errors import DataError
+from . import colmap, colmap_files
+from ..errors import DataError
 
 _OBSERVATION = np.dtype([("xy", "<f8", (2,)), ("point3D_id", "<i8")])  # images.bin's 2D points, packed: 24 bytes
 

@@ -19,9 +19,9 @@ from typing import Sequence
 import numpy as np
 from PIL import Image
 
-from mcsplat.data import images
-from mcsplat.errors import DataError
-from mcsplat.io.hashed import content_hash, feed_file, hash_file, intact
+from . import images
+from ..errors import DataError
+from ..io.hashed import content_hash, feed_file, hash_file, intact
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 # Models pycolmap undistorts to a pinhole camera (checked one by one; the last four are fisheye variants).
@@ -149,7 +149,7 @@ def undistort_to_cache(jobs: Sequence[Job], background: Sequence[float], workers
 def _undistort_one(job: Job, target: Path, background: np.ndarray) -> None:
     import pycolmap
 
-    from mcsplat.io.atomic import atomic_path, atomic_write_text
+    from ..io.atomic import atomic_path, atomic_write_text
 
     pixels = images._load_one(job.source, (job.camera.width, job.camera.height), background).numpy()
     bitmap, _ = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(), pycolmap.Bitmap.from_array(pixels),

@@ -6,7 +6,7 @@ trimesh.Trimesh; `write_mesh` writes it as .ply, .glb or .obj. `mcsplat export R
     grid.py         where the volume lies, its voxel size, whether it fits in memory
     consistency.py  which pixels' depths the nearest other views confirm
     fusion.py       the signed distance volume, the fusion of one view, the closing of narrow gaps
-    surface.py      marching cubes (scikit-image) and vertex colours
+    marching_cubes.py  the volume's zero level set (scikit-image's marching cubes) and vertex colours
     clean.py        dropping small pieces
     pipeline.py     extract(): the pipeline
     options.py      MeshOptions: how a mesh is made (the export command's mesh options)

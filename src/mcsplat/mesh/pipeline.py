@@ -26,7 +26,7 @@ from .consistency import KeptDepth, consistent_depth, nearest_views
 from .fusion import TSDFVolume
 from .grid import check_memory, choose_grid, object_box
 from .options import MeshOptions
-from .surface import zero_surface
+from .marching_cubes import zero_surface
 
 
 @torch.no_grad()

@@ -1,6 +1,6 @@
 """A blocks folder: the only place its names are spelled.
 
-    OUT/blocks.json    the plan (plan.py)
+    OUT/blocks.json    the plan (blocks_file.py)
     OUT/block_00/ ...  one ordinary run folder per block (resume, locks and checkpoints as any run)
     OUT/merged/        the merged model as a run folder: eval, render, export, view and report work on it
 """

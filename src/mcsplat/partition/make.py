@@ -15,7 +15,7 @@ from ..errors import MCSplatError
 from .cells import Cell, bounds, split_cells
 from .ground import GroundFrame, ground_of
 from .memory import estimated_bytes, format_bytes, gaussians_that_fit
-from .plan import Block, BlockPlan
+from .blocks_file import Block, BlockPlan
 from .scene import scene_points
 
 MOST_BLOCKS = 256

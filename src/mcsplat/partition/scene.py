@@ -15,7 +15,7 @@ from ..capture.triangulate import triangulated_points
 from ..data import Scene, View
 from ..data.scene import camera_radius
 from ..errors import MCSplatError
-from .plan import Block, PlanError, read_plan
+from .blocks_file import Block, PlanError, read_plan
 
 OUTSIDE_SHARE = 0.1  # the points kept beyond the region, as a share of those inside it
 

@@ -1,6 +1,6 @@
 """--budget: train for a wall-clock time instead of a number of steps, and hand back the best result that time allows.
 
-BudgetPlanner makes the run's plan (plan.py) and makes it again as the run goes; fixed.py is its counterpart for
+BudgetPlanner makes the run's plan (run_plan.py) and makes it again as the run goes; fixed.py is its counterpart for
 --steps. The trainer asks either of them the same things: the plan, whether the run is done, and after each step
 what it took.
 
@@ -58,8 +58,8 @@ from ..errors import MCSplatError
 from ..strategy.auto_cap import pixel_ceiling
 from ..strategy.mcmc import prune_to_cap
 from .calibration import timed_steps
-from .plan import Plan
-from .seam import RunState, RunStep
+from .run_plan import Plan
+from .planner import RunState, RunStep
 from .schedule import PAPER_STEPS, growth_rate_reaching, refine_steps_between
 
 BALANCE = 2.0                     # balanced_cap: Gaussians' time in a full-size step over the pixels'

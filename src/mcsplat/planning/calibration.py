@@ -13,9 +13,9 @@ from ..config import TrainConfig
 from ..data import Scene
 from ..gaussians import PARAM_KEYS, GaussianModel
 from ..optim import make_optimizers
-from .plan import Plan
-from .seam import RunStep
-from .strategy import make_strategy
+from .run_plan import Plan
+from .planner import RunStep
+from .strategy_choice import make_strategy
 
 CALIBRATION_SMALL, CALIBRATION_LARGE = 2000, 3  # models of 2,000 and of 3x the starting Gaussians are timed
 

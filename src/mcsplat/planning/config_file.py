@@ -24,7 +24,7 @@ from ..config import TrainConfig, flat_options, from_jsonable, to_jsonable
 from ..config_types import fits
 from ..errors import MCSplatError
 from ..io.atomic import atomic_write_text
-from .plan import Plan
+from .run_plan import Plan
 
 PLAN_ENTRY = "plan"  # the run's plan, beside the options
 OLD_PLAN_ENTRIES = ("world_size", "budget_plan")  # the plan's own keys beside the options, in the older layout

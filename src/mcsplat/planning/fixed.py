@@ -8,9 +8,9 @@ from dataclasses import replace
 from ..config import TrainConfig
 from ..data import Scene
 from ..strategy import Strategy
-from .plan import Plan
+from .run_plan import Plan
 from .processes import for_processes
-from .seam import RunState, RunStep
+from .planner import RunState, RunStep
 from .schedule import fitted_to_steps, planned_growth_rate
 
 

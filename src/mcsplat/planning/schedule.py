@@ -9,7 +9,7 @@ rate's decay always spans the run's own steps.
 
 from __future__ import annotations
 
-from .plan import Plan
+from .run_plan import Plan
 
 PAPER_STEPS = 30_000
 

@@ -6,11 +6,11 @@ views after a loader has run, so that no loader knows of them.
 The recipe for a new kind is in docs/extending.md ("A per-view input").
 """
 
-from mcsplat.data.attachments.attach import attach
-from mcsplat.data.attachments.depth import DepthOptions
-from mcsplat.data.attachments.kind import Attachment, Found, Kind
-from mcsplat.data.attachments.masks import MaskOptions
-from mcsplat.data.attachments.registry import KINDS, kind_for, kinds_for, with_defaults
+from .attach import attach
+from .depth import DepthOptions
+from .kind import Attachment, Found, Kind
+from .masks import MaskOptions
+from .registry import KINDS, kind_for, kinds_for, with_defaults
 
 __all__ = ["KINDS", "Attachment", "DepthOptions", "Found", "Kind", "MaskOptions", "attach", "kind_for", "kinds_for",
            "with_defaults"]

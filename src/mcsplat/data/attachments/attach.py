@@ -16,10 +16,10 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from mcsplat.data.attachments.kind import Attachment, Kind
-from mcsplat.data.attachments.registry import kinds_for
-from mcsplat.data.scene import Scene, View
-from mcsplat.errors import DataError
+from .kind import Attachment, Kind
+from .registry import kinds_for
+from ..scene import Scene, View
+from ...errors import DataError
 
 ASPECT_TOLERANCE = 0.01  # a file may be stored at another size than its image, not at another shape
 

@@ -25,11 +25,11 @@ import numpy as np
 import torch
 from PIL import Image
 
-from mcsplat.data import images, undistort
-from mcsplat.data.attachments.kind import Found, Kind
-from mcsplat.data.attachments.resampling import NEAREST
-from mcsplat.errors import DataError
-from mcsplat.option_checks import refuse_non_finite
+from .. import images, undistort
+from .kind import Found, Kind
+from .resampling import NEAREST
+from ...errors import DataError
+from ...option_checks import refuse_non_finite
 
 DEPTH_FOLDER = "depths"
 BESIDE_PHOTO = ("{stem}_depth.npy", "{stem}_depth.png", "{stem}_depth_0001.png")

@@ -19,7 +19,7 @@ from typing import Any, ClassVar, Sequence
 import numpy as np
 import torch
 
-from mcsplat.data.attachments.resampling import Area, Nearest
+from .resampling import Area, Nearest
 
 
 @dataclass(frozen=True)

@@ -21,10 +21,10 @@ import numpy as np
 import torch
 from PIL import Image
 
-from mcsplat.data import images
-from mcsplat.data.attachments.kind import Found, Kind
-from mcsplat.data.attachments.resampling import AREA
-from mcsplat.errors import DataError
+from .. import images
+from .kind import Found, Kind
+from .resampling import AREA
+from ...errors import DataError
 
 MASK_FOLDER = "masks"
 NOTE_PREFIX = "masks for"  # how the Scene note on masks starts (the console repeats it when a run starts)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from mcsplat.data.attachments import depth, masks
-from mcsplat.data.attachments.kind import Kind
+from . import depth, masks
+from .kind import Kind
 
 KINDS: dict[str, Kind] = {kind.name: kind for kind in (
     masks.KIND,

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from mcsplat.data import images
+from .. import images
 
 
 class Area:

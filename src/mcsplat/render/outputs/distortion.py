@@ -17,7 +17,7 @@ and to the depths exactly. The reference renderer computes the pairwise sum itse
 The depth is mapped as 2DGS maps it, m = f / (f - n) (1 - n / z): up to a scale and an offset, which the pairs'
 differences do not see, the inverse depth. Here m = 1 / z (units^-1): far layers count less than near ones, so a
 capture's distant background, which a pixel sees through several soft layers, does not dominate the term. A loss
-multiplies the map by the square of a length of the scene (surface.py uses its radius) to make it unitless.
+multiplies the map by the square of a length of the scene (surface_terms.py uses its radius) to make it unitless.
 """
 
 from __future__ import annotations

@@ -11,8 +11,8 @@ kernel recomputes it and applies the chain rule by hand (Warp's generated adjoin
 forward on the CPU), and on request each Gaussian's share of the view matrix's gradient (pose refinement). The tests
 hold both against the torch version, the dense reference renderer and torch's gradcheck in float64. On the CPU, ranges
 of Gaussians run from the rasterizer's thread pool; each thread writes only its own Gaussians, so the result does not
-depend on timing. tests/test_project_simd.py holds the SIMD kernels to the float64 truth as closely as this kernel in
-float32.
+depend on timing. tests/render/test_project_simd.py holds the SIMD kernels to the float64 truth as closely as this
+kernel in float32.
 
 (No `from __future__ import annotations` here: Warp reads the kernels' annotations as live objects.)
 """

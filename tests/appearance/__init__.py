@@ -1,0 +1,1 @@
+"""appearance/: --appearance affine and bilateral-grid."""

@@ -1,0 +1,1 @@
+"""blocks/: `mcsplat blocks` (plan, train, merge) and its refusals."""

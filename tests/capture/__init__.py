@@ -1,0 +1,1 @@
+"""capture/: `mcsplat process` (frames, registration, SfM) and the cache of triangulated points."""

@@ -1,0 +1,1 @@
+"""cli/: the `mcsplat` command itself (info, one-line errors, the console script)."""

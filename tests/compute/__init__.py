@@ -1,0 +1,1 @@
+"""compute/: the C++ of the CPU kernels and the CPU they are built for."""

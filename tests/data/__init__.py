@@ -1,0 +1,1 @@
+"""data/: the scene loaders, their errors, undistortion, the image store."""

@@ -1,0 +1,1 @@
+"""data/attachments/: per-view inputs (depth maps, masks)."""

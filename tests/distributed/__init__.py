@@ -1,0 +1,1 @@
+"""distributed/: training with several processes."""

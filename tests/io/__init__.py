@@ -1,0 +1,1 @@
+"""io/: .ply, checkpoints, atomic writes, full and read-only disks."""

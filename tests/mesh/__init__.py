@@ -1,0 +1,1 @@
+"""mesh/: meshes from Gaussians."""

@@ -1,0 +1,1 @@
+"""planning/: the run's plan and --budget."""

@@ -1,0 +1,1 @@
+"""render/: the rasterizer's stages (projection, binning, compositing) and outputs against the dense reference."""

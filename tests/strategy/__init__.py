@@ -1,0 +1,1 @@
+"""strategy/: MCMC (relocation, noise, health), ADC and --cap-max auto."""

@@ -1,0 +1,1 @@
+"""viewer/: the live and saved-run viewer in a real browser."""
