@@ -55,7 +55,7 @@ python3 -m pip install -q --no-index --no-deps --no-compile --target $S $REPO/.g
 export PYTHONPATH=$S:$REPO/src TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=12
 python3 -c "import warp as wp, pycolmap; wp.init(); print(wp.__version__, wp.get_cuda_devices(), pycolmap.__version__)" || exit 5
 [ -n "$NO_GSPLAT" ] && echo "gsplat built: not asked for (NO_GSPLAT)" > /tmp/gsplat_build.log || setsid nohup python3 -c "import time; t=time.time(); import torch; from gsplat.cuda._backend import _C; print('gsplat built', _C is not None, round(time.time()-t,1))" > /tmp/gsplat_build.log 2>&1 < /dev/null &
-setsid nohup python3 -c "import time; t=time.time(); import torch, mcsplat; from mcsplat.trainer import step_kernels; from mcsplat.compute.compile import compile_kernels; d=torch.device('cuda'); compile_kernels(step_kernels(d), d); print('warp compiled', round(time.time()-t,1))" > /tmp/warp_compile.log 2>&1 < /dev/null &
+setsid nohup python3 -c "import time; t=time.time(); import torch, mcsplat; from mcsplat.step import step_kernels; from mcsplat.compute.compile import compile_kernels; d=torch.device('cuda'); compile_kernels(step_kernels(d), d); print('warp compiled', round(time.time()-t,1))" > /tmp/warp_compile.log 2>&1 < /dev/null &
 sleep 3; echo B done
 """
 RUN_C = """#!/bin/bash

@@ -303,8 +303,8 @@ def option_value(config: Any, key: str) -> Any:
 
 
 def with_options(config: TrainConfig, **values: Any) -> TrainConfig:
-    """`config` with the options of config.json's keys `values` replaced (those of groups without prefix by their
-    own names: with_options(config, surface=True))."""
+    """`config` with the options of config.json's top-level keys `values` replaced (those of groups without prefix
+    by their own names: with_options(config, surface=True); a prefixed group such as mcmc is replaced whole)."""
     top, groups = _by_group(values)
     top.update({group: dataclasses.replace(getattr(config, group), **changed) for group, changed in groups.items()})
     return dataclasses.replace(config, **top)

@@ -93,6 +93,9 @@ def checked_dataclass(cls: type, values: Any, source: str, prefix: str = "", nes
         values, nested = dict(values), dict(nested or {})
         hints_of = option_types(cls)
         for group in flat:
+            if group in values:  # the group is no key of the file: its options are
+                raise MCSplatError(f"{source}: unknown option {prefix + group!r} (written by another mcsplat "
+                                   f"version?)")
             names = {f.name for f in dataclasses.fields(hints_of[group])}
             values[group] = {key: values.pop(key) for key in list(values) if key in names}
             nested[group] = hints_of[group]

@@ -51,7 +51,7 @@ MARKERS = (CONFIG, CHECKPOINT, METRICS, SPLATS)  # any of them: the folder holds
 
 
 class RunDir:
-    """The files of one run folder. Nothing here creates the folder but `prepare`."""
+    """The files of one run folder. Nothing here creates the folder (run_start.begin does)."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -100,7 +100,7 @@ class RunDir:
 
     def lock(self, command: str) -> FolderLock:
         """The folder's writer lock for `command` (`with run.lock("mcsplat eval"): ...`); only for a folder that
-        holds a run (a new run's folder is locked by `prepare`)."""
+        holds a run (a new run's folder is locked by `run_start.begin`)."""
         if not self.config_file.is_file():
             self.read_config()  # the one-line "not a run directory" error
         return FolderLock(self.lock_file, command)

@@ -92,17 +92,19 @@ def refuse_changes(config: TrainConfig, given: frozenset[str], saved: TrainConfi
     typed = flat_options(to_jsonable(config))
     asked = flat_options(options_with_plan(config, initial_plan(config, plan.world_size)))
     edited, ignored = [], []
-    for key in sorted(trained.keys() & on_file.keys()):
+    for key in sorted(on_file):
         if resume_policy(key) or key.startswith("budget_plan."):
             continue
-        if on_file[key] != trained[key] and not (saved.budget is not None and key in REPLANNED_KEYS):
+        # A setting newer than the checkpoint's copy (an option added since) was trained at config.json's value.
+        was = trained.get(key, on_file[key])
+        if on_file[key] != was and not (saved.budget is not None and key in REPLANNED_KEYS):
             edited.append(key)  # (--budget writes its new plans as it goes: config.json may be a plan ahead)
         if key not in given or _planned_anew(key, saved):
             continue
         if key == "steps" and saved.budget is not None:
             ignored.append(f"{option_text(key, config.steps)} (its --budget {saved.budget} plans them)")
-        elif asked[key] != trained[key]:
-            ignored.append(f"{option_text(key, typed[key])} (trained with {option_text(key, trained[key])})")
+        elif asked[key] != was:
+            ignored.append(f"{option_text(key, typed[key])} (trained with {option_text(key, was)})")
     if edited:
         key = edited[0]
         raise MCSplatError(f"{saved_file}: {key} is {json.dumps(on_file[key])}, but {CHECKPOINT} was trained with "

@@ -82,6 +82,8 @@ def test_each_feature_group_keeps_its_flags_and_config_json_its_keys():
         data=DEMO, surface_terms=SurfaceOptions(surface=True), live_viewer=ViewerOptions(port=9))
     with pytest.raises(MCSplatError, match="surface_from is \"soon\", not a number"):
         from_jsonable({**saved, "surface_from": "soon"})
+    with pytest.raises(MCSplatError, match="unknown option 'surface_terms'"):  # not read, and dropped, in silence
+        from_jsonable({**saved, "surface_terms": {"surface": False}})
 
 
 def test_the_strategy_follows_the_plan_and_the_options_stay():

@@ -154,3 +154,20 @@ def test_a_run_begun_with_overwrite_resumes(mini_demo, tmp_path, capsys):
     capsys.readouterr()
     assert main(["train", str(mini_demo), "--out", str(run), "--resume", "--quiet"]) == 0, capsys.readouterr().err
     assert trained_run.load(run, torch.device("cpu")).step == 3
+
+
+def test_an_option_newer_than_the_checkpoint_is_compared_at_its_trained_value(run_copy, trained, capsys):
+    """A checkpoint's copy of config.json written before an option existed (and before config.json had its plan)
+    lacks it: the run trained with its value in config.json, and a --resume that gives another is refused, as for
+    any other option."""
+    from mcsplat.io.checkpoint import load_checkpoint, save_checkpoint
+    from mcsplat.planning.config_file import settings_of
+
+    state = load_checkpoint(run_copy / "checkpoint.pt")
+    older = settings_of(state["config"])  # the layout before the plan: the plan's values in the options' places
+    del state["version"], older["depth_correlation"]
+    state["config"] = older
+    save_checkpoint(run_copy / "checkpoint.pt", state)
+    capsys.readouterr()
+    assert main(["train", str(trained[0]), "--out", str(run_copy), "--resume", "--depth-correlation", "0.1"]) == 2
+    assert "--depth-correlation 0.1 (trained with --depth-correlation 0.0)" in capsys.readouterr().err

@@ -8,7 +8,8 @@ digits and underscores), and `read_snippet` puts in the value given under that n
 - anywhere else, the placeholder becomes the value.
 Values are put in as they are (a value's own text is not searched for placeholders); values no placeholder names are
 left unused, so that files can share one set. A placeholder without a value is an error: what compiles is exactly the
-file with the values in (the same text as when it was written in Python, and the same key in Warp's kernel cache).
+file with the values in (the text that was written in Python before, but for a blank line of the projection's
+backward).
 """
 
 from __future__ import annotations
