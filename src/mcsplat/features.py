@@ -3,6 +3,8 @@ feature's own module, and the group itself says what the feature adds to a run.
 
 A group may have any of:
 
+    check_processes(world_size) -> None          refuses, before anything is made, a number of training processes
+                                                 it does not work with
     setup(start: FeatureStart) -> FeatureParts   its per-image modules and loss terms, made as the run starts
     per_view_input() -> options | None           the per-view input it needs loaded beside the photos
                                                  (data/attachments: masks, depth maps)

@@ -98,12 +98,14 @@ class PoseOptions:
         if not (self.pose_opt_lr > 0 and self.pose_opt_reg >= 0):
             raise MCSplatError("--pose-opt-lr must be positive, --pose-opt-reg 0 or more")
 
+    def check_processes(self, world_size: int) -> None:
+        if self.pose_opt and world_size > 1:
+            raise MCSplatError("--pose-opt does not work with several training processes yet (each holds the "
+                               "corrections of its own views); train in one process, or leave it out")
+
     def setup(self, start: FeatureStart) -> FeatureParts:
         if not self.pose_opt:
             return FeatureParts()
-        if start.world_size > 1:
-            raise MCSplatError("--pose-opt does not work with several training processes yet (each holds the "
-                               "corrections of its own views); train in one process, or leave it out")
         return FeatureParts(modules=[PoseRefinement(len(start.scene.train), start.scene.radius, start.device,
                                                     self.pose_opt_lr, self.pose_opt_reg)])
 

@@ -15,9 +15,10 @@ import torch
 
 from . import run_dir, run_scene, run_start
 from .compute.device import resolve_device
-from .config import TrainConfig, process_options, with_options
+from .config import TrainConfig, feature_groups, process_options, with_options
 from .data import Scene
 from .distributed import Team, scene_summary, setup_of, threads_per_process
+from .features import features_named
 from .io.lock import FolderLock
 from .planning import Planner, initial_plan, planner_for
 from .render import set_cpu_threads
@@ -39,6 +40,8 @@ class RunSetup:
 def set_up(config: TrainConfig, team: Team, lock: FolderLock) -> RunSetup:
     """Everything a run needs before its first step; rank 0 takes `lock` on the folder (the caller releases it)."""
     team.check_same_setup(setup_of(config))
+    for group in features_named(feature_groups(config), "check_processes"):  # before the folder is touched
+        group.check_processes(team.world_size)
     own = config
     begun = team.on_main(lambda: run_start.begin(own, lock, team.world_size))  # its refusal stops every process
     # This process's own options, and the scene given to it, from the root (it may differ between machines: the

@@ -198,3 +198,23 @@ def test_the_schedule_rule_for_n_processes():
     assert scaled.optim.betas == pytest.approx((0.6, 0.996))
     assert plan.steps == 30_000 and plan.world_size == 1, "the plan it started from is left as it was"
     assert for_processes(plan, 1) is plan
+
+
+@pytest.mark.parametrize("options", [{"appearance": "affine"}, {"pose_opt": True}])
+def test_a_feature_that_works_alone_is_refused_before_the_folder_is_touched(tmp_path, options):
+    """--appearance and --pose-opt hold what they learn of each view in the process that trains it: with several
+    processes they are refused by their group (check_processes) before the run folder is made or locked."""
+    from mcsplat.run_setup import set_up
+    from mcsplat.run_start import train_lock
+
+    class TwoProcesses:
+        world_size, is_main = 2, True
+
+        def check_same_setup(self, setup) -> None:
+            pass
+
+    config = config_of(data=Path("data/lego_demo"), out=tmp_path / "run", **options)
+    flag = "--appearance" if "appearance" in options else "--pose-opt"
+    with pytest.raises(MCSplatError, match=f"{flag} does not work with several training processes yet"):
+        set_up(config, TwoProcesses(), train_lock(config))
+    assert not (tmp_path / "run").exists()

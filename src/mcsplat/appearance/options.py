@@ -42,12 +42,14 @@ class AppearanceOptions:
         if min(self.appearance_grid_shape) < 2:
             raise MCSplatError("--appearance-grid-shape needs at least 2 cells along each of its three axes")
 
+    def check_processes(self, world_size: int) -> None:
+        if self.appearance != "none" and world_size > 1:
+            raise MCSplatError("--appearance does not work with several training processes yet (each holds the "
+                               "transforms of its own views); train in one process, or leave it out")
+
     def setup(self, start: FeatureStart) -> FeatureParts:
         if self.appearance == "none":
             return FeatureParts()
-        if start.world_size > 1:
-            raise MCSplatError("--appearance does not work with several training processes yet (each holds the "
-                               "transforms of its own views); train in one process, or leave it out")
         images = len(start.scene.train)
         check_fits(self.appearance, images, start.device, self.appearance_grid_shape)  # before the grids are made
         transforms = make_appearance(self.appearance, images, start.device, self.appearance_reg,
