@@ -335,11 +335,14 @@ def _by_group(values: dict[str, Any]) -> tuple[dict[str, Any], dict[str, dict[st
 
 def _flat_owner(cls: type, name: str) -> str | None:
     """The group without prefix of `cls` that holds the field `name`, or None (a field of `cls` itself)."""
-    if not dataclasses.is_dataclass(cls) or name in {f.name for f in dataclasses.fields(cls)}:
-        return None
+    return _flat_owners(cls).get(name) if dataclasses.is_dataclass(cls) else None
+
+
+@functools.cache
+def _flat_owners(cls: type) -> dict[str, str]:
+    """{a field of a group without prefix of `cls`: that group}."""
     hints = typing.get_type_hints(cls)
-    return next((group for group in flat_groups(cls)
-                 if name in {f.name for f in dataclasses.fields(hints[group])}), None)
+    return {f.name: group for group in flat_groups(cls) for f in dataclasses.fields(hints[group])}
 
 
 # (init scale, init opacity) per strategy: the MCMC paper's code, and 3DGS's for its ADC.

@@ -20,14 +20,15 @@ their loss terms in the sum. docs/extending.md adds a feature this way.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
+if TYPE_CHECKING:  # the types only: the option groups import this module, and the CLI imports them to start
+    import torch
 
-from .data import Scene
-from .gaussians import GaussianModel
-from .loss_terms import LossTerm
-from .per_image import PerImageModule
+    from .data import Scene
+    from .gaussians import GaussianModel
+    from .loss_terms import LossTerm
+    from .per_image import PerImageModule
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,6 @@ from ..per_image import PerImageModule, PlanSteps
 from .affine import AffineAppearance
 from .bilateral_grid import GRID_SHAPE, BilateralGridAppearance, grids_bytes
 from .heldout import apply_transform, fitted_transform, split_halves
-from .slicing import slicing_kernels
 
 __all__ = ["MODES", "AffineAppearance", "BilateralGridAppearance", "Compensation", "apply_transform", "check_fits",
            "fitted_transform", "lr_at", "make_appearance", "split_halves", "training_kernels"]
@@ -60,6 +59,8 @@ def check_fits(mode: str, count: int, device: torch.device, grid_shape: tuple[in
 
 def training_kernels(mode: str, dtype: torch.dtype = torch.float32) -> list:
     """The Warp kernels a training step of this appearance mode launches."""
+    from .slicing import slicing_kernels  # Warp: loaded when a run compiles its kernels, not as the CLI starts
+
     return slicing_kernels(dtype) if mode == "bilateral-grid" else []
 
 

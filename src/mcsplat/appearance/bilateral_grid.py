@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import torch
 
-from .slicing import slice_grid
 
 GRID_SHAPE = (16, 16, 8)  # columns, rows, brightness levels (gsplat's default)
 CENTRE_EVERY = 10  # steps between two centrings (the median over the images' grids takes tens of ms)
@@ -127,6 +126,8 @@ class BilateralGridAppearance(torch.nn.Module):
 
     def forward(self, index: int, rgb: torch.Tensor) -> torch.Tensor:
         """rgb [H, W, 3] as image `index`'s camera recorded it."""
+        from .slicing import slice_grid  # Warp loads with the first slice: the CLI imports this package to start
+
         return slice_grid(self.grid(index), rgb)
 
     def optimizer(self, lr: float) -> _GridOptimizer:

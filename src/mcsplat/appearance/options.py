@@ -8,7 +8,6 @@ from typing import Literal
 from ..errors import MCSplatError
 from ..option_checks import refuse_non_finite
 from ..features import FeatureParts, FeatureStart
-from . import Compensation, check_fits, make_appearance
 
 
 @dataclass(frozen=True)
@@ -48,6 +47,8 @@ class AppearanceOptions:
                                "transforms of its own views); train in one process, or leave it out")
 
     def setup(self, start: FeatureStart) -> FeatureParts:
+        from . import Compensation, check_fits, make_appearance  # the transforms' kernels: when a run starts
+
         if self.appearance == "none":
             return FeatureParts()
         images = len(start.scene.train)
