@@ -176,8 +176,8 @@ def test_subset(stride: int, max_views: int):
     import importlib
     import importlib.util
 
-    # The module through which a run loads its scene (run_scene.py; run_dir.py in checkouts before it).
-    names = [name for name in ("mcsplat.run_scene", "mcsplat.run_dir") if importlib.util.find_spec(name)]
+    # The module through which a run loads its scene (run/scene.py; run/folder.py in checkouts before it).
+    names = [name for name in ("mcsplat.run.scene", "mcsplat.run.folder") if importlib.util.find_spec(name)]
     loader = next(module for module in map(importlib.import_module, names) if hasattr(module, "load_scene"))
     original = loader.load_scene
 

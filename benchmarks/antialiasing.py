@@ -66,9 +66,9 @@ def arms(options: Options) -> list[Arm]:
 def run(arm: Arm, options: Options, folder: Path) -> dict:
     import torch
 
-    from mcsplat import trained_run
+    from mcsplat.run import trained as trained_run
     from mcsplat.data import load_scene
-    from mcsplat.evaluation import evaluate
+    from mcsplat.run.evaluation import evaluate
     from mcsplat.train import train
 
     scene_folder, _, stride = SCENES[arm.labels["scene"]]

@@ -89,7 +89,7 @@ def arms(options: Options) -> list[Arm]:
 
 def run(arm: Arm, options: Options, folder: Path) -> dict:
     """Train (or reuse, or resume) the arm's run; its figures."""
-    from mcsplat.run_dir import RunDir
+    from mcsplat.run.folder import RunDir
     from mcsplat.train import train
 
     run_dir = folder / "runs" / arm.name

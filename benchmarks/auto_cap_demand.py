@@ -25,7 +25,7 @@ WINDOWS = (10, 30, 100)
 
 
 def demand_shares(run_dir: Path, views: int, seed: int) -> dict:
-    from mcsplat import trained_run
+    from mcsplat.run import trained as trained_run
     from mcsplat.losses import photometric_loss
     from mcsplat.render import render
     from mcsplat.strategy.auto_cap import growth_demand

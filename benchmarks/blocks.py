@@ -108,10 +108,10 @@ def main() -> None:
 def picture(root: Path, args, path: Path) -> None:
     """One test view: the photo, the one run and each merged model, the cells' borders drawn on the ground."""
     from mcsplat.data.images import uint8_pixels
-    from mcsplat.evaluation import save_pixels
+    from mcsplat.run.evaluation import save_pixels
     from mcsplat.partition import read_plan
     from mcsplat.render import render
-    from mcsplat.trained_run import load
+    from mcsplat.run.trained import load
 
     device = torch.device("cpu")
     one = load(root / "one", device)

@@ -139,7 +139,7 @@ def run(arm: Arm, options: Options, folder: Path) -> dict:
     """Train the arm's run, or reuse a finished one (resume an interrupted one unless --rerun)."""
     import torch
 
-    import mcsplat.run_dir as run_folders
+    import mcsplat.run.folder as run_folders
     from mcsplat.train import train
 
     if options.device == "cuda" and not torch.cuda.is_available():

@@ -121,7 +121,7 @@ def scored_views(lego: Path):
 def score(run: Path, views) -> tuple[dict, dict]:
     """The depth errors of one run over the views, and the error maps of the picture's view."""
     from mcsplat.render import render
-    from mcsplat.trained_run import load
+    from mcsplat.run.trained import load
 
     trained = load(run, torch.device("cpu"))
     errors = {"median": [], "mean": [], "planar": [], "median_interior": []}

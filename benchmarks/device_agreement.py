@@ -27,7 +27,7 @@ import torch
 import _common as C
 from mcsplat import losses, render
 from mcsplat.render.composite.function import cuda_kernels, set_cuda_kernels
-from mcsplat.trained_run import load
+from mcsplat.run.trained import load
 from mcsplat.strategy.base import l1_regularizers
 
 PATHS = ("cuda-tile", "cuda-scalar", "cpu")

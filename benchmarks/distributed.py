@@ -51,8 +51,8 @@ def worker(rank: int, world_size: int, store: str, size: int, steps: int, out: s
     from mcsplat.planning import Plan, for_processes
     from mcsplat.compute.compile import compile_kernels
     from mcsplat.render import set_cpu_threads
-    from mcsplat.run_scene import background_of
-    from mcsplat.state import ViewSampler
+    from mcsplat.run.scene import background_of
+    from mcsplat.run.state import ViewSampler
     from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
     from mcsplat.step import Step, step_kernels
 

@@ -138,7 +138,7 @@ def main() -> None:
 
     from mcsplat.io.formats import read_gaussians
     from mcsplat.io.ply import read_ply
-    from mcsplat.trained_run import load
+    from mcsplat.run.trained import load
 
     run = load(run_path, torch.device("cpu"))
     views, background = run.scene.test, run.background

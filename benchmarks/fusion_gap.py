@@ -234,7 +234,7 @@ def in_box(vertices: np.ndarray, faces: np.ndarray, grid) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------------------ one run
 def measure(run: Path, voxel_size: float | None, picture: bool) -> list[dict]:
-    from mcsplat import trained_run
+    from mcsplat.run import trained as trained_run
     from mcsplat.mesh import DEFAULT_VOXEL_BUDGET, MeshOptions
     from mcsplat.mesh.grid import choose_grid, object_box
 

@@ -36,9 +36,9 @@ from mcsplat.metrics import psnr, ssim_metric
 from mcsplat.optim import make_optimizers, means_lr_at, set_means_lr
 from mcsplat.render import render
 from mcsplat.initialization import initial_model
-from mcsplat.run_scene import background_of
+from mcsplat.run.scene import background_of
 from mcsplat.planning import Plan, make_strategy
-from mcsplat.state import ViewSampler
+from mcsplat.run.state import ViewSampler
 from mcsplat.step import Step
 
 

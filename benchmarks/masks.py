@@ -88,7 +88,7 @@ def painted_copy(source: Path, target: Path) -> Path:
 
 def block_scores(run: Path, original: Path) -> tuple[dict, list[np.ndarray]]:
     """Block PSNR on the train and test views and the magenta score, from the run's final model; and renders."""
-    from mcsplat import trained_run
+    from mcsplat.run import trained as trained_run
     from mcsplat.data import load_scene
     from mcsplat.render import render
 

@@ -108,7 +108,7 @@ def train(scene: str, strategy: str, data_root: Path, threads: int) -> Path:
 def export_worker(run: str, voxel_size: float | None, truncation: float) -> None:
     """In a fresh process: what `mcsplat export RUN --format mesh [--voxel-size S]` does, timed; prints one JSON
     line."""
-    from mcsplat import trained_run
+    from mcsplat.run import trained as trained_run
     from mcsplat.mesh import DEFAULT_VOXEL_BUDGET, MeshOptions, extract, write_mesh
 
     started = time.perf_counter()
@@ -185,7 +185,7 @@ def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
 
 # ------------------------------------------------------------------------------------------------ measures
 def measure(run: Path, exported: dict, name: str) -> dict:
-    from mcsplat import trained_run
+    from mcsplat.run import trained as trained_run
     from mcsplat.gaussians import DEAD_OPACITY
     from mcsplat.mesh import read_mesh
 

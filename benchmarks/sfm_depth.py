@@ -38,7 +38,7 @@ HIDDEN = 0.05            # differences beyond this share of R: the point is hidd
 @torch.no_grad()
 def signed_differences(run: Path) -> tuple[np.ndarray, float]:
     """(median depth - point depth at the point's pixel over the kept pairs, scene radius)."""
-    from mcsplat import trained_run
+    from mcsplat.run import trained as trained_run
     from mcsplat.render import render
 
     trained = trained_run.load(run, torch.device("cpu"))

@@ -1,5 +1,5 @@
-"""SSIM forward + backward: torch's depthwise convolutions (losses.ssim_map), the fused Warp kernels of ssim_warp.py
-(the CUDA path of losses.ssim) and, on the CPU, the fused C++ passes of ssim_cpu.py (the CPU path), at 400x400 and
+"""SSIM forward + backward: torch's depthwise convolutions (losses.ssim_map), the fused Warp kernels of ssim/warp.py
+(the CUDA path of losses.ssim) and, on the CPU, the fused C++ passes of ssim/cpu.py (the CPU path), at 400x400 and
 800x800.
 
     .venv/bin/python benchmarks/ssim.py                          # CUDA when there is one, else the CPU
@@ -33,8 +33,8 @@ def median_ms(ssim, image: torch.Tensor, target: torch.Tensor, repeats: int) -> 
 
 def main() -> None:
     from mcsplat.losses import ssim_map
-    from mcsplat.ssim_cpu import fused_ssim
-    from mcsplat.ssim_warp import fused_ssim_warp
+    from mcsplat.ssim.cpu import fused_ssim
+    from mcsplat.ssim.warp import fused_ssim_warp
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")

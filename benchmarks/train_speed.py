@@ -59,7 +59,7 @@ from mcsplat.render.paths import TORCH_BASELINE_PATH, RenderPath, current_render
 from mcsplat.strategy.adc import ADCConfig, ADCStrategy
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
 from mcsplat.planning import Plan
-from mcsplat.run_dir import RunDir
+from mcsplat.run.folder import RunDir
 from mcsplat.step import Step
 
 PHASES = ("projection", "binning", "composite_forward", "loss", "backward_loss", "backward_composite",

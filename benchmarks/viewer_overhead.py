@@ -23,7 +23,7 @@ sys.path.insert(0, str(REPO / "tests" / "support"))
 from browser import Browser  # noqa: E402
 
 from mcsplat.config import ModelConfig, TrainConfig  # noqa: E402
-from mcsplat.events import StepDone, Subscriber  # noqa: E402
+from mcsplat.run.events import StepDone, Subscriber  # noqa: E402
 from mcsplat.strategy.mcmc import MCMCConfig  # noqa: E402
 from mcsplat.train import train  # noqa: E402
 from mcsplat.viewer import TrainingViewer  # noqa: E402

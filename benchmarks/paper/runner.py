@@ -15,7 +15,7 @@ import _common as C
 import framework
 from _common import test_subset
 from framework import NotReady  # noqa: F401  (the runs' NotReady is the framework's)
-import mcsplat.run_dir as run_folders
+import mcsplat.run.folder as run_folders
 from mcsplat.config import ModelConfig, TrainConfig, config_of
 from mcsplat.planning import settings_of
 from mcsplat.strategy.adc import ADCConfig

@@ -40,7 +40,7 @@ def main() -> None:
     parser.add_argument("--views", type=int, default=30, help="training views timed per run")
     parser.add_argument("--threads", type=int, default=None)
     args = parser.parse_args()
-    from mcsplat import trained_run
+    from mcsplat.run import trained as trained_run
     from mcsplat.losses import photometric_loss
     from mcsplat.render import render
 

@@ -17,11 +17,11 @@ from typing import Annotated, Any, Literal, Sequence
 import tyro
 
 from .appearance.options import AppearanceOptions
-from .config_types import checked_dataclass, flat_groups
+from .typed_json import checked_dataclass, flat_groups
 from .data.attachments.depth import DepthOptions
 from .data.attachments.masks import MaskOptions
-from .depth_correlation import DepthCorrelationOptions
-from .depth_terms import DepthTermOptions
+from .depth_supervision.correlation import DepthCorrelationOptions
+from .depth_supervision.terms import DepthTermOptions
 from . import option_checks
 from .errors import MCSplatError
 from .features import features_named

@@ -1,6 +1,6 @@
 """Photometric losses of 3DGS: L1 and SSIM with an 11x11 Gaussian window (sigma 1.5), "same" padding.
 
-The SSIM's window and constants live in ssim_warp.py (the fused kernels need them and may not import this module);
+The SSIM's window and constants live in ssim/warp.py (the fused kernels need them and may not import this module);
 they are re-exported here."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ import functools
 import torch
 import torch.nn.functional as F
 
-from .ssim_cpu import fused_ssim, fused_ssim_and_l1, fused_ssim_applies
-from .ssim_warp import KERNELS as WARP_SSIM_KERNELS
-from .ssim_warp import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW  # noqa: F401  (defined there, used as losses.SSIM_*)
-from .ssim_warp import fused_ssim_warp, fused_ssim_warp_applies, window_taps
+from .ssim.cpu import fused_ssim, fused_ssim_and_l1, fused_ssim_applies
+from .ssim.warp import KERNELS as WARP_SSIM_KERNELS
+from .ssim.warp import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW  # noqa: F401  (defined there, used as losses.SSIM_*)
+from .ssim.warp import fused_ssim_warp, fused_ssim_warp_applies, window_taps
 
 
 @functools.lru_cache(maxsize=8)
@@ -47,8 +47,8 @@ def ssim_map(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 def ssim(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean SSIM of two [H, W, C] images (the 3DGS definition). float32 RGB takes fused kernels with the same value
-    and gradient, several times faster than torch's depthwise convolutions: ssim_cpu.py on the CPU, the Warp kernels
-    of ssim_warp.py on CUDA."""
+    and gradient, several times faster than torch's depthwise convolutions: ssim/cpu.py on the CPU, the Warp kernels
+    of ssim/warp.py on CUDA."""
     if fused_ssim_applies(image, target):
         return fused_ssim(image, target)
     if fused_ssim_warp_applies(image, target):
@@ -61,7 +61,7 @@ def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -
     if dtype != torch.float32:
         return []
     if device.type == "cpu":
-        from . import ssim_cpu
+        from .ssim import cpu as ssim_cpu
         return list(ssim_cpu.KERNELS)
     if device.type == "cuda":
         return list(WARP_SSIM_KERNELS)

@@ -10,7 +10,7 @@ the module's `key` in checkpoint.pt, and `load_state_dict` reads it back on --re
 without the module; it refuses with a line that says what to do).
 
 Held-out views have no index here: a module learns what a training photo does differently from the scene, so test
-views are rendered and scored with the scene alone (pose refinement leaves their poses as they are; evaluation.py's
+views are rendered and scored with the scene alone (pose refinement leaves their poses as they are; run/evaluation.py's
 compensated score fits its own colour transform to each test view's left half, for every run, appearance/heldout.py).
 The scene and its exports never depend on a module.
 """

@@ -10,7 +10,7 @@ import signal
 from typing import Iterator
 
 from .distributed import Team
-from .events import Control
+from .run.events import Control
 from .gaussians import GaussianModel
 
 

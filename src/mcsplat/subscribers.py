@@ -1,4 +1,4 @@
-"""The run's standard consumers (see events.py): progress bar, console messages, log.jsonl and periodic checkpoints.
+"""The run's standard consumers (see run/events.py): progress bar, console messages, log.jsonl and periodic checkpoints.
 
 Each is small and knows only the events it listens to; train.train() subscribes them to every run.
 """
@@ -13,10 +13,10 @@ from typing import Callable
 from tqdm import tqdm
 
 from .data.attachments import masks
-from .events import CheckpointWritten, EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
+from .run.events import CheckpointWritten, EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
 from .io.disk import writing_into
 from .metrics import LPIPS_HINT
-from .run_dir import RunDir
+from .run.folder import RunDir
 from .visibility import describe
 
 LOG_EVERY = 100  # steps between two log.jsonl records

@@ -9,9 +9,9 @@ from typing import Any, Sequence
 from .config import TrainConfig
 from .distributed import Team, join
 from .errors import MCSplatError
-from .events import Control, Listener
-from .run_dir import RunDir
-from .run_start import folders_to_make, remove_if_empty, train_lock
+from .run.events import Control, Listener
+from .run.folder import RunDir
+from .run.start import folders_to_make, remove_if_empty, train_lock
 from .subscribers import Checkpointer, ConsoleLog, LogWriter, ProgressBar
 from .trainer import TrainingRun
 

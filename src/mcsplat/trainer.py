@@ -1,8 +1,8 @@
-"""The training loop: the run (`TrainingRun`) that repeats one step (step.py's `Step`), emitting events.py's events.
+"""The training loop: the run (`TrainingRun`) that repeats one step (step.py's `Step`), emitting run/events.py's events.
 
-Where the run's files go is run_dir.py's business, how its state starts and what a checkpoint holds state.py's, what
-the run decides (its steps, schedules and cap) its planner's (planning/), scoring evaluation.py's and metrics.json's
-layout run_metrics.py's; train.py puts a run together with its consumers.
+Where the run's files go is run/folder.py's business, how its state starts and what a checkpoint holds run/state.py's, what
+the run decides (its steps, schedules and cap) its planner's (planning/), scoring run/evaluation.py's and metrics.json's
+layout run/metrics.py's; train.py puts a run together with its consumers.
 """
 
 from __future__ import annotations
@@ -10,20 +10,21 @@ from __future__ import annotations
 import time
 from typing import Any, Sequence
 
-from . import run_dir, run_start
+from .run import folder as run_dir
+from .run import start as run_start
 from .compute.compile import compile_kernels, modules_to_compile
 from .config import TrainConfig
 from .distributed import SingleProcess, Team, command_for
 from .errors import MCSplatError
-from .evaluation import Evaluation, evaluate, seen_in_views
-from .events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Listener, RefineDone, RunFinished,
+from .run.evaluation import Evaluation, evaluate, seen_in_views
+from .run.events import (CheckpointWritten, Control, EvalDone, KernelsCompiling, Listener, RefineDone, RunFinished,
                      RunStarted, StepDone, close_all)
 from .gaussians import GaussianModel
 from .io.lock import FolderLock
 from .planning import Plan, run_record
-from .run_metrics import RunFacts, metrics
-from .run_setup import set_up
-from .state import feature_facts
+from .run.metrics import RunFacts, metrics
+from .run.setup import set_up
+from .run.state import feature_facts
 from .step import Step, step_kernels
 from .stopping import AgreedRequests, StopSignals
 from .strategy.base import asks_the_scene, changed
@@ -34,7 +35,7 @@ PREFETCH_VIEWS = 2  # images decoded in the background ahead of their step (a no
 
 class TrainingRun:
     """A training job: set up (or resumed) from its configuration, then `run(subscribers)` steps it to the end,
-    emitting the events of events.py (it is their RunView). `control` pauses or stops it from another thread.
+    emitting the events of run/events.py (it is their RunView). `control` pauses or stops it from another thread.
 
     With several processes (`team`, see mcsplat.distributed) every process runs this same loop on its own views;
     rank 0 alone reads and writes the run directory and has subscribers."""

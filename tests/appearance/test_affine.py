@@ -67,7 +67,7 @@ def test_affine_appearance_learns_the_colour_shift_instead_of_the_scene(shared_d
 
 @pytest.mark.parametrize("mode", ["affine", "bilateral-grid"])
 def test_a_resumed_run_with_appearance_takes_the_same_steps(shared_data, tmp_path, mode):
-    from mcsplat.events import Control, StepDone
+    from mcsplat.run.events import Control, StepDone
 
     root, _ = _shifted_cup(shared_data, tmp_path / "cup")
     options = dict(appearance=mode, steps=60)

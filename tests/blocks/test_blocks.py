@@ -22,8 +22,8 @@ from mcsplat.partition import BlocksFolder, block_scene, estimated_bytes, read_p
 from mcsplat.partition.cells import split_cells
 from mcsplat.partition.scene import OUTSIDE_SHARE
 from mcsplat.render import render
-from mcsplat.trained_run import load
-from mcsplat.run_scene import scene_of
+from mcsplat.run.trained import load
+from mcsplat.run.scene import scene_of
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
 
 STEPS = 120

@@ -19,8 +19,8 @@ from mcsplat.blocks.train import BlockRefused, blocks_failed
 from mcsplat.config import TrainConfig
 from mcsplat.errors import MCSplatError
 from mcsplat.partition import BlocksFolder, PlanError, read_plan
-from mcsplat.run_dir import RunDir
-from mcsplat.run_scene import scene_of
+from mcsplat.run.folder import RunDir
+from mcsplat.run.scene import scene_of
 
 TRAINING = dict(steps=10, quiet=True, cap_max=1000, threads=1, lpips_net="alex", save_renders=False, save_every=0)
 

@@ -257,9 +257,9 @@ def test_train_runs_on_a_simple_radial_capture(shared_data, tmp_path):
     """`mcsplat train` on a COLMAP SIMPLE_RADIAL capture as it comes, at 1/4 size (undistorted, then resized),
     fits its views as well as it fits the same photos taken by the original pinhole camera."""
     from mcsplat.config import TrainConfig
-    from mcsplat.evaluation import evaluate
+    from mcsplat.run.evaluation import evaluate
     from mcsplat.initialization import initial_model
-    from mcsplat.trained_run import load
+    from mcsplat.run.trained import load
     from mcsplat.train import train
 
     scores = {}

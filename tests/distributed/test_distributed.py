@@ -204,8 +204,8 @@ def test_the_schedule_rule_for_n_processes():
 def test_a_feature_that_works_alone_is_refused_before_the_folder_is_touched(tmp_path, options):
     """--appearance and --pose-opt hold what they learn of each view in the process that trains it: with several
     processes they are refused by their group (check_processes) before the run folder is made or locked."""
-    from mcsplat.run_setup import set_up
-    from mcsplat.run_start import train_lock
+    from mcsplat.run.setup import set_up
+    from mcsplat.run.start import train_lock
 
     class TwoProcesses:
         world_size, is_main = 2, True

@@ -309,7 +309,7 @@ def test_one_table_holds_every_format_and_the_cli_takes_it_as_it_is(tmp_path):
     from mcsplat.cli import Export
     from mcsplat.export import EXPORT_FORMATS, ExportOptions, format_help
     from mcsplat.io.formats import FORMATS
-    from mcsplat.run_dir import RunDir
+    from mcsplat.run.folder import RunDir
 
     assert list(EXPORT_FORMATS) == ["ply", "splat", "compressed-ply", "spz", "sog", "glb", "gltf", "mesh"]
     assert [name for name, entry in EXPORT_FORMATS.items() if entry.ending is not None] == list(FORMATS)

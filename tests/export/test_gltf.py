@@ -207,7 +207,7 @@ def test_three_js_draws_the_glb_as_mcsplat_renders_it(tiny_run, tmp_path):
     import torch
     from PIL import Image
 
-    from mcsplat import trained_run
+    from mcsplat.run import trained as trained_run
     from mcsplat.render import render
 
     pytest.importorskip("websockets", reason="the browser tests' websockets (a dependency of viser) is not installed")

@@ -16,7 +16,7 @@ from mcsplat.errors import MCSplatError
 from mcsplat.io.checkpoint import load_checkpoint, save_checkpoint
 from mcsplat.io.formats import outliers
 from mcsplat.io.ply import read_ply
-from mcsplat.trained_run import load
+from mcsplat.run.trained import load
 
 
 def params_at(means, largest_scales) -> dict[str, np.ndarray]:

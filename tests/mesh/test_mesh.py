@@ -25,7 +25,7 @@ from mcsplat.mesh.grid import TRUNCATION_VOXELS, VoxelGrid, choose_grid, object_
 from mcsplat.mesh.raster import picture, rasterize
 from mcsplat.mesh.marching_cubes import zero_surface
 from mcsplat.render import Splats, render
-from mcsplat.trained_run import load
+from mcsplat.run.trained import load
 
 from tests.support.helpers import REPO
 

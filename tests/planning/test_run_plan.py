@@ -15,7 +15,7 @@ import tyro
 from mcsplat.cli import COMMANDS
 from mcsplat.config import ModelConfig, TrainConfig, to_jsonable
 from mcsplat.errors import MCSplatError
-from mcsplat.events import Subscriber
+from mcsplat.run.events import Subscriber
 from mcsplat.io.checkpoint import load_checkpoint
 from mcsplat.planning import (Plan, initial_plan, load_run_config, make_strategy, options_with_plan, read_record,
                               run_record)
@@ -59,7 +59,7 @@ def test_each_feature_group_keeps_its_flags_and_config_json_its_keys():
     import typing
 
     from mcsplat.config import ViewerOptions, config_of, from_jsonable, option_value, with_options
-    from mcsplat.config_types import flat_groups
+    from mcsplat.typed_json import flat_groups
     from mcsplat.surface_terms import SurfaceOptions
 
     hints = typing.get_type_hints(TrainConfig)

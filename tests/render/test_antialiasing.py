@@ -142,7 +142,7 @@ def test_a_model_carries_the_flag_to_render_and_subsets():
 
 def test_train_with_antialiased_sets_the_flag_everywhere(tmp_path, mini_demo, capsys):
     from mcsplat.cli import main
-    from mcsplat.trained_run import load
+    from mcsplat.run.trained import load
 
     out = tmp_path / "run"
     assert main(["train", str(mini_demo), "--out", str(out), "--steps", "30", "--antialiased", "--quiet",

@@ -1,1 +1,1 @@
-"""A run's folder (run_dir.py), how it begins and resumes (run_start.py, run_scene.py) and stops (stopping.py)."""
+"""A run's folder (run/folder.py), how it begins and resumes (run/start.py, run/scene.py) and stops (stopping.py)."""

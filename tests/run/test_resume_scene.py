@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from mcsplat import run_start, trained_run
+from mcsplat.run import start as run_start
+from mcsplat.run import trained as trained_run
 from mcsplat.cli import main
 
 DEMO = Path(__file__).resolve().parents[2] / "data" / "lego_demo"

@@ -18,7 +18,7 @@ from mcsplat import subscribers
 from mcsplat.cli import main
 from mcsplat.errors import MCSplatError
 from mcsplat.io.checkpoint import load_checkpoint, save_checkpoint
-from mcsplat.run_dir import render_file
+from mcsplat.run.folder import render_file
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
 from mcsplat.train import train
 from tests.training.test_train_e2e import small_config
@@ -377,7 +377,7 @@ def _float_options() -> list[tuple[str, str]]:
     import typing
 
     from mcsplat.config import ModelConfig, TrainConfig
-    from mcsplat.config_types import flat_groups, option_types
+    from mcsplat.typed_json import flat_groups, option_types
 
     hints = typing.get_type_hints(TrainConfig)
     owners = [("", TrainConfig), ("model", ModelConfig)] + [("", hints[group]) for group in flat_groups(TrainConfig)]

@@ -25,13 +25,13 @@ REPO = Path(__file__).resolve().parents[2]
 
 SIGNAL_IN_EVAL = """
 import os, signal, sys, time
-import mcsplat.evaluation
+import mcsplat.run.evaluation
 
 def evaluate(*args, **kwargs):  # the run and its COLMAP scene are loaded: pycolmap is imported
     os.kill(os.getpid(), signal.SIGTERM)
     time.sleep(30)
 
-mcsplat.evaluation.evaluate = evaluate
+mcsplat.run.evaluation.evaluate = evaluate
 from mcsplat.cli import main
 sys.exit(main(sys.argv[1:]))
 """

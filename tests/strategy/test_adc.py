@@ -289,7 +289,7 @@ def test_the_baseline_is_3dgs_as_the_paper_ran_it(tmp_path):
 
 def test_a_white_background_run_resets_at_the_first_densification(tmp_path):
     from mcsplat.config import TrainConfig
-    from mcsplat.events import RefineDone
+    from mcsplat.run.events import RefineDone
     from mcsplat.train import train
 
     from tests.support.helpers import REPO

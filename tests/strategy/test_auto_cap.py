@@ -141,7 +141,7 @@ def test_a_run_without_cap_max_stops_growing_where_the_scene_stops_asking(tmp_pa
 def test_the_log_keeps_the_last_demand_and_sums_the_counts(tmp_path):
     """log.jsonl: relocated/added add up over the refine steps since the last record, the demand is the last one's
     (summed, ten refine steps of 1.5% each would read as 15% of the count)."""
-    from mcsplat.events import StepDone
+    from mcsplat.run.events import StepDone
     from mcsplat.subscribers import LOG_EVERY, LogWriter
 
     log = LogWriter(tmp_path / "log.jsonl")

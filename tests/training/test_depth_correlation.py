@@ -14,11 +14,11 @@ from mcsplat.cli import COMMANDS
 from mcsplat.config import config_of, to_jsonable
 from mcsplat.data import load_scene
 from mcsplat.data.attachments.depth import DepthOptions
-from mcsplat.depth_correlation import DepthCorrelation, correlation_loss
+from mcsplat.depth_supervision.correlation import DepthCorrelation, correlation_loss
 from mcsplat.errors import MCSplatError
 from mcsplat.features import FeatureStart
 from mcsplat.gaussians import GaussianModel
-from mcsplat.state import feature_parts
+from mcsplat.run.state import feature_parts
 from mcsplat.train import train
 
 from tests.support.helpers import views_a_term_spoke_on

@@ -1,4 +1,4 @@
-"""Depth supervision (depth_terms.py): the terms move the rendered depth onto a known plane and sphere, relative and
+"""Depth supervision (depth_supervision/terms.py): the terms move the rendered depth onto a known plane and sphere, relative and
 disparity maps are read up to scale and shift, metric maps in the wrong units are refused, views without depth give
 nothing, and the SfM points each COLMAP image saw are read and projected as the image saw them."""
 
@@ -18,7 +18,7 @@ from mcsplat.data.attachments.depth import KIND as DEPTH
 from mcsplat.data.attachments.depth import DepthOptions
 from mcsplat.data.attachments.kind import Attachment
 from mcsplat.data.sfm_tracks import points_seen
-from mcsplat.depth_terms import (DenseDepth, Schedule, SparseDepth, check_metric_scale, depth_terms, project,
+from mcsplat.depth_supervision.terms import (DenseDepth, Schedule, SparseDepth, check_metric_scale, depth_terms, project,
                                  target_depth)
 from mcsplat.errors import MCSplatError
 from mcsplat.gaussians import GaussianModel

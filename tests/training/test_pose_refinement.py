@@ -140,7 +140,7 @@ def test_pose_refinement_wins_back_what_perturbed_training_poses_cost(shared_dat
 
 def test_a_resumed_run_with_pose_opt_takes_the_same_steps(mini_demo, tmp_path):
     from mcsplat.errors import MCSplatError
-    from mcsplat.events import Control, StepDone
+    from mcsplat.run.events import Control, StepDone
 
     def config(out: Path, **options) -> TrainConfig:
         return config_of(data=mini_demo, out=out, steps=40, pose_opt=True, quiet=True, lpips_net="alex",

@@ -1,4 +1,4 @@
-"""The fused CPU SSIM (ssim_cpu.py) against the torch SSIM of losses.py: the same value and gradient."""
+"""The fused CPU SSIM (ssim/cpu.py) against the torch SSIM of losses.py: the same value and gradient."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import torch
 
 from mcsplat.losses import photometric_loss, ssim, ssim_map
 from mcsplat.render import set_cpu_threads
-from mcsplat.ssim_cpu import fused_ssim, fused_ssim_applies
+from mcsplat.ssim.cpu import fused_ssim, fused_ssim_applies
 
 
 def pair(height, width, seed=0):

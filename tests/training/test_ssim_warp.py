@@ -1,4 +1,4 @@
-"""The fused Warp SSIM (ssim_warp.py) against the torch SSIM of losses.py in float64: the same value and gradient.
+"""The fused Warp SSIM (ssim/warp.py) against the torch SSIM of losses.py in float64: the same value and gradient.
 
 The kernels are meant for CUDA but are plain Warp code, so they run on the CPU too: every test runs there, and on
 CUDA as well when a GPU is present."""
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from mcsplat import losses
-from mcsplat.ssim_warp import KERNELS, fused_ssim_warp, fused_ssim_warp_applies
+from mcsplat.ssim.warp import KERNELS, fused_ssim_warp, fused_ssim_warp_applies
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 

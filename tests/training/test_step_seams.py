@@ -16,8 +16,8 @@ from mcsplat.optim import make_optimizers
 from mcsplat.per_image import PerImageModule, PlanSteps
 from mcsplat.planning import Plan
 from mcsplat.pose_refinement import PoseRefinement
-from mcsplat.run_scene import background_of
-from mcsplat.state import TrainingState, ViewSampler
+from mcsplat.run.scene import background_of
+from mcsplat.run.state import TrainingState, ViewSampler
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
 from mcsplat.step import Step
 

@@ -14,7 +14,7 @@ from mcsplat.geometry.rotation import quaternion_to_rotation
 from mcsplat.loss_terms import StepContext, render_outputs
 from mcsplat.optim import OptimConfig, make_optimizers
 from mcsplat.render import render
-from mcsplat.trained_run import load
+from mcsplat.run.trained import load
 from mcsplat.strategy.mcmc import MCMCConfig, inject_noise, relocate_dead
 from mcsplat.surface_terms import DISTORTION_FROM, DepthNormal, Distortion, Flatten, edge_weight, surface_terms
 from mcsplat.train import train

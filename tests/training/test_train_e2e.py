@@ -18,9 +18,9 @@ from mcsplat.gaussians import GaussianModel
 from mcsplat.io.ply import read_ply
 from mcsplat.render import render
 from mcsplat.strategy.mcmc import MCMCConfig
-from mcsplat.evaluation import evaluate
+from mcsplat.run.evaluation import evaluate
 from mcsplat.initialization import initial_model
-from mcsplat.trained_run import load
+from mcsplat.run.trained import load
 from mcsplat.train import train
 
 DEMO = Path(__file__).resolve().parents[2] / "data" / "lego_demo"

@@ -15,7 +15,7 @@ from mcsplat.data import load_scene
 from mcsplat.gaussians import PARAM_KEYS, GaussianModel
 from mcsplat.io.ply import read_ply
 from mcsplat.render import render
-from mcsplat.trained_run import load
+from mcsplat.run.trained import load
 from mcsplat.visibility import count_invisible, seen_in
 
 DEMO = Path(__file__).resolve().parents[2] / "data" / "lego_demo"

@@ -24,7 +24,7 @@ import torch
 from mcsplat.cli import main
 from mcsplat.config import ModelConfig, TrainConfig, config_of
 from mcsplat.errors import MCSplatError
-from mcsplat.events import Control
+from mcsplat.run.events import Control
 from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.train import standard_subscribers, train
 
@@ -180,7 +180,7 @@ def test_live_viewer_in_a_browser_and_the_report(browser, tiny_run, tmp_path):
 
 
 def test_render_modes_of_the_viewer(tiny_run):
-    from mcsplat.trained_run import load
+    from mcsplat.run.trained import load
     from mcsplat.viewer.modes import MODES, render_mode
 
     from mcsplat.data import load_scene

@@ -1,4 +1,4 @@
-"""The colour transform of a held-out view, for 3DGS's `train_test_exp` protocol (evaluation.py): fitted on the
+"""The colour transform of a held-out view, for 3DGS's `train_test_exp` protocol (run/evaluation.py): fitted on the
 left half of its photo by least squares (a frozen scene makes that exact), the right half scored with it. Every
 appearance mode is scored this way, the bilateral grid too: a grid fitted on one half would have nothing to say
 about the other half's cells."""

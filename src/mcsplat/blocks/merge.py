@@ -10,17 +10,18 @@ from typing import Any
 
 import torch
 
-from .. import run_dir, trained_run
+from ..run import folder as run_dir
+from ..run import trained as trained_run
 from ..compute.device import resolve_device
 from ..errors import MCSplatError
-from ..evaluation import evaluate
+from ..run.evaluation import evaluate
 from ..gaussians import PARAM_KEYS, GaussianModel
 from ..io.checkpoint import save_checkpoint
 from ..io.lock import FolderLock
 from ..partition import BlockPlan, BlocksFolder, read_plan
 from ..planning import Plan
-from ..run_metrics import metrics
-from ..run_scene import background_of, scene_of
+from ..run.metrics import metrics
+from ..run.scene import background_of, scene_of
 
 
 def kept_in_core(plan: BlockPlan, index: int, model: GaussianModel) -> torch.Tensor:

@@ -13,12 +13,12 @@ from ..compute.device import resolve_device
 from ..config import TrainConfig
 from ..distributed import SingleProcess, threads_per_process
 from ..errors import MCSplatError
-from ..events import Listener
+from ..run.events import Listener
 from ..io.checkpoint import DamagedCheckpoint
 from ..partition import BlockPlan, BlocksFolder, PlanError, read_plan
 from ..partition.scene import block_views
-from ..run_dir import RunDir
-from ..run_scene import scene_of
+from ..run.folder import RunDir
+from ..run.scene import scene_of
 from ..train import train
 from .merge import merge_blocks
 from .workers import join_workers

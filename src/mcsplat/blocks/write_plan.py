@@ -10,8 +10,8 @@ from ..errors import MCSplatError
 from ..io.disk import writing_into
 from ..partition import BlockPlan, BlocksFolder, make_plan
 from ..partition.make import check_plan_options, plan_table
-from ..run_scene import refuse_scene_folder
-from ..run_scene import scene_of
+from ..run.scene import refuse_scene_folder
+from ..run.scene import scene_of
 
 
 def plan_blocks(training: TrainConfig, out: Path, count: int | None = None, memory: int | None = None,

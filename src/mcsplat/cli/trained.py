@@ -29,10 +29,11 @@ class Eval:
     """Also write the test renders as PNG under RUN/renders/test/."""
 
     def run_command(self) -> int:
-        from .. import run_dir, trained_run
+        from ..run import folder as run_dir
+        from ..run import trained as trained_run
         from ..compute.device import resolve_device
-        from ..evaluation import evaluate
-        from ..run_metrics import metrics
+        from ..run.evaluation import evaluate
+        from ..run.metrics import metrics
 
         with run_dir.RunDir(self.run).lock("mcsplat eval"):
             run = trained_run.load(self.run, resolve_device(self.device))
@@ -81,7 +82,8 @@ class Render:
     def run_command(self) -> int:
         import contextlib
 
-        from .. import run_scene, trained_run
+        from ..run import scene as run_scene
+        from ..run import trained as trained_run
         from ..compute.device import resolve_device
 
         if self.frames < 2 or self.fps < 1:
@@ -106,8 +108,8 @@ class Render:
     def _pngs(self, run, views, folder: Path) -> None:
         from tqdm import tqdm
 
-        from .. import run_dir
-        from ..evaluation import save_png
+        from ..run import folder as run_dir
+        from ..run.evaluation import save_png
 
         for view in tqdm(views, desc="rendering", unit="view"):
             image = self._frame(run.model, view.camera.to(run.device), run.background, run.sh_degree)
@@ -118,7 +120,7 @@ class Render:
         import imageio.v2 as imageio
         from tqdm import tqdm
 
-        from ..camera_path import loop_path
+        from ..flythrough import loop_path
         from ..data.images import uint8_pixels
         from ..io.atomic import atomic_path
 
@@ -163,8 +165,8 @@ class Report:
 
         from ..report import make_report
         from ..report.views import saved_run_views
-        from ..run_dir import RunDir
-        from ..run_scene import refuse_writing_into_scene
+        from ..run.folder import RunDir
+        from ..run.scene import refuse_writing_into_scene
 
         if self.out is not None:
             for run in map(RunDir, self.runs):

@@ -20,7 +20,7 @@ from .job import ExportJob
 from .mesh import check_mesh_file, export_mesh
 
 if TYPE_CHECKING:
-    from ..run_dir import RunDir
+    from ..run.folder import RunDir
 
 DEFAULT_FORMAT = "ply"  # without --format, and an --out that names none
 

@@ -12,15 +12,15 @@ from .target import export_target
 from .unread import refuse_unread_options
 
 if TYPE_CHECKING:
-    from ..trained_run import TrainedRun
+    from ..run.trained import TrainedRun
 
 
 def export_run(path: str | Path, options: ExportOptions = ExportOptions()) -> Path:
     """Write the run in `path` as `options` say; returns the file written. Every refusal is one MCSplatError, and
     nothing is written before the checks that can refuse have passed."""
     from ..compute.device import resolve_device
-    from ..run_dir import RunDir
-    from ..trained_run import load
+    from ..run.folder import RunDir
+    from ..run.trained import load
 
     folder = RunDir(path)
     folder.read_config()  # a run folder, or the one-line error, before any work

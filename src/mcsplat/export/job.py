@@ -11,7 +11,7 @@ from ..mesh.options import MeshOptions
 from .selection import SelectionOptions
 
 if TYPE_CHECKING:
-    from ..trained_run import TrainedRun
+    from ..run.trained import TrainedRun
 
 
 @dataclass(frozen=True)

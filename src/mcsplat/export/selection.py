@@ -19,7 +19,7 @@ from ..gaussians import DEAD_OPACITY
 from ..io.formats import outliers, select_gaussians
 
 if TYPE_CHECKING:
-    from ..trained_run import TrainedRun
+    from ..run.trained import TrainedRun
 
 Params = dict[str, np.ndarray]
 
@@ -91,7 +91,7 @@ def _seen(run: TrainedRun) -> torch.Tensor:
 
 def _compare_on_test_views(run: TrainedRun, chosen: np.ndarray) -> None:
     """The test PSNR with every Gaussian and with the `chosen` only: what leaving the others out costs."""
-    from ..evaluation import evaluate
+    from ..run.evaluation import evaluate
 
     keep = torch.zeros(run.model.num_gaussians, dtype=torch.bool)
     keep[torch.from_numpy(chosen)] = True

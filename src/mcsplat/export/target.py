@@ -12,7 +12,7 @@ from ..errors import MCSplatError
 from .formats import DEFAULT_FORMAT, EXPORT_FORMATS, ExportFormat
 
 if TYPE_CHECKING:
-    from ..run_dir import RunDir
+    from ..run.folder import RunDir
 
 
 def export_target(folder: RunDir, format_name: str | None, out: Path | None) -> tuple[ExportFormat, Path]:
@@ -52,7 +52,7 @@ def _check_companion(folder: RunDir, companion: Path, path: Path) -> None:
 
 
 def _refuse_run_file_or_scene(folder: RunDir, file: Path, what: str) -> None:
-    from ..run_scene import refuse_writing_into_scene
+    from ..run.scene import refuse_writing_into_scene
 
     if folder.is_own_file(file):
         raise MCSplatError(f"{what} would replace the run's own {file.name}; choose another name")

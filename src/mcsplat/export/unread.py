@@ -16,7 +16,7 @@ from .options import ExportOptions
 
 
 def refuse_unread_options(chosen: ExportFormat, options: ExportOptions) -> None:
-    from ..run_start import option_text
+    from ..run.start import option_text
 
     by_readers: dict[tuple[str, ...], list[str]] = {}
     for reader_key, name, value, default in _given(options):

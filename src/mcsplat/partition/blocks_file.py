@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from ..config import TrainConfig, from_jsonable, to_jsonable
-from ..config_types import describe, fits
+from ..typed_json import describe, fits
 from ..errors import MCSplatError
 from ..io.atomic import atomic_write_text
 from .cells import Cell

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from ..config import TrainConfig, flat_options, from_jsonable, to_jsonable
-from ..config_types import fits
+from ..typed_json import fits
 from ..errors import MCSplatError
 from ..io.atomic import atomic_write_text
 from .run_plan import Plan

@@ -13,7 +13,7 @@ from dataclasses import dataclass, fields, replace
 from typing import Any, Mapping
 
 from ..config import RESOLUTION_FULL_AT, TrainConfig, to_jsonable
-from ..config_types import checked_dataclass
+from ..typed_json import checked_dataclass
 from ..optim import OptimConfig
 from ..strategy import ADCSchedule, MCMCSchedule
 

@@ -1,7 +1,7 @@
 """The run report: report.html (self-contained) and its PNG plots, for one run or a comparison of several.
 
 `make_report([run_dir])` writes RUN/report.html and RUN/plots/*.png; `make_report([a, b, ...], out=DIR)` compares
-runs on the same plots. ReportWriter makes it at the end of every training run (a subscriber, events.py). When the run
+runs on the same plots. ReportWriter makes it at the end of every training run (a subscriber, run/events.py). When the run
 folder holds a mesh (RUN/mesh.ply, from `mcsplat export --format mesh`, which remakes the report), the report pictures
 it from a few test views (mesh.py).
 """
@@ -17,9 +17,9 @@ from PIL import Image
 from tqdm import tqdm
 
 from ..errors import MCSplatError
-from ..events import RunFinished, Subscriber
+from ..run.events import RunFinished, Subscriber
 from ..io.atomic import atomic_write_bytes, atomic_write_text
-from ..run_dir import RunDir
+from ..run.folder import RunDir
 from . import plots
 from .mesh import mesh_figure_rows
 from .runs import RunRecord, load_run

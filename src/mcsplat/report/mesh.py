@@ -11,7 +11,7 @@ import torch
 
 from ..mesh import read_mesh
 from ..mesh.raster import picture
-from ..run_dir import RunDir
+from ..run.folder import RunDir
 
 MESH_VIEWS = 3
 LONGEST_SIDE = 480  # pixels of a mesh picture's longest side

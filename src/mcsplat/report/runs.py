@@ -13,7 +13,7 @@ import torch
 from ..errors import MCSplatError
 from ..gaussians import DEAD_OPACITY
 from ..planning import settings_of
-from ..run_dir import RunDir
+from ..run.folder import RunDir
 
 
 @dataclass

@@ -13,7 +13,7 @@ from ..compute.device import resolve_device
 from ..data.images import uint8_pixels
 from ..errors import MCSplatError
 from ..render import render
-from ..trained_run import load
+from ..run.trained import load
 
 
 def saved_run_views(path: Path, device_name: str):

@@ -3,7 +3,7 @@
 The browser shows images rendered by our own rasterizer (full SH, exactly what training optimises) from the camera
 the user drives, at lower resolution while the camera moves; the training views appear as frustums; a panel shows
 step, loss, PSNR, Gaussians and speed, with pause / resume and the render mode (RGB, depth, alpha, centres) and SH
-degree. TrainingViewer is a subscriber of the training run (events.py); `view_saved` shows a finished run or .ply.
+degree. TrainingViewer is a subscriber of the training run (run/events.py); `view_saved` shows a finished run or .ply.
 The server listens on 127.0.0.1 unless asked otherwise.
 """
 

@@ -11,7 +11,7 @@ from typing import Sequence
 
 import torch
 
-from .. import trained_run
+from ..run import trained as trained_run
 from ..errors import MCSplatError
 from ..gaussians import GaussianModel
 from ..io.formats import format_named_by, read_gaussians

@@ -1,11 +1,11 @@
-"""The viewer as a subscriber of a training run (events.py): shows the model as it trains, steers pause / resume."""
+"""The viewer as a subscriber of a training run (run/events.py): shows the model as it trains, steers pause / resume."""
 
 from __future__ import annotations
 
 import time
 from typing import Sequence
 
-from ..events import EvalDone, RunFinished, RunStarted, StepDone, Subscriber
+from ..run.events import EvalDone, RunFinished, RunStarted, StepDone, Subscriber
 from .server import ViewerServer
 
 STATS_INTERVAL = 0.25  # seconds between two updates of the panel's numbers

@@ -326,7 +326,7 @@ def test_train_loads_the_depth_maps_its_options_name(mini_demo, tmp_path):
     """--depths FOLDER (with --depth-encoding, --depth-measure, --depth-png-step) puts the depth maps on the views of
     the run's scene, also when the run is read back from config.json (eval, resume); without it a run loads none."""
     from mcsplat.config import from_jsonable, to_jsonable
-    from mcsplat.run_scene import scene_of
+    from mcsplat.run.scene import scene_of
 
     folder = tmp_path / "depths"
     (folder / "train").mkdir(parents=True)

@@ -195,7 +195,7 @@ def test_alpha_channel_as_mask(mini_demo):
 # ------------------------------------------------------------------------------------------- training, end to end
 def _magenta_in_block(run: Path) -> float:
     """How magenta the block region of the training renders is: mean (R + B) / 2 - G (the paint: 1)."""
-    from mcsplat import trained_run
+    from mcsplat.run import trained as trained_run
     from mcsplat.render import render
 
     trained = trained_run.load(run, torch.device("cpu"))

@@ -1,5 +1,5 @@
-"""A run folder's layout, and its files read and written: how a run starts in it is run_start.py, a trained run read
-back trained_run.py.
+"""A run folder's layout, and its files read and written: how a run starts in it is run/start.py, a trained run read
+back run/trained.py.
 
     RUN/config.json          the options as given and the plan (what --resume continues with), the scene's fingerprint
     RUN/checkpoint.pt        model, Adam state, strategy state, RNG states, step (written atomically, checksummed)
@@ -26,15 +26,15 @@ from typing import Any
 
 import torch
 
-from .config import TrainConfig
-from .errors import MCSplatError
-from .gaussians import DEAD_OPACITY, GaussianModel
-from .io.atomic import atomic_path, atomic_write_text
-from .io.checkpoint import DamagedCheckpoint, load_checkpoint, save_checkpoint
-from .io.lock import FolderLock
-from .io.ply import write_ply
-from .planning import Plan, load_run_config, save_run_config
-from .planning.config_file import load_run_record, load_scene_entry, save_scene_entry
+from ..config import TrainConfig
+from ..errors import MCSplatError
+from ..gaussians import DEAD_OPACITY, GaussianModel
+from ..io.atomic import atomic_path, atomic_write_text
+from ..io.checkpoint import DamagedCheckpoint, load_checkpoint, save_checkpoint
+from ..io.lock import FolderLock
+from ..io.ply import write_ply
+from ..planning import Plan, load_run_config, save_run_config
+from ..planning.config_file import load_run_record, load_scene_entry, save_scene_entry
 
 CONFIG = "config.json"
 CHECKPOINT = "checkpoint.pt"

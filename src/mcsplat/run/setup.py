@@ -1,4 +1,4 @@
-"""How a training run begins: its folder read once and prepared (new, resumed or refused: run_start.py), this
+"""How a training run begins: its folder read once and prepared (new, resumed or refused: run/start.py), this
 process's own options, its device and threads, the scene, the state (fresh or from the checkpoint), its planner, and
 the folder's files begun.
 
@@ -13,15 +13,17 @@ from dataclasses import dataclass
 
 import torch
 
-from . import run_dir, run_scene, run_start
-from .compute.device import resolve_device
-from .config import TrainConfig, feature_groups, process_options, with_options
-from .data import Scene
-from .distributed import Team, scene_summary, setup_of, threads_per_process
-from .features import features_named
-from .io.lock import FolderLock
-from .planning import Planner, initial_plan, planner_for
-from .render import set_cpu_threads
+from . import folder as run_dir
+from . import scene as run_scene
+from . import start as run_start
+from ..compute.device import resolve_device
+from ..config import TrainConfig, feature_groups, process_options, with_options
+from ..data import Scene
+from ..distributed import Team, scene_summary, setup_of, threads_per_process
+from ..features import features_named
+from ..io.lock import FolderLock
+from ..planning import Planner, initial_plan, planner_for
+from ..render import set_cpu_threads
 from .state import TrainingState, start
 
 

@@ -13,18 +13,18 @@ from typing import Any
 
 import torch
 
-from .config import TrainConfig, feature_groups
-from .data import Scene
-from .distributed import Team
-from .features import FeatureParts, FeatureStart, features_named
-from .gaussians import GaussianModel
-from .initialization import initial_model
-from .loss_terms import LossTerm, standard_terms
-from .optim import make_optimizers
-from .per_image import PerImageModule
-from .planning import Plan, make_strategy
-from .run_scene import Background
-from .strategy import Strategy
+from ..config import TrainConfig, feature_groups
+from ..data import Scene
+from ..distributed import Team
+from ..features import FeatureParts, FeatureStart, features_named
+from ..gaussians import GaussianModel
+from ..initialization import initial_model
+from ..loss_terms import LossTerm, standard_terms
+from ..optim import make_optimizers
+from ..per_image import PerImageModule
+from ..planning import Plan, make_strategy
+from .scene import Background
+from ..strategy import Strategy
 
 
 class ViewSampler:

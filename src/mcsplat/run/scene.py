@@ -11,11 +11,11 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from .config import TrainConfig, feature_groups, with_options
-from .data import Scene, detect_kind, load_scene
-from .errors import DataError, MCSplatError
-from .features import features_named
-from .partition import block_scene
+from ..config import TrainConfig, feature_groups, with_options
+from ..data import Scene, detect_kind, load_scene
+from ..errors import DataError, MCSplatError
+from ..features import features_named
+from ..partition import block_scene
 
 Background = tuple[float, float, float]
 

@@ -2,7 +2,7 @@
 
     loss = weight * (1 - r)      r: Pearson's correlation of the rendered depth with the view's depth map
 
-over the pixels where the map has a depth and the render is opaque (alpha at least depth_terms.MIN_ALPHA), from
+over the pixels where the map has a depth and the render is opaque (alpha at least terms.MIN_ALPHA), from
 --depth-correlation-from of the run on. A correlation does not change when either depth is scaled or shifted, so
 the map may be a monocular model's (any scale, any shift) without the fit per view that --depth-loss relative makes;
 it holds the shape of the depth, not its values. A disparity map (MiDaS, Depth Anything) correlates negatively with
@@ -18,11 +18,11 @@ from dataclasses import dataclass
 
 import torch
 
-from .depth_terms import MIN_ALPHA
-from .errors import MCSplatError
-from .features import FeatureParts, FeatureStart
-from .loss_terms import StepContext
-from .option_checks import refuse_non_finite
+from .terms import MIN_ALPHA
+from ..errors import MCSplatError
+from ..features import FeatureParts, FeatureStart
+from ..loss_terms import StepContext
+from ..option_checks import refuse_non_finite
 
 MIN_PIXELS = 16  # a correlation over fewer pixels says little
 

@@ -3,7 +3,7 @@
 On CUDA, torch's separable depthwise convolutions take about 0.35 ms of GPU time forward + backward at 400x400 on an
 H100 and some forty launches; these four launches take about 0.07 ms. The kernels are plain per-thread code (no
 native snippets, no tile API), so the same code runs on the CPU, where the tests check it; training on the CPU
-keeps ssim_cpu.py, which is several times faster there.
+keeps ssim/cpu.py, which is several times faster there.
 
 With the windowed statistics mu_x, mu_y, <x^2>, <y^2>, <xy> of each pixel and channel,
 
@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from .compute.runtime import ensure_warp, launch_on_cuda, run_ranges, warp_view
+from ..compute.runtime import ensure_warp, launch_on_cuda, run_ranges, warp_view
 
 # The 3DGS SSIM: an 11x11 Gaussian window of sigma 1.5, zero "same" padding (losses.py re-exports these).
 SSIM_WINDOW = 11

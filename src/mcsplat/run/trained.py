@@ -9,12 +9,12 @@ from pathlib import Path
 
 import torch
 
-from .config import TrainConfig
-from .data import Scene
-from .gaussians import GaussianModel
-from .planning import Plan
-from .run_dir import RunDir
-from .run_scene import Background, background_of, scene_of
+from ..config import TrainConfig
+from ..data import Scene
+from ..gaussians import GaussianModel
+from ..planning import Plan
+from .folder import RunDir
+from .scene import Background, background_of, scene_of
 
 
 @dataclass

@@ -31,13 +31,13 @@ from typing import Literal, Sequence
 import torch
 import torch.nn.functional as F
 
-from .camera import Camera
-from .data import Scene
-from .data.sfm_tracks import points_seen
-from .errors import MCSplatError
-from .option_checks import refuse_non_finite
-from .features import FeatureParts, FeatureStart
-from .loss_terms import StepContext
+from ..camera import Camera
+from ..data import Scene
+from ..data.sfm_tracks import points_seen
+from ..errors import MCSplatError
+from ..option_checks import refuse_non_finite
+from ..features import FeatureParts, FeatureStart
+from ..loss_terms import StepContext
 
 MIN_ALPHA = 0.5  # the render's depth is read where it is at least this opaque
 MIN_PIXELS = 16  # a scale-and-shift fit needs this many pixels with both depths

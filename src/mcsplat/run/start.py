@@ -17,14 +17,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .config import TrainConfig, flat_options, options_given, process_options, resume_policy, to_jsonable, with_options
-from .errors import MCSplatError
-from .io.atomic import remove_stale_temporaries
-from .io.disk import writing_into
-from .io.lock import FolderLock
-from .planning import REPLANNED_KEYS, Plan, initial_plan, options_with_plan, settings_of
-from .run_dir import CHECKPOINT, RunDir
-from .run_scene import refuse_scene_folder, with_folders_absolute
+from ..config import TrainConfig, flat_options, options_given, process_options, resume_policy, to_jsonable, with_options
+from ..errors import MCSplatError
+from ..io.atomic import remove_stale_temporaries
+from ..io.disk import writing_into
+from ..io.lock import FolderLock
+from ..planning import REPLANNED_KEYS, Plan, initial_plan, options_with_plan, settings_of
+from .folder import CHECKPOINT, RunDir
+from .scene import refuse_scene_folder, with_folders_absolute
 
 
 @dataclass(frozen=True)

@@ -13,16 +13,16 @@ import torch
 from PIL import Image
 from tqdm import tqdm
 
-from .appearance import apply_transform, fitted_transform, split_halves
-from .data import View
-from .data.images import uint8_pixels
-from .distributed import SingleProcess, Team
-from .errors import MCSplatError
-from .gaussians import GaussianModel
-from .io.atomic import atomic_write
-from .metrics import lpips_model, masked_psnr, masked_ssim, psnr, ssim_metric
-from .render import render
-from .visibility import seen_in
+from ..appearance import apply_transform, fitted_transform, split_halves
+from ..data import View
+from ..data.images import uint8_pixels
+from ..distributed import SingleProcess, Team
+from ..errors import MCSplatError
+from ..gaussians import GaussianModel
+from ..io.atomic import atomic_write
+from ..metrics import lpips_model, masked_psnr, masked_ssim, psnr, ssim_metric
+from ..render import render
+from ..visibility import seen_in
 
 RenderFile = Callable[[str], Path]  # a view's name -> the PNG its render is written to
 

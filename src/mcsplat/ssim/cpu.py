@@ -28,12 +28,12 @@ import math
 import torch
 import warp as wp
 
-from .compute.cpp_snippets import read_snippet
-from .compute.cpu_target import kernel_flags
-from .compute.runtime import cpu_threads, ensure_warp, flat_view, run_ranges
-from .ssim_warp import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
+from ..compute.cpp_snippets import read_snippet
+from ..compute.cpu_target import kernel_flags
+from ..compute.runtime import cpu_threads, ensure_warp, flat_view, run_ranges
+from .warp import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
 
-# The window and constants are defined once, in ssim_warp.py.
+# The window and constants are defined once, in ssim/warp.py.
 _WINDOW, _SIGMA, _C1, _C2 = SSIM_WINDOW, SSIM_SIGMA, SSIM_C1, SSIM_C2
 
 
@@ -48,11 +48,11 @@ _TAPS = ", ".join(f"{float(torch.tensor(w, dtype=torch.float32))!r}f" for w in _
 # Each launch item is a range of output rows (one per CPU thread). A row's five statistics (or three partials) are
 # blurred along the row once, into a ring of the last WINDOW rows, and blurred down the columns from there: the
 # row-blurred planes never leave the thread's cache (the passes before wrote and read back 15 full planes). The C++
-# is in ssim_cpu_helpers.h, ssim_cpu_forward.cpp and ssim_cpu_backward.cpp.
-_HELPERS = read_snippet(__package__, "ssim_cpu_helpers.h", {
+# is in ssim/cpu_helpers.h, ssim/cpu_forward.cpp and ssim/cpu_backward.cpp.
+_HELPERS = read_snippet(__package__, "cpu_helpers.h", {
     "WINDOW": _WINDOW, "HALF_WINDOW": _WINDOW // 2, "TAP_LIST": "{" + _TAPS + "}"})
-_FORWARD = read_snippet(__package__, "ssim_cpu_forward.cpp", {"HELPERS": _HELPERS, "C1": repr(_C1), "C2": repr(_C2)})
-_BACKWARD = read_snippet(__package__, "ssim_cpu_backward.cpp", {"HELPERS": _HELPERS})
+_FORWARD = read_snippet(__package__, "cpu_forward.cpp", {"HELPERS": _HELPERS, "C1": repr(_C1), "C2": repr(_C2)})
+_BACKWARD = read_snippet(__package__, "cpu_backward.cpp", {"HELPERS": _HELPERS})
 
 # Fused multiply-add in the blur loops (Warp's default keeps a * b + c as two roundings).
 wp.set_module_options({"cpu_compiler_flags": kernel_flags("-ffp-contract=fast")})

@@ -28,12 +28,12 @@ from typing import Any, Callable, ClassVar, Protocol, Sequence
 
 import torch
 
-from .config import TrainConfig
-from .data import Scene
+from ..config import TrainConfig
+from ..data import Scene
 from .evaluation import Evaluation
-from .gaussians import GaussianModel
-from .planning import Plan
-from .strategy.base import RefineReport
+from ..gaussians import GaussianModel
+from ..planning import Plan
+from ..strategy.base import RefineReport
 
 
 class RunView(Protocol):
