@@ -12,7 +12,8 @@
 
 All are loss terms (loss_terms.py) and work with either strategy. For MCMC nothing else changes: its position noise
 is shaped by each Gaussian's covariance, so a flat Gaussian moves within its plane and hardly across it, and Eq. 9's
-relocation scales all three axes by one factor, so a copy stays as flat as its source (tests/training/test_surface_terms.py).
+relocation scales all three axes by one factor, so a copy stays as flat as its source
+(tests/training/test_surface_terms.py).
 """
 
 from __future__ import annotations

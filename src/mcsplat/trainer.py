@@ -1,8 +1,8 @@
 """The training loop: the run (`TrainingRun`) that repeats one step (step.py's `Step`), emitting run/events.py's events.
 
-Where the run's files go is run/folder.py's business, how its state starts and what a checkpoint holds run/state.py's, what
-the run decides (its steps, schedules and cap) its planner's (planning/), scoring run/evaluation.py's and metrics.json's
-layout run/metrics.py's; train.py puts a run together with its consumers.
+Where the run's files go is run/folder.py's business, how its state starts and what a checkpoint holds run/state.py's,
+what the run decides (its steps, schedules and cap) its planner's (planning/), scoring run/evaluation.py's and
+metrics.json's layout run/metrics.py's; train.py puts a run together with its consumers.
 """
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ class TrainingRun:
             with control.lock:
                 tick = time.perf_counter()
                 plan = self.plan
-                state.strategy.follow(plan.schedule_for(config.strategy))
+                state.strategy.follow(plan.schedule)
                 view_index = team.pick(state.sampler.take(n))
                 view = self.scene.train[view_index]
                 for index in state.sampler.upcoming(PREFETCH_VIEWS * n)[team.rank::n]:  # decode ahead when images

@@ -190,8 +190,9 @@ def test_the_schedule_rule_for_n_processes():
     plan = Plan.literal(config)
     scaled = for_processes(plan, 4)
     assert (scaled.steps, scaled.sh_increase_every, scaled.world_size) == (7500, 250, 4)
-    assert (scaled.mcmc.refine_start, scaled.mcmc.refine_stop, scaled.mcmc.refine_every) == (125, 6250, 25)
-    assert (scaled.adc.densify_every, scaled.adc.reset_every) == (25, 750)
+    assert (scaled.schedule.refine_start, scaled.schedule.refine_stop, scaled.schedule.refine_every) == (125, 6250, 25)
+    adc = for_processes(Plan.literal(demo_config(Path("x"), steps=30_000, strategy="adc")), 4).schedule
+    assert (adc.densify_every, adc.reset_every) == (25, 750)
     assert scaled.optim.means_lr == pytest.approx(2 * config.optim.means_lr)
     assert scaled.optim.opacity_lr == pytest.approx(2 * config.optim.opacity_lr)
     assert scaled.optim.eps == pytest.approx(config.optim.eps / 2)

@@ -34,15 +34,16 @@ def test_the_step_schedules_follow_the_steps():
     """--steps 3000 gets the paper's schedule at a tenth: refinement 50..2,500 every 10, SH every 100, ADC's
     densification 50..1,500 every 10 and resets every 300; --no-scale-schedule keeps the options as they are."""
     fitted = initial_plan(TrainConfig(data=DEMO, steps=3000))
-    m, a = fitted.mcmc, fitted.adc
+    m, a = fitted.schedule, initial_plan(TrainConfig(data=DEMO, steps=3000, strategy="adc")).schedule
+    assert (fitted.strategy, type(a).__name__) == ("mcmc", "ADCSchedule"), "a plan holds its run's strategy's schedule"
     assert (m.refine_start, m.refine_stop, m.refine_every, fitted.sh_increase_every) == (50, 2500, 10, 100)
     assert (a.densify_start, a.densify_stop, a.densify_every, a.reset_every) == (50, 1500, 10, 300)
-    assert Plan.literal(TrainConfig(data=DEMO, steps=3000)).mcmc.refine_start == 500, \
+    assert Plan.literal(TrainConfig(data=DEMO, steps=3000)).schedule.refine_start == 500, \
         "a resumed run is not fitted twice (its saved values are the plan's, taken as they are)"
     paper = initial_plan(TrainConfig(data=DEMO))
-    assert (paper.mcmc.refine_start, paper.mcmc.refine_stop, paper.mcmc.refine_every) == (500, 25_000, 100)
+    assert (paper.schedule.refine_start, paper.schedule.refine_stop, paper.schedule.refine_every) == (500, 25_000, 100)
     literal = initial_plan(TrainConfig(data=DEMO, steps=3000, scale_schedule=False))
-    assert (literal.mcmc.refine_start, literal.mcmc.refine_every, literal.sh_increase_every) == (500, 100, 1000)
+    assert (literal.schedule.refine_start, literal.schedule.refine_every, literal.sh_increase_every) == (500, 100, 1000)
 
 
 def test_the_resolution_rises_from_the_start_size_to_full_size():
@@ -59,7 +60,7 @@ def test_growth_is_planned_to_reach_the_cap_in_time():
     40% of it (114); the planned rate gets there, and the paper's 5% stays where it is fast enough."""
     plan = initial_plan(TrainConfig(data=DEMO, steps=3000))
     rate = planned_growth_rate(plan, 0.4, 100, 50_000)
-    refines = refine_steps_between(plan.mcmc.refine_start, round(0.4 * 3000), plan.mcmc.refine_every)
+    refines = refine_steps_between(plan.schedule.refine_start, round(0.4 * 3000), plan.schedule.refine_every)
     assert refines == 114 and rate > 1.05
     count = 100
     for _ in range(refines):
@@ -90,14 +91,14 @@ def test_the_budget_planner_fills_the_time_with_the_balanced_cap():
         planner.calibrate(0.010 + 0.040 * s * s + 0.2e-6 * n, n, s)
     planner.start(0, 0.0, 1000)
     plan = planner.plan
-    assert plan.mcmc.cap_max == pytest.approx(500_000 * math.sqrt(0.2), rel=0.01)
+    assert plan.schedule.cap_max == pytest.approx(500_000 * math.sqrt(0.2), rel=0.01)
     ks = np.arange(plan.steps)
     scales = np.array([plan.resolution_at(int(k)) for k in ks])
     assert scales[0] == pytest.approx(0.25) and scales[-1] == 1.0
-    upper = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * plan.mcmc.cap_max)  # every step at the cap
+    upper = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * plan.schedule.cap_max)  # every step at the cap
     lower = np.sum(0.010 + 0.040 * scales ** 2 + 0.2e-6 * 1000)                 # every step at the start count
     assert lower < 120.0 < upper and 1000 < plan.steps
-    assert plan.mcmc.refine_every == max(1, round(100 * plan.steps / 30_000))
+    assert plan.schedule.refine_every == max(1, round(100 * plan.steps / 30_000))
     assert plan.budget["history"][0]["steps"] == plan.steps
     assert config.steps == 30_000 and config.mcmc.cap_max == 1_000_000, "the plan is its own: the options stay"
 
@@ -125,7 +126,7 @@ def test_a_run_ahead_of_its_plan_plans_again_to_end_on_time():
     reached = planner.plan.steps
     assert not planner.due(reached - 1, 10.5), "planned half a second ago: not due yet"
     assert planner.due(reached, 10.5) and planner.finished(reached, 10.5), "at the planned step, 90% of the time left"
-    planner.replan(reached, 10.5, planner.plan.mcmc.cap_max)
+    planner.replan(reached, 10.5, planner.plan.schedule.cap_max)
     assert planner.plan.steps > reached and not planner.finished(reached, 10.5)
     assert not planner.due(planner.plan.steps, (1 - END_SLACK / 2) * 120.0), "the time is nearly up: the run ends"
 
@@ -296,13 +297,13 @@ def test_a_resumed_budget_run_keeps_the_ceiling_it_started_with():
     for n, s in ((1000, 1.0), (1000, 0.25), (100_000, 1.0), (100_000, 0.25)):
         planner.calibrate(0.010 + 0.010 * s * s + 0.5e-6 * n, n, s)
     planner.start(0, 0.0, 1000)
-    assert planner.plan.mcmc.cap_max < planner.ceiling
+    assert planner.plan.schedule.cap_max < planner.ceiling
     saved, plan = read_record(json.loads(json.dumps(run_record(config, planner.plan))))
-    assert saved.mcmc.cap_max == 1_000_000 and plan.mcmc.cap_max == planner.plan.mcmc.cap_max
+    assert saved.mcmc.cap_max == 1_000_000 and plan.schedule.cap_max == planner.plan.schedule.cap_max
     assert budget_planner(saved, plan, scene).ceiling == 120_000
     older = json.loads(json.dumps(options_with_plan(config, planner.plan)))
     saved, plan = read_record(older)
-    assert saved.mcmc.cap_max == planner.plan.mcmc.cap_max, "the older layout: the option's place held the plan's cap"
+    assert saved.mcmc.cap_max == planner.plan.schedule.cap_max, "the older layout: the option's place held the plan's cap"
     assert budget_planner(saved, plan, scene).ceiling == 120_000
 
 
@@ -360,5 +361,5 @@ def test_once_the_scene_stops_asking_the_plan_gives_the_time_to_steps():
     stopped = _known_costs(budget="10m", pixels=0.010)
     stopped.strategy = SimpleNamespace(chosen_cap=20_000)
     stopped.replan(500, 30.0, 20_000)
-    assert growing.plan.mcmc.cap_max > 20_000 and stopped.plan.mcmc.cap_max == 20_000
+    assert growing.plan.schedule.cap_max > 20_000 and stopped.plan.schedule.cap_max == 20_000
     assert stopped.plan.steps > growing.plan.steps

@@ -19,7 +19,8 @@ from mcsplat.run.events import Subscriber
 from mcsplat.io.checkpoint import load_checkpoint
 from mcsplat.planning import (Plan, initial_plan, load_run_config, make_strategy, options_with_plan, read_record,
                               run_record)
-from mcsplat.strategy import MCMCSchedule
+from mcsplat.planning.schedule import PAPER_STEPS
+from mcsplat.strategy import ADCSchedule, MCMCSchedule
 from mcsplat.train import train
 
 DEMO = Path(__file__).resolve().parents[2] / "data" / "lego_demo"
@@ -94,7 +95,7 @@ def test_the_strategy_follows_the_plan_and_the_options_stay():
     strategy = make_strategy(config, plan, 1.0, torch.Generator())
     assert (config.mcmc.refine_start, config.mcmc.refine_every) == (500, 100)
     assert strategy.is_refine_step(60) and not strategy.is_refine_step(65) and strategy.ceiling == 5000
-    strategy.follow(dataclasses.replace(plan.mcmc, refine_every=7, cap_max=4000))
+    strategy.follow(dataclasses.replace(plan.schedule, refine_every=7, cap_max=4000))
     assert strategy.is_refine_step(63) and not strategy.is_refine_step(60) and strategy.ceiling == 4000
     adc = TrainConfig(data=DEMO, steps=3000, strategy="adc")
     densifying = make_strategy(adc, initial_plan(adc), 1.0, torch.Generator())
@@ -112,6 +113,7 @@ def test_config_json_keeps_what_was_asked_and_the_plan_beside_it():
     planned = record["plan"]
     assert (planned["steps"], planned["mcmc"]["refine_every"], planned["sh_increase_every"]) == (1500, 5, 50)
     assert planned["world_size"] == 2 and planned["budget"] == {"history": [{"step": 1}]}
+    assert "adc" not in planned, "the plan holds the schedule of the run's strategy only"
     assert planned["optim"]["means_lr"] == pytest.approx(config.optim.means_lr * 2 ** 0.5)
     saved, again = read_record(record)
     assert again == plan and saved == dataclasses.replace(config, named=saved.named)
@@ -128,6 +130,7 @@ def test_a_hand_edited_plan_is_one_line_naming_the_value():
              ({**record["plan"], "speed": 3}, "config.json: unknown option 'plan.speed'"),
              ({**record["plan"], "mcmc": {k: v for k, v in record["plan"]["mcmc"].items() if k != "grow_rate"}},
               "config.json: plan.mcmc lacks grow_rate"),
+             ({key: value for key, value in record["plan"].items() if key != "mcmc"}, "config.json: plan lacks mcmc"),
              ([], "config.json: plan must be an object")]
     for edited, message in edits:
         with pytest.raises(MCSplatError, match="put back|another mcsplat|must be an object") as refused:
@@ -169,7 +172,14 @@ def values_in_the_options_places(record: dict) -> dict:
     return {**options_with_plan(*read_record(record)), "scene": record["scene"]}
 
 
-@pytest.mark.parametrize("layout", [old_layout, values_in_the_options_places])
+def both_schedules(record: dict) -> dict:
+    """config.json as mcsplat wrote it on 2026-11-28: the plan held ADC's schedule, fitted alike, beside MCMC's."""
+    config, plan = read_record(record)
+    adc = ADCSchedule.of(config.adc).scaled(plan.steps, PAPER_STEPS)
+    return {**record, "plan": {**record["plan"], "adc": to_jsonable(adc)}}
+
+
+@pytest.mark.parametrize("layout", [old_layout, values_in_the_options_places, both_schedules])
 def test_a_run_folder_of_an_older_layout_resumes_bit_for_bit(tmp_path, mini_demo, layout):
     """A run stopped at step 20 whose config.json an older mcsplat wrote continues as the uninterrupted run: its
     fitted schedules are read back as the plan, not fitted a second time (which would stop refinement)."""
@@ -185,8 +195,8 @@ def test_a_run_folder_of_an_older_layout_resumes_bit_for_bit(tmp_path, mini_demo
     written = json.loads((run / "config.json").read_text())
     (run / "config.json").write_text(json.dumps(layout(written), indent=2))
     saved, plan = load_run_config(run / "config.json")
-    assert (plan.steps, plan.mcmc.refine_start, plan.mcmc.refine_every, plan.sh_increase_every) == (40, 1, 1, 1)
-    assert plan.mcmc.grow_rate == written["plan"]["mcmc"]["grow_rate"] > 1.05, "the growth rate --cap-max planned"
+    assert (plan.steps, plan.schedule.refine_start, plan.schedule.refine_every, plan.sh_increase_every) == (40, 1, 1, 1)
+    assert plan.schedule.grow_rate == written["plan"]["mcmc"]["grow_rate"] > 1.05, "the growth rate --cap-max planned"
     with pytest.raises(dataclasses.FrozenInstanceError):
         saved.steps = 80
     train(config(run, resume=True))
@@ -198,7 +208,7 @@ def test_a_run_folder_of_an_older_layout_resumes_bit_for_bit(tmp_path, mini_demo
 
 def test_a_plan_made_from_the_options_fits_them_once():
     config = TrainConfig(data=DEMO, steps=3000)
-    assert Plan.literal(config).mcmc == MCMCSchedule.of(config.mcmc), "the options as they are"
-    assert initial_plan(config).mcmc.refine_start == 50 and initial_plan(config, 2).steps == 1500
+    assert Plan.literal(config).schedule == MCMCSchedule.of(config.mcmc), "the options as they are"
+    assert initial_plan(config).schedule.refine_start == 50 and initial_plan(config, 2).steps == 1500
     budget = TrainConfig(data=DEMO, budget="2m")
     assert initial_plan(budget) == Plan.literal(budget), "--budget fits the schedules as it plans"

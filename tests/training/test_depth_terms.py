@@ -1,6 +1,6 @@
-"""Depth supervision (depth_supervision/terms.py): the terms move the rendered depth onto a known plane and sphere, relative and
-disparity maps are read up to scale and shift, metric maps in the wrong units are refused, views without depth give
-nothing, and the SfM points each COLMAP image saw are read and projected as the image saw them."""
+"""Depth supervision (depth_supervision/terms.py): the terms move the rendered depth onto a known plane and sphere,
+relative and disparity maps are read up to scale and shift, metric maps in the wrong units are refused, views without
+depth give nothing, and the SfM points each COLMAP image saw are read and projected as the image saw them."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ from mcsplat.data.attachments.depth import KIND as DEPTH
 from mcsplat.data.attachments.depth import DepthOptions
 from mcsplat.data.attachments.kind import Attachment
 from mcsplat.data.sfm_tracks import points_seen
-from mcsplat.depth_supervision.terms import (DenseDepth, Schedule, SparseDepth, check_metric_scale, depth_terms, project,
-                                 target_depth)
+from mcsplat.depth_supervision.terms import (DenseDepth, Schedule, SparseDepth, check_metric_scale, depth_terms,
+                                             project, target_depth)
 from mcsplat.errors import MCSplatError
 from mcsplat.gaussians import GaussianModel
 from mcsplat.loss_terms import StepContext

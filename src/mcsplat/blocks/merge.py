@@ -88,5 +88,4 @@ def remove_previous_merge(target: run_dir.RunDir) -> None:
 
 def _with_cap(plan: Plan, cap: int) -> Plan:
     """The blocks' plan with the whole scene's cap (what the merged model was allowed in all)."""
-    return dataclasses.replace(plan, mcmc=dataclasses.replace(plan.mcmc, cap_max=cap),
-                               adc=dataclasses.replace(plan.adc, cap_max=cap))
+    return dataclasses.replace(plan, schedule=dataclasses.replace(plan.schedule, cap_max=cap))

@@ -2,8 +2,8 @@
 
 COLMAP's images.bin lists, for every image, its 2D keypoints with the id of the 3D point each one observes (or none);
 points3D.bin lists the points by id. Together they say which points an image saw, which is what sparse depth
-supervision needs (depth_supervision/terms.py): a point is held to the depth of the images that triangulated it, not to every
-image it merely projects into (where something in front may hide it).
+supervision needs (depth_supervision/terms.py): a point is held to the depth of the images that triangulated it,
+not to every image it merely projects into (where something in front may hide it).
 
     points_seen(root) -> {view name: float64 [k, 3] world points}, or None for a scene that is not a COLMAP model
 

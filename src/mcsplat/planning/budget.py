@@ -56,7 +56,7 @@ from ..config import TrainConfig, budget_seconds
 from ..data import Scene
 from ..errors import MCSplatError
 from ..strategy.auto_cap import pixel_ceiling
-from ..strategy.mcmc import prune_to_cap
+from ..strategy.mcmc import MCMCSchedule, prune_to_cap
 from .calibration import timed_steps
 from .run_plan import Plan
 from .planner import RunState, RunStep
@@ -175,7 +175,7 @@ class BudgetPlanner:
             self.calibrate(seconds, gaussians, scale)
         self.start(state.step, state.wall_seconds, state.model.num_gaussians)
         if self.config.strategy == "mcmc" and state.step == 0:
-            prune_to_cap(state.model, state.optimizers, self.plan.mcmc.cap_max)
+            prune_to_cap(state.model, state.optimizers, self.plan.schedule.cap_max)
 
     def after_step(self, seconds: float, gaussians: int, scale: float, *, step: int, wall_seconds: float,
                    gaussians_now: int) -> None:
@@ -209,7 +209,7 @@ class BudgetPlanner:
             self.last_plan_at = -math.inf  # the first plan from measured steps still comes at FIRST_PLAN_STEP
         else:
             self._apply(Choice(max(step + 1, MIN_STEPS), min(self.ceiling, max(gaussians, 1)),
-                               self.base["mcmc.grow_rate"]), step)
+                               self._base_rate()), step)
 
     def due(self, step: int, wall_seconds: float) -> bool:
         if step < FIRST_PLAN_STEP:
@@ -228,7 +228,7 @@ class BudgetPlanner:
         self._apply(self._choose(step, wall_seconds, gaussians), step)
         self.last_plan_at = wall_seconds
         self.history.append({"at_seconds": round(wall_seconds, 1), "step": step, "steps": self.plan.steps,
-                             "cap": self.plan.mcmc.cap_max, "gaussians": gaussians,
+                             "cap": self.plan.schedule.cap_max, "gaussians": gaussians,
                              "full_size_at": round(self.plan.resolution_full_at, 3), "size": round(self.scale_now, 3),
                              "step_ms": round(1000 * float(self.cost.predict(gaussians, 1.0)), 1)})
         self._publish(self.plan)
@@ -238,7 +238,7 @@ class BudgetPlanner:
 
     def _record(self, plan: Plan) -> dict:
         """What config.json (plan.budget) and the report keep of the planning."""
-        return {"budget_seconds": self.budget_seconds, "steps": plan.steps, "cap": plan.mcmc.cap_max,
+        return {"budget_seconds": self.budget_seconds, "steps": plan.steps, "cap": plan.schedule.cap_max,
                 "ceiling": self.ceiling,
                 "resolution_start": plan.resolution_start, "resolution_first": self.first_size,
                 "resolution_full_at": plan.resolution_full_at,
@@ -262,9 +262,9 @@ class BudgetPlanner:
         left = self.budget_seconds - wall_seconds
         current = max(gaussians, 1)
         top = max(self.ceiling, 1)
-        growth_over = step >= min(self.config.mcmc.growth_share * self.plan.steps, self.plan.mcmc.refine_stop)
+        growth_over = step >= self._growth_ends()
         if growth_over or getattr(self.strategy, "chosen_cap", None) is not None:
-            return Choice(self._steps_for(step, left, current, current), current, self.base["mcmc.grow_rate"])
+            return Choice(self._steps_for(step, left, current, current), current, self._base_rate())
         lowest = min(top, max(MIN_START_GAUSSIANS, current // 10) if step == 0 else current)
         cap = self._balanced_from(lowest)
         steps = self._steps_for(step, left, current, cap)
@@ -330,7 +330,7 @@ class BudgetPlanner:
             return np.full(len(ks), float(cap))
         if cap <= gaussians:
             return np.full(len(ks), float(cap))
-        m = trial.mcmc
+        m = trial.schedule
         rate = self._grow_rate(step, trial.steps, gaussians, cap)
         first = (max(step, m.refine_start) // m.refine_every + 1) * m.refine_every
         upto = np.minimum(ks + 1, m.refine_stop) - 1
@@ -338,8 +338,22 @@ class BudgetPlanner:
         # In logs, bounded at the cap: a large rate to a high power overflowed (numpy warned on the console).
         return np.exp(np.minimum(np.log(cap), math.log(gaussians) + refines * math.log(rate)))
 
+    def _base_rate(self) -> float:
+        """MCMC's growth rate before any is planned (ADC has none: 1)."""
+        return self.base.get("mcmc.grow_rate", 1.0)
+
+    def _growth_ends(self) -> float:
+        """The step at which the run stops adding Gaussians: MCMC at growth_share of the run or where its refinement
+        stops, ADC where its densification stops."""
+        schedule = self.plan.schedule
+        if isinstance(schedule, MCMCSchedule):
+            return min(self.config.mcmc.growth_share * self.plan.steps, schedule.refine_stop)
+        return schedule.densify_stop
+
     def _grow_rate(self, step: int, steps: int, gaussians: int, cap: int) -> float:
-        m = self._fitted(steps).mcmc
+        m = self._fitted(steps).schedule
+        if not isinstance(m, MCMCSchedule):
+            return 1.0
         refines = refine_steps_between(max(step, m.refine_start),
                                        min(round(self.config.mcmc.growth_share * steps), m.refine_stop),
                                        m.refine_every)
@@ -354,5 +368,7 @@ class BudgetPlanner:
         if not self.sh_fixed and step >= self.plan.sh_increase_every:
             self.sh_fixed = True  # the degree has risen once: keep its schedule so it never steps back
         fitted = continuing_resolution(self._fitted(choice.steps), step, self.scale_now)
-        self._publish(replace(fitted, mcmc=replace(fitted.mcmc, cap_max=choice.cap, grow_rate=choice.grow_rate),
-                              adc=replace(fitted.adc, cap_max=choice.cap)))
+        planned = {"cap_max": choice.cap}
+        if isinstance(fitted.schedule, MCMCSchedule):
+            planned["grow_rate"] = choice.grow_rate
+        self._publish(replace(fitted, schedule=replace(fitted.schedule, **planned)))

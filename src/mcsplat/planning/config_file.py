@@ -68,7 +68,7 @@ def read_record(data: Any) -> tuple[TrainConfig, Plan]:
     if PLAN_ENTRY in data:
         config = from_jsonable({key: value for key, value in data.items() if key not in (PLAN_ENTRY, SCENE_ENTRY)})
         refuse_what_cap_max_overrides(data, config)
-        return config, Plan.from_record(data[PLAN_ENTRY])
+        return config, Plan.from_record(data[PLAN_ENTRY], config.strategy)
     config = from_jsonable({key: value for key, value in data.items()
                             if key not in OLD_PLAN_ENTRIES + RETIRED_ENTRIES + (SCENE_ENTRY,)})
     refuse_what_cap_max_overrides(data, config)

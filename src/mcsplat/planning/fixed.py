@@ -30,7 +30,7 @@ def with_growth(plan: Plan, config: TrainConfig, gaussians: int, strategy: Strat
     if config.strategy != "mcmc" or (config.cap_max is None and not config.mcmc.auto_cap):
         return plan
     rate = planned_growth_rate(plan, config.mcmc.growth_share, gaussians, strategy.ceiling)
-    return replace(plan, mcmc=replace(plan.mcmc, grow_rate=rate))
+    return replace(plan, schedule=replace(plan.schedule, grow_rate=rate))
 
 
 class FixedSteps:

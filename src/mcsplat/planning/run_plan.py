@@ -14,13 +14,15 @@ from typing import Any, Mapping
 
 from ..config import RESOLUTION_FULL_AT, TrainConfig, to_jsonable
 from ..typed_json import checked_dataclass
+from ..errors import MCSplatError
 from ..optim import OptimConfig
 from ..strategy import ADCSchedule, MCMCSchedule
 
-# The strategies' schedules, by the group config.json keeps each in: the plan holds one of each, fitted alike.
+# The strategies' schedules, by the group config.json keeps each in (a run's plan holds its strategy's; files written
+# before 2026-11-29 hold one of each, the other strategy's left aside when read back).
 SCHEDULES = {"mcmc": MCMCSchedule, "adc": ADCSchedule}
-# The schedule values each plan fits to its steps, named as config.json names them (--budget keeps the values it
-# started from under these keys, its "base"): the SH increase, and each strategy's scheduled fields (their metadata).
+# The schedule values a plan fits to its steps, named as config.json names them (--budget keeps the values it
+# started from under these keys, its "base"): the SH increase, and a strategy's scheduled fields (their metadata).
 SCHEDULE_KEYS = ("sh_increase_every",) + tuple(f"{group}.{f.name}" for group, cls in SCHEDULES.items()
                                                for f in fields(cls) if "schedule" in f.metadata)
 # What a --budget run plans again as it goes: config.json may hold another plan than the one its checkpoint took.
@@ -38,8 +40,7 @@ class Plan:
     # trains at then, through a start of its own: budget.continuing_resolution).
     resolution_start: float
     resolution_full_at: float
-    mcmc: MCMCSchedule
-    adc: ADCSchedule
+    schedule: MCMCSchedule | ADCSchedule  # the run's strategy's: config.json keeps it under the strategy's group
     optim: OptimConfig  # the learning rates, scaled for the processes
     world_size: int = 1  # processes training together, a view each per step
     budget: dict[str, Any] | None = None  # --budget: how it planned (config.json's plan.budget)
@@ -51,53 +52,54 @@ class Plan:
         full_at = RESOLUTION_FULL_AT if config.resolution_full_at is None else config.resolution_full_at
         return cls(steps=config.steps, sh_increase_every=config.sh_increase_every, sh_degree=config.model.sh_degree,
                    resolution_start=config.resolution_start, resolution_full_at=full_at,
-                   mcmc=MCMCSchedule.of(config.mcmc), adc=ADCSchedule.of(config.adc), optim=config.optim,
+                   schedule=SCHEDULES[config.strategy].of(getattr(config, config.strategy)), optim=config.optim,
                    world_size=world_size, budget=budget)
 
+    @property
+    def strategy(self) -> str:
+        """The group of the strategy whose schedule the plan holds ("mcmc", "adc")."""
+        return next(group for group, kind in SCHEDULES.items() if isinstance(self.schedule, kind))
+
     def record(self) -> dict[str, Any]:
-        """The plan as config.json keeps it, beside the options (`plan`)."""
-        return to_jsonable(self)
+        """The plan as config.json keeps it, beside the options (`plan`): the schedule under its strategy's group."""
+        return {(self.strategy if key == "schedule" else key): value for key, value in to_jsonable(self).items()}
 
     @classmethod
-    def from_record(cls, record: Any, source: str = "config.json") -> Plan:
-        """The plan that `record()` wrote (a value of another type, a key missing or unknown: one line naming it)."""
+    def from_record(cls, record: Any, strategy: str, source: str = "config.json") -> Plan:
+        """The plan that `record()` wrote for a run of `strategy` (a value of another type, a key missing or unknown:
+        one line naming it). Another strategy's schedule beside it (files written before 2026-11-29) is left aside."""
+        if isinstance(record, dict) and strategy in record:
+            schedule = checked_dataclass(SCHEDULES[strategy], record[strategy], source, f"plan.{strategy}.",
+                                         complete=True)
+            record = {**{k: v for k, v in record.items() if k not in SCHEDULES}, "schedule": to_jsonable(schedule)}
+        elif isinstance(record, dict):
+            raise MCSplatError(f"{source}: plan lacks {strategy} (written by another mcsplat version?)")
         return checked_dataclass(cls, record, source, "plan.", complete=True,
-                                 nested={**SCHEDULES, "optim": OptimConfig})
-
-    def schedules(self) -> dict[str, MCMCSchedule | ADCSchedule]:
-        """Each strategy's schedule, by its group's name."""
-        return {group: getattr(self, group) for group in SCHEDULES}
+                                 nested={"schedule": SCHEDULES[strategy], "optim": OptimConfig})
 
     def schedule_entries(self) -> dict[str, Any]:
-        """The SCHEDULE_KEYS values of the plan."""
+        """The SCHEDULE_KEYS values of the plan (its strategy's)."""
         return {"sh_increase_every": self.sh_increase_every,
-                **{f"{group}.{name}": value for group, schedule in self.schedules().items()
-                   for name, value in schedule.entries().items()}}
+                **{f"{self.strategy}.{name}": value for name, value in self.schedule.entries().items()}}
 
     def with_schedule(self, entries: Mapping[str, Any]) -> Plan:
-        """The plan with the schedule values `entries` gives (all of SCHEDULE_KEYS)."""
-        changed = {group: schedule.with_entries({name: entries[f"{group}.{name}"] for name in schedule.entries()})
-                   for group, schedule in self.schedules().items()}
-        return replace(self, sh_increase_every=entries["sh_increase_every"], **changed)
+        """The plan with the schedule values `entries` gives (its strategy's SCHEDULE_KEYS; others are ignored)."""
+        schedule = self.schedule.with_entries({name: entries[f"{self.strategy}.{name}"]
+                                               for name in self.schedule.entries()})
+        return replace(self, sh_increase_every=entries["sh_increase_every"], schedule=schedule)
 
     def scaled(self, numerator: int, denominator: int) -> Plan:
         """The plan with every step schedule multiplied by numerator / denominator, as each field's kind says
         (strategy/base.py: intervals stay at least one step, decays keep their decay over the run). The steps are
         not among them, nor the position learning rate, whose decay follows the steps."""
         every = max(1, round(self.sh_increase_every * numerator / denominator))
-        return replace(self, sh_increase_every=every, **{group: schedule.scaled(numerator, denominator)
-                                                        for group, schedule in self.schedules().items()})
+        return replace(self, sh_increase_every=every, schedule=self.schedule.scaled(numerator, denominator))
 
     def entries(self) -> dict[str, Any]:
         """The plan's values under the options' keys ("mcmc.cap_max"): the places they take in the older layout of
         config.json, and in the settings compared on resume (config_file.options_with_plan)."""
         return {"steps": self.steps, **self.schedule_entries(), "resolution_start": self.resolution_start,
-                "resolution_full_at": self.resolution_full_at,
-                **{f"{group}.cap_max": schedule.cap_max for group, schedule in self.schedules().items()}}
-
-    def schedule_for(self, strategy: str) -> MCMCSchedule | ADCSchedule:
-        """The part of the plan the strategy named `strategy` follows."""
-        return self.mcmc if strategy == "mcmc" else self.adc
+                "resolution_full_at": self.resolution_full_at, f"{self.strategy}.cap_max": self.schedule.cap_max}
 
     def sh_degree_at(self, step: int) -> int:
         """The SH degree a step renders with (0-based step): one more every `sh_increase_every` steps, up to the

@@ -22,7 +22,7 @@ def fitted_to_steps(plan: Plan) -> Plan:
 def planned_growth_rate(plan: Plan, growth_share: float, num_initial: int, cap: int) -> float:
     """The growth factor per refine step that takes `num_initial` Gaussians to `cap` by `growth_share` of the run,
     or the plan's rate (the paper's 1.05) where that is already fast enough."""
-    m = plan.mcmc
+    m = plan.schedule  # MCMC's
     refines = refine_steps_between(m.refine_start, min(round(growth_share * plan.steps), m.refine_stop),
                                    m.refine_every)
     return growth_rate_reaching(num_initial, cap, refines, m.grow_rate)

@@ -14,5 +14,5 @@ def make_strategy(config: TrainConfig, plan: Plan, scene_radius: float, generato
     """image_pixels (a training image's, the median over them): the ceiling of MCMC's automatic cap;
     white_background: ADC's reset at its first densification step (3DGS's rule)."""
     if config.strategy == "mcmc":
-        return MCMCStrategy(config.mcmc, scene_radius, generator, image_pixels, schedule=plan.mcmc)
-    return ADCStrategy(config.adc, scene_radius, generator, white_background, schedule=plan.adc)
+        return MCMCStrategy(config.mcmc, scene_radius, generator, image_pixels, schedule=plan.schedule)
+    return ADCStrategy(config.adc, scene_radius, generator, white_background, schedule=plan.schedule)

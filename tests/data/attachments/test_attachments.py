@@ -175,7 +175,8 @@ def test_a_16_bit_depth_is_resized_by_nearest_and_scaled_to_units(shared_data, t
     names = ["12", "30", "41"]
     for name in names:
         Image.fromarray(steps).save(folder / f"{name}.png")
-    scene = load_scene(shared_data / "colmap_cup", downscale=4, attachments=[DepthOptions(str(folder), depth_png_step=0.002)])
+    scene = load_scene(shared_data / "colmap_cup", downscale=4,
+                       attachments=[DepthOptions(str(folder), depth_png_step=0.002)])
     views = {view.name: view for view in scene.train + scene.test}
     assert {name for name, view in views.items() if view.attachment("depth") is not None} == set(names)
     assert any(note.startswith(f"depth maps for 3 of {len(views)} images from {folder}") for note in scene.notes)

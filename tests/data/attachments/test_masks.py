@@ -1,6 +1,6 @@
-"""Training masks (data/attachments/masks.py): found by the image's name, inverted on request, undistorted with their image, the
-alpha channel as a mask; the loss leaves masked pixels out; on a real capture with a block painted over every photo,
-the block shows in the renders without its mask and not with it."""
+"""Training masks (data/attachments/masks.py): found by the image's name, inverted on request, undistorted with their
+image, the alpha channel as a mask; the loss leaves masked pixels out; on a real capture with a block painted over every
+photo, the block shows in the renders without its mask and not with it."""
 
 from __future__ import annotations
 
