@@ -44,8 +44,8 @@ class RowAdam:
     (their moments too, as torch's SparseAdam does; each row keeps its own step count for the bias correction). The
     second moment is one number per row (the mean over its entries): a cell that few pixels reach then moves in
     proportion to its gradient rather than by a full learning rate. (Per-entry moments, as plain Adam keeps them,
-    scored within 0.3 dB of this on the vignette test of tests/appearance/test_bilateral_grid.py at 16x16x8, one
-    seed.)"""
+    scored level with this on the vignette test of tests/appearance/test_bilateral_grid.py: docs/imperfect-captures.md,
+    "Exposure compensation".)"""
 
     def __init__(self, rows: torch.Tensor, lr: float, betas=(0.9, 0.999), eps: float = 1e-15):
         self.rows, self.betas, self.eps = rows, betas, eps
@@ -103,8 +103,9 @@ class BilateralGridAppearance(torch.nn.Module):
     """`grids` [N, 12 L H' W']: one bilateral grid per training image (flattened), the identity at start.
 
     A step reads one image's grid: it is taken out as a leaf tensor (`current`) for the render's slicing and the
-    regulariser, and its gradient steps that row alone (RowAdam: torch's SparseAdam over every image's grid took 26 ms
-    a step, whatever the image size)."""
+    regulariser, and its gradient steps that row alone (RowAdam: torch's SparseAdam, which visits every image's grid,
+    added a sizeable fixed time to every step, whatever the image size; docs/imperfect-captures.md, "Exposure
+    compensation")."""
 
     MODE = "bilateral-grid"  # the --appearance value (checkpoints record it)
 

@@ -2,8 +2,10 @@
 
 `rotation_function(dtype)` is the rotation matrix of a unit (w, x, y, z) quaternion, shared by the projection kernels.
 `covariance_times(quats, scales, vectors)` computes Sigma_i v_i = R_i S_i^2 R_i^T v_i for every Gaussian, the hot
-spot of the MCMC position noise: torch's batched 3x3 products took 17 ms per step at 100k Gaussians on two cores, a
-Warp thread per Gaussian 0.9 ms, and the CPU's float32 SIMD version (16 Gaussians per vector) about 0.2 ms.
+spot of the MCMC position noise: torch's batched 3x3 products were more than an order of magnitude slower than a
+Warp thread per Gaussian, and the CPU's float32 SIMD version (16 Gaussians per vector) takes less than half of that
+again (docs/measurements-log.md, "CPU kernels (rasterizer.py, train_speed.py), 2026-11-22", and
+benchmarks/results/train_speed/2026-11-27-kernels-side-by-side.md, "The pieces alone").
 """
 
 import functools

@@ -14,25 +14,27 @@ number of steps. What the budget decides is that number and the cap, from the ti
 - The cap balances the two costs of a step: where a full-size step spends twice as long on its Gaussians (c + d per
   Gaussian) as on its pixels (a + b), times sqrt(budget / 10 minutes), so that more time buys both more steps and
   more Gaussians (if the error falls as 1/steps + 1/Gaussians, the best count grows with the square root of the
-  time). Twice: on the demo scene at 95 s, 1x gave 12k Gaussians and 29.7 dB, 2x 32k and 30.5 dB, 3x 81k and
-  30.2 dB. The automatic cap's ceiling of 3 Gaussians per pixel and --cap-max bound it, and it stays small enough to
-  leave at least 1,000 steps. Where the scene asks for fewer (the automatic cap, on unless --cap-max gives a number,
-  stops growth where the views stop asking for more), the plans that follow give the time saved to steps. A rule
-  from the steps the time should give (8,000 in 10 minutes) instead of this ratio was tried and measured worse on
-  the bird and the cup (docs/quality.md, 2026-11-28).
+  time). Twice, because on the demo scene at 95 s it scored above both once and three times (docs/quality.md, "The
+  demo scene"). The automatic cap's ceiling of 3 Gaussians per pixel and --cap-max bound it, and it stays small
+  enough to leave at least 1,000 steps. Where the scene asks for fewer (the automatic cap, on unless --cap-max gives
+  a number, stops growth where the views stop asking for more), the plans that follow give the time saved to steps.
+  A rule from the steps the time should give (8,000 in 10 minutes) instead of this ratio was tried and measured
+  worse on the bird and the cup (docs/quality.md, 2026-11-28).
 - How long the coarse phase lasts follows the same costs (unless --resolution-full-at is given): a step at a
   quarter of the size saves most of the share of a full-size step its pixels take (b + d n over the whole, at the
   planned cap), so the larger that share, the later full size comes: at 40% of the steps where pixels take 40% or
-  less of a step, at the end where they take 80% or more, in proportion between. At 5 minutes on the shared
-  captures (2 cores, one run each) the best length followed that share: the bird (pixels 75-80% of a step) gained
-  1.7-2.2 dB at 1.0 over 0.4, the cup (about 0.6 on that machine) 0.3 at 0.7-1.0, DTU and fern (0.45-0.65) peaked at
-  0.4-0.7, and the demo scene (0.3-0.4) lost 1.1 dB at 0.7. Chosen this way the cup's 10 minutes gained 0.56 dB
-  over 0.4 (docs/quality.md). It is chosen again at every plan until full size is reached, then kept.
+  less of a step, at the end where they take 80% or more, in proportion between. On the shared captures the best
+  length followed that share: the captures whose pixels take most of a step gained most from a late full size, those
+  in between peaked in the middle, and the demo scene, whose pixels take least, lost by it; chosen this way, the
+  cup's 10 minutes scored above a fixed 0.4 (docs/quality.md, "Budget runs against the code before them" and "On a
+  faster machine, with the coarse phase's length chosen (2026-11-26)"). It is chosen again at every plan until full
+  size is reached, then kept.
 - Each new plan's resolution rises from the size the run trains at when it is made: the geometric curve is bent to
   pass through it (`continuing_resolution`), so a plan that moves full size later, or asks more steps, never takes
   the size back down, and one that moves it earlier never jumps it up (unless full size is due at once). Without
-  this, the size went up and down with the noisy choice: in fern's 10 minutes it fell from 99% to 59% of the full
-  size at one plan (step 6,819), in DTU's from 97% to 56%, and each rose again at the next.
+  this, the size went up and down with the noisy choice: in fern's and DTU's 10 minutes it fell from nearly full
+  size to little more than half at one plan and rose again at the next (docs/measurements-log.md, "The CPU loss's
+  blurs in registers; --budget's size never steps back, 2026-11-27").
 - The steps are those whose predicted times, with the count growing to the cap and the resolution rising as
   planned, fill the time left. The plan is made again every 2% of the budget (more often near its end) as the
   measured times come in, and the schedules are fitted again to the new number of steps. The SH schedule is kept
@@ -133,7 +135,8 @@ def budget_planner(config: TrainConfig, plan: Plan, scene: Scene) -> BudgetPlann
         raise MCSplatError("--budget does not work with several training processes yet (each would plan its own "
                            "steps); give --steps instead")
     # The ceiling the run started with is the record's: a config.json of the older layout holds the last plan's cap
-    # in --mcmc.cap-max's place (a run stopped at a planned cap of 3,148 resumed capped there, 3.5 dB lower).
+    # in --mcmc.cap-max's place (a run stopped at a small planned cap resumed capped there and scored far lower:
+    # docs/measurements-log.md, "No cap collapses MCMC; the count from the scene without --cap-max, 2026-11-28").
     ceiling = (plan.budget or {}).get("ceiling")
     if ceiling is None:
         cap = config.max_gaussians or config.mcmc.cap_max  # ADC without a budget: MCMC's ceiling

@@ -12,7 +12,7 @@ learning rate (exponential decay), gate(o) = sigmoid(-100 (o - 0.005)) and Sigma
   quaternions and N(0, 0.1^2) on the opacity logits, each decayed x0.9995 per step of a 30,000-step run
   (param_noise_decay, fitted to the run's length with the other schedules). The paper does not say whether the
   opacity gate applies to them; here it does, as it does to the positions (ungated unit noise on every log-scale
-  would undo any training, far below the paper's -0.6 dB);
+  would undo any training, far worse than the small loss the paper reports: docs/paper.md, "4. The noise");
 - noise_schedule: "lr" (the paper: the position learning rate's exponential decay), "linear" (the same start and end
   values joined by a straight line) or "neelakantan" (Neelakantan et al. 2015, a variance decaying as
   (1 + t)^-0.55, t counted in steps of a 30,000-step run).

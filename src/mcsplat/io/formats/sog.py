@@ -52,8 +52,8 @@ PALETTE_ROW = 64               # palette entries in a row of shN_centroids
 LARGEST_TAG = 252              # quats' alpha is 252 + the index of the largest component
 MAX_PALETTE = 1 << 16          # the labels are 16-bit
 MAX_WEBP_SIDE = 16383
-# k-means steps of the SH palette: on the demo run 10 (splat-transform's default) gain 0.06 dB for twice the time,
-# most of a large scene's export on a CPU.
+# k-means steps of the SH palette: splat-transform's default of 10 gains next to nothing on the demo for far more time,
+# and the palette is most of a large scene's export on a CPU (docs/outputs.md, "Export formats").
 PALETTE_ITERATIONS = 5
 _ROOT_HALF = math.sqrt(0.5)
 
