@@ -38,9 +38,9 @@ def scene_path(name_or_path: str, data_root: str | os.PathLike = DATA_ROOT) -> P
     return Path(name_or_path)
 
 
-def results_dir(script: str) -> Path:
-    """benchmarks/results/<script>/, created on demand."""
-    path = RESULTS / script
+def results_dir(script: str, out: str | os.PathLike | None = None) -> Path:
+    """benchmarks/results/<script>/ (or `out`, a script's --out, when given), created on demand."""
+    path = Path(out) if out else RESULTS / script
     path.mkdir(parents=True, exist_ok=True)
     return path
 
@@ -65,6 +65,15 @@ def train_with_tree(tree: Path, args: Sequence[str], log: Path, script: str) -> 
                               stderr=subprocess.STDOUT)
     if done.returncode != 0:
         sys.exit(f"{script}: training failed, see {log}")
+
+
+def write_results(folder: Path, records: Sequence[dict], page: str, show: bool = False) -> None:
+    """Append `records` to folder/results.jsonl and write `page` as folder/results.md (also on stdout with `show`)."""
+    append_jsonl(folder / "results.jsonl", records)
+    write_text(folder / "results.md", page)
+    if show:
+        print(page, end="")
+    print(f"wrote {folder / 'results.md'}", file=sys.stderr)
 
 
 def logged_step_seconds(run: Path) -> float:
@@ -148,6 +157,20 @@ def human(n: int) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ training runs
+@dataclasses.dataclass(frozen=True)
+class BlockRuns:
+    """Options of the blocks benchmarks (blocks.py, blocks_ablation.py): what the one run and every block train."""
+
+    downscale: int
+    """Image downscale factor of the scene."""
+    steps: int
+    """Training steps of the one run and of each block."""
+    cap: int
+    """--cap-max of the one run; the blocks' caps add up to it."""
+    scene: str = "cup"
+    """cup, bird, lego (under the shared data folder) or a scene folder."""
+
+
 def make_config(**options: Any):
     """A TrainConfig from options named as config.json names them, the nested groups' with a dot:
     make_config(data=scene, steps=500, surface=True, **{"mcmc.refine_every": 10, "model.init": "random"})."""

@@ -9,17 +9,30 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import json
 import statistics
 import time
+from dataclasses import dataclass
 
 import torch
+import tyro
 
 import _common as C
 from mcsplat.compute.runtime import set_cpu_threads
 from mcsplat.gaussians import PARAM_KEYS, GaussianModel
 from mcsplat.optim import OptimConfig, make_optimizers, step_optimizers
+
+
+@dataclass(frozen=True)
+class Options:
+    """The Adam step on the CPU: torch's fused Adam per parameter against one launch over all of them."""
+
+    gaussians: int = 100_000
+    """Gaussians of the model whose parameters step."""
+    repeats: int = 200
+    """Timed steps of each (the median is reported)."""
+    threads: int = torch.get_num_threads()
+    """CPU threads of torch and of the one-launch step."""
 
 
 def model_with_gradients(n: int) -> GaussianModel:
@@ -51,11 +64,7 @@ def torch_step(optimizers) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--gaussians", type=int, default=100_000)
-    parser.add_argument("--repeats", type=int, default=200)
-    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
     load = C.warn_if_busy()
     torch.set_num_threads(args.threads)
     set_cpu_threads(args.threads)

@@ -13,15 +13,31 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import torch
+import tyro
 
 import _common as C
 
 WINDOWS = (10, 30, 100)
+
+
+@dataclass(frozen=True)
+class Options:
+    """The automatic cap's demand share of trained runs."""
+
+    runs: Annotated[tuple[Path, ...], tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]
+    """Run directories (with checkpoint.pt)."""
+    views: int = 100
+    """Views rendered per run (a multiple of 100)."""
+    seed: int = 1
+    """Seed of the random order of the training views."""
+    threads: int = 1
+    """CPU threads."""
 
 
 def demand_shares(run_dir: Path, views: int, seed: int) -> dict:
@@ -55,12 +71,9 @@ def demand_shares(run_dir: Path, views: int, seed: int) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("runs", nargs="+", type=Path, help="run directories (with checkpoint.pt)")
-    parser.add_argument("--views", type=int, default=100, help="views rendered per run (a multiple of 100)")
-    parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--threads", type=int, default=1)
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
+    if not args.runs:
+        sys.exit("auto_cap_demand: give one or more trained run folders")
     missing = [str(run) for run in args.runs if not (run / "checkpoint.pt").is_file()]
     if missing:
         sys.exit(f"auto_cap_demand: no checkpoint.pt in {', '.join(missing)} (pass trained run folders)")

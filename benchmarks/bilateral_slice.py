@@ -11,14 +11,26 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import statistics
 import time
+from dataclasses import dataclass
 
 import torch
+import tyro
+
 import _common as C
 
 SIZES = {"cup 800x600": (600, 800), "bird 544x960": (960, 544)}
+
+
+@dataclass(frozen=True)
+class Options:
+    """The bilateral grid's slicing: the Warp kernels against torch's grid_sample."""
+
+    threads: int | None = None
+    """CPU threads of torch and the Warp launcher (default: torch's)."""
+    repeats: int = 7
+    """Timed calls of each (the median is printed)."""
 
 
 def median_seconds(slicer, grid: torch.Tensor, rgb: torch.Tensor, repeats: int) -> float:
@@ -31,14 +43,12 @@ def median_seconds(slicer, grid: torch.Tensor, rgb: torch.Tensor, repeats: int) 
 
 
 def main() -> None:
+    args = tyro.cli(Options, description=__doc__)
+
     from mcsplat.appearance import BilateralGridAppearance
     from mcsplat.appearance.slicing import slice_grid, slice_reference
     from mcsplat.compute.runtime import set_cpu_threads
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--repeats", type=int, default=7)
-    args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
         set_cpu_threads(args.threads)

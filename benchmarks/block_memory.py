@@ -15,17 +15,32 @@ over all configurations. Prints one JSON line per run and the fit; writes result
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+import tyro
 
 import _common as C
+
+
+@dataclass(frozen=True)
+class Options:
+    """Peak memory of training processes against their cap and image size."""
+
+    scene: str = "cup"
+    """cup, bird, lego (under the shared data folder) or a scene folder."""
+    caps: tuple[int, ...] = (20_000, 150_000)
+    """--cap-max of the runs."""
+    downscales: tuple[int, ...] = (1, 4)
+    """Image downscale factors of the runs (each with every cap)."""
+    steps: int = 400
+    """Training steps of each run."""
 
 
 def peak_of_run(scene: Path, cap: int, downscale: int, steps: int, out: Path) -> int:
@@ -43,12 +58,7 @@ def peak_of_run(scene: Path, cap: int, downscale: int, steps: int, out: Path) ->
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", default="cup")
-    parser.add_argument("--caps", type=int, nargs="+", default=[20_000, 150_000])
-    parser.add_argument("--downscales", type=int, nargs="+", default=[1, 4])
-    parser.add_argument("--steps", type=int, default=400)
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
     scene = C.scene_path(args.scene)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -21,19 +21,32 @@ run, each merged model, with the borders of the blocks' cells drawn where the gr
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import torch
+import tyro
 
 import _common as C
+
+
+@dataclass(frozen=True)
+class Options:
+    """A capture as one run and as blocks merged."""
+
+    run: Annotated[C.BlockRuns, tyro.conf.OmitArgPrefixes] = C.BlockRuns(downscale=2, steps=3000, cap=100_000)
+    blocks: tuple[int, ...] = (2, 4)
+    """Numbers of blocks, each plan trained and merged."""
+    keep: Path | None = None
+    """Train into this folder and keep it (default: a temporary one)."""
 
 
 def command(*args: str) -> list[str]:
@@ -58,16 +71,10 @@ def run_all(commands: list[list[str]], at_once: int) -> list[int]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", default="cup")
-    parser.add_argument("--downscale", type=int, default=2)
-    parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--cap", type=int, default=100_000)
-    parser.add_argument("--blocks", type=int, nargs="+", default=[2, 4])
-    parser.add_argument("--keep", type=Path, help="train into this folder and keep it (default: a temporary one)")
-    args = parser.parse_args()
-    scene = C.scene_path(args.scene)
-    options = ["--downscale", str(args.downscale), "--steps", str(args.steps), "--cap-max", str(args.cap),
+    args = tyro.cli(Options, description=__doc__)
+    runs = args.run
+    scene = C.scene_path(runs.scene)
+    options = ["--downscale", str(runs.downscale), "--steps", str(runs.steps), "--cap-max", str(runs.cap),
                "--save-every", "0", "--quiet", "--lpips-net", "alex"]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -75,8 +82,8 @@ def main() -> None:
         start = time.perf_counter()
         [peak] = run_all([command("train", str(scene), "--out", str(root / "one"), *options)], 1)
         one = json.loads((root / "one" / "metrics.json").read_text())
-        rows.append({"scene": args.scene, "run": "one run", "psnr": one["psnr"], "ssim": one["ssim"],
-                     "gaussians": one["num_gaussians"], "caps": f"{args.cap:,}", "peak_mib": peak / 2**20,
+        rows.append({"scene": runs.scene, "run": "one run", "psnr": one["psnr"], "ssim": one["ssim"],
+                     "gaussians": one["num_gaussians"], "caps": f"{runs.cap:,}", "peak_mib": peak / 2**20,
                      "wall_s": time.perf_counter() - start})
         C.emit(rows[-1])
         for count in args.blocks:
@@ -88,21 +95,21 @@ def main() -> None:
                              for i in range(count)], 2)
             run_all([command("blocks", "merge", str(out), "--quiet")], 1)
             merged = json.loads((out / "merged" / "metrics.json").read_text())
-            rows.append({"scene": args.scene, "run": f"{count} blocks", "psnr": merged["psnr"], "ssim": merged["ssim"],
+            rows.append({"scene": runs.scene, "run": f"{count} blocks", "psnr": merged["psnr"], "ssim": merged["ssim"],
                          "gaussians": merged["num_gaussians"],
                          "caps": " + ".join(f"{block['cap']:,}" for block in plan["blocks"]),
                          "peak_mib": max(peaks) / 2**20, "wall_s": time.perf_counter() - start})
             C.emit(rows[-1])
         folder = C.results_dir("blocks")
-        picture(root, args, folder / f"{args.scene}-view.png")
+        picture(root, args, folder / f"{runs.scene}-view.png")
     for row in rows:
         row["psnr_vs_one"] = row["psnr"] - rows[0]["psnr"]
     C.write_text(folder / "results.jsonl", "".join(json.dumps(row) + "\n" for row in rows))
     columns = [("scene", "scene", ""), ("run", "run", ""), ("test PSNR", "psnr", ".2f"),
                ("vs one run", "psnr_vs_one", "+.2f"), ("SSIM", "ssim", ".4f"), ("Gaussians", "gaussians", ","),
                ("caps", "caps", ""), ("peak MiB a process", "peak_mib", ".0f"), ("wall s", "wall_s", ".0f")]
-    C.write_results_page(folder, f"Blocks against one run ({args.scene}, downscale {args.downscale}, {args.steps:,} "
-                         f"steps a run, cap {args.cap:,} in all)", "blocks.py", rows, columns)
+    C.write_results_page(folder, f"Blocks against one run ({runs.scene}, downscale {runs.downscale}, {runs.steps:,} "
+                         f"steps a run, cap {runs.cap:,} in all)", "blocks.py", rows, columns)
 
 
 def picture(root: Path, args, path: Path) -> None:

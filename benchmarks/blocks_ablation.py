@@ -12,11 +12,14 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import json
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 import _common as C
 
@@ -24,20 +27,23 @@ ARMS = [  # (blocks, margin, outside share); 1 block is the one run
     (1, None, None), (2, 0.2, 0.1), (2, 0.2, 0.0), (2, 0.2, 1.0), (4, 0.2, 0.1), (4, 0.4, 0.1)]
 
 
+@dataclass(frozen=True)
+class Options:
+    """What the choices of a block plan cost."""
+
+    run: Annotated[C.BlockRuns, tyro.conf.OmitArgPrefixes] = C.BlockRuns(downscale=4, steps=1500, cap=30_000)
+
+
 def main() -> None:
+    runs = tyro.cli(Options, description=__doc__).run
+
     from mcsplat.blocks import plan_blocks, train_blocks
     from mcsplat.config import config_of
     from mcsplat.partition import BlocksFolder
     import mcsplat.partition.scene as block_scene
     from mcsplat.train import train
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", default="cup")
-    parser.add_argument("--downscale", type=int, default=4)
-    parser.add_argument("--steps", type=int, default=1500)
-    parser.add_argument("--cap", type=int, default=30_000)
-    args = parser.parse_args()
-    options = dict(data=C.scene_path(args.scene), downscale=args.downscale, steps=args.steps, cap_max=args.cap,
+    options = dict(data=C.scene_path(runs.scene), downscale=runs.downscale, steps=runs.steps, cap_max=runs.cap,
                    quiet=True, lpips_net="alex", save_renders=False, save_every=0)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -51,7 +57,7 @@ def main() -> None:
                 folder = BlocksFolder(out)
                 merged = train_blocks(folder, quiet=True)
                 own = [json.loads((folder.block_run(i) / "metrics.json").read_text())["psnr"] for i in range(count)]
-            rows.append({"scene": args.scene, "blocks": count, "margin": margin, "outside_share": outside,
+            rows.append({"scene": runs.scene, "blocks": count, "margin": margin, "outside_share": outside,
                          "psnr": merged["psnr"], "gaussians": merged["num_gaussians"],
                          "own_psnr": " ".join(f"{value:.2f}" for value in own),
                          "seconds": time.perf_counter() - start})
@@ -61,8 +67,8 @@ def main() -> None:
     columns = [("blocks", "blocks", ""), ("margin", "margin", ""), ("outside share", "outside_share", ""),
                ("test PSNR (merged)", "psnr", ".2f"), ("Gaussians (merged)", "gaussians", ","),
                ("each block's own PSNR", "own_psnr", ""), ("s", "seconds", ".0f")]
-    C.write_results_page(folder, f"Block plans against one run ({args.scene}, downscale {args.downscale}, "
-                         f"{args.steps:,} steps, cap {args.cap:,})", "blocks_ablation.py", rows, columns)
+    C.write_results_page(folder, f"Block plans against one run ({runs.scene}, downscale {runs.downscale}, "
+                         f"{runs.steps:,} steps, cap {runs.cap:,})", "blocks_ablation.py", rows, columns)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,6 @@ benchmarks/results/demo_builds/.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import re
@@ -22,11 +21,26 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
+
+import tyro
 
 import _common as C
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+@dataclass(frozen=True)
+class Options:
+    """`make demo` per CPU build, each from an empty kernel cache."""
+
+    builds: tuple[str, ...] = ("native", "znver3")
+    """native (this host's kernels), or LLVM CPU names to compile the kernels for."""
+    rounds: int = 1
+    """Runs of each build, the builds taking turns."""
+    out: str | None = None
+    """Results folder (default benchmarks/results/demo_builds)."""
 
 
 def demo_options() -> list[str]:
@@ -64,14 +78,8 @@ def markdown(records: list[dict], info: dict) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--builds", nargs="+", default=["native", "znver3"],
-                        help="native (this host's kernels), or LLVM CPU names to compile the kernels for")
-    parser.add_argument("--rounds", type=int, default=1, help="runs of each build, the builds taking turns")
-    parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/demo_builds)")
-    args = parser.parse_args()
-    out = Path(args.out) if args.out else C.results_dir("demo_builds")
-    out.mkdir(parents=True, exist_ok=True)
+    args = tyro.cli(Options, description=__doc__)
+    out = C.results_dir("demo_builds", args.out)
     info = C.machine("cpu")
     C.warn_if_busy()
     records = []
@@ -82,9 +90,7 @@ def main() -> None:
                           "date": C.timestamp()}
                 C.emit(record)
                 records.append(record)
-    C.append_jsonl(out / "results.jsonl", records)
-    C.write_text(out / "results.md", markdown(records, info))
-    print(f"wrote {out / 'results.md'}", file=sys.stderr)
+    C.write_results(out, records, markdown(records, info))
 
 
 if __name__ == "__main__":

@@ -18,11 +18,14 @@ One JSON line per (run, view, path) and a summary line per run; a run without CU
 
 from __future__ import annotations
 
-import argparse
 import sys
+import typing
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import torch
+import tyro
 
 import _common as C
 from mcsplat import losses, render
@@ -30,8 +33,21 @@ from mcsplat.render.composite.function import cuda_kernels, set_cuda_kernels
 from mcsplat.run.trained import load
 from mcsplat.strategy.base import l1_regularizers
 
-PATHS = ("cuda-tile", "cuda-scalar", "cpu")
+KernelPath = Literal["cuda-tile", "cuda-scalar", "cpu"]
+PATHS: tuple[KernelPath, ...] = typing.get_args(KernelPath)
 OPACITY_REG = SCALE_REG = 0.01  # the MCMC defaults (strategy/mcmc.py)
+
+
+@dataclass(frozen=True)
+class Options:
+    """A training step on CUDA against the CPU's, on trained runs' models."""
+
+    runs: Annotated[tuple[Path, ...], tyro.conf.Positional, tyro.conf.arg(metavar="RUN")]
+    """Trained run folders."""
+    views: int = 3
+    """Training views compared, spread over the list."""
+    paths: tuple[KernelPath, ...] = PATHS
+    """The paths compared; the last one is the reference."""
 
 
 def step_gradients(run, view, path: str) -> dict:
@@ -68,13 +84,10 @@ def compare(found: dict, reference: dict) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("runs", nargs="+", type=Path)
-    parser.add_argument("--views", type=int, default=3, help="training views compared, spread over the list")
-    parser.add_argument("--paths", nargs="+", default=list(PATHS), choices=PATHS,
-                        help="the last one is the reference")
-    args = parser.parse_args()
-    paths = args.paths if torch.cuda.is_available() else ["cpu", "cpu"]
+    args = tyro.cli(Options, description=__doc__)
+    if not args.runs:
+        sys.exit("device_agreement: give one or more trained run folders")
+    paths = args.paths if torch.cuda.is_available() else ("cpu", "cpu")
     chosen = cuda_kernels()
     for run_path in args.runs:
         run = load(run_path, torch.device("cpu"))

@@ -24,23 +24,38 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import json
 import multiprocessing
 import os
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
 import torch
 import torch.distributed as dist
+import tyro
 
 import _common as C
 from train_speed import realistic_model
 
 WARMUP = 3
+
+
+@dataclass(frozen=True)
+class Options:
+    """Training with several processes: views per second and the all-reduce's share of a step."""
+
+    sizes: tuple[int, ...] = (10_000, 100_000, 1_000_000)
+    """Numbers of Gaussians."""
+    processes: tuple[int, ...] = (1, 2)
+    """Numbers of processes (1 first: the others' speed-up is against it)."""
+    steps: int = 12
+    """Timed steps per configuration (after 3 warm-up)."""
+    out: str | None = None
+    """Results folder (default benchmarks/results/distributed)."""
 
 
 def worker(rank: int, world_size: int, store: str, size: int, steps: int, out: str) -> None:
@@ -141,15 +156,9 @@ def markdown(rows: list[dict], info: dict) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
-    parser.add_argument("--processes", type=int, nargs="+", default=[1, 2])
-    parser.add_argument("--steps", type=int, default=12, help="timed steps per configuration (after 3 warm-up)")
-    parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/distributed)")
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
     C.warn_if_busy()
-    out = Path(args.out) if args.out else C.results_dir("distributed")
-    out.mkdir(parents=True, exist_ok=True)
+    out = C.results_dir("distributed", args.out)
     info = C.machine("cpu")
     rows = []
     for size in args.sizes:
@@ -161,9 +170,7 @@ def main() -> None:
             record.update(machine=info, commit=C.git_commit(), date=C.timestamp())
             C.emit({k: v for k, v in record.items() if k != "machine"})
             rows.append(record)
-    C.append_jsonl(out / "results.jsonl", rows)
-    C.write_text(out / "results.md", markdown(rows, info))
-    print(f"wrote {out / 'results.md'}", file=sys.stderr)
+    C.write_results(out, rows, markdown(rows, info))
 
 
 if __name__ == "__main__":

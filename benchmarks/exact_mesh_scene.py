@@ -27,15 +27,17 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import json
 import math
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import torch
 import trimesh
+import tyro
 from PIL import Image
 
 # The shape, in scene units, z up.
@@ -59,6 +61,24 @@ TRAIN_VIEWS, TEST_VIEWS, SIZE = 80, 20, 200
 
 class SceneError(ValueError):
     """Bad input to the scene writer, said in one line."""
+
+
+@dataclass(frozen=True)
+class Options:
+    """A scene whose surface is known exactly."""
+
+    folder: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="FOLDER")]
+    """A new (or empty) folder for the scene."""
+    train: int = TRAIN_VIEWS
+    """Training views."""
+    test: int = TEST_VIEWS
+    """Test views."""
+    size: int = SIZE
+    """Image side in pixels."""
+    voxel: float = VOXEL
+    """The true mesh's grid step."""
+    supersample: int = SUPERSAMPLE
+    """Samples per pixel along each axis."""
 
 
 # ------------------------------------------------------------------------------------------------ the shape
@@ -219,15 +239,7 @@ def write_scene(folder: Path, train: int = TRAIN_VIEWS, test: int = TEST_VIEWS, 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("folder", type=Path, help="a new (or empty) folder for the scene")
-    parser.add_argument("--train", type=int, default=TRAIN_VIEWS, help="training views (default %(default)s)")
-    parser.add_argument("--test", type=int, default=TEST_VIEWS, help="test views (default %(default)s)")
-    parser.add_argument("--size", type=int, default=SIZE, help="image side in pixels (default %(default)s)")
-    parser.add_argument("--voxel", type=float, default=VOXEL, help="the true mesh's grid step (default %(default)g)")
-    parser.add_argument("--supersample", type=int, default=SUPERSAMPLE,
-                        help="samples per pixel along each axis (default %(default)s)")
-    args = parser.parse_args(argv)
+    args = tyro.cli(Options, args=argv, description=__doc__)
     try:
         mesh = write_scene(args.folder, args.train, args.test, args.size, args.voxel, args.supersample)
     except SceneError as error:

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import contextlib
 import io
 import json
@@ -32,10 +31,12 @@ import shutil
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+import tyro
 
 import _common as C
 
@@ -47,6 +48,14 @@ EXPORTS = [("ply", "ply", 3, ".ply"), ("compressed-ply", "compressed-ply", 3, ".
            ("sog", "sog", 3, ".sog"), ("glb", "glb", 3, ".glb")]
 SPLAT_TRANSFORM = "@playcanvas/splat-transform"
 SH_FLIP = np.array([-1, -1, 1, -1, 1, 1, -1, 1, -1, 1, -1, -1, 1, -1, 1], dtype=np.float64)  # io/formats/common.py
+
+
+@dataclass(frozen=True)
+class Options:
+    """Every Gaussian format `mcsplat export` writes, on one trained run."""
+
+    run: Path | None = None
+    """A trained run (default: the demo, trained once)."""
 
 
 def demo_run(folder: Path) -> Path:
@@ -127,9 +136,7 @@ def psnr_cell(key: str):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--run", type=Path, help="a trained run (default: the demo, trained once)")
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
     C.warn_if_busy()
     folder = C.results_dir(SCRIPT)
     run_path = args.run or demo_run(folder)

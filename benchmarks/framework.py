@@ -1,14 +1,18 @@
 """The benchmarks as one small framework: an experiment declares its arms, runs one, and writes a page from the
 records; one runner does the rest.
 
-An experiment is a module of benchmarks/ (its name is its subcommand and its results folder) that defines what
-`Experiment` lists. The runner (`python -m benchmarks NAME ...`, or the module's own `python benchmarks/NAME.py ...`):
+An experiment is a module of benchmarks/ (its name is its subcommand and, unless its RESULTS says otherwise, its
+results folder) that defines what `Experiment` lists. The runner (`python -m benchmarks NAME ...`, or the module's
+own `python benchmarks/NAME.py ...`):
 
 - parses the experiment's `Options` with tyro, as `mcsplat` parses its commands (`Common` holds the options every
   experiment takes: --out, --report, --rerun, --threads, --jobs, --data-root);
 - runs every arm that results.jsonl does not hold yet (all of them with --rerun), each in a fresh process (a worker:
   its own memory, its own environment, a crash stops that arm only) that answers with one JSON line;
-- appends a record per arm: the common fields (SCHEMA_FIELDS), the arm's labels and the figures `run()` returned;
+- runs an arm that needs other arms' results (`Arm.after`: a shared voxel size, a count to match) only once those
+  are recorded, and leaves it out when one of them is not; its run() reads their records with `recorded()`;
+- appends a record per arm: the common fields (SCHEMA_FIELDS), the arm's labels and the figures `run()` returned
+  (one record per row where it returned a list of rows: an experiment's ROW_KEY tells them apart);
 - writes results.md from the last record of every arm (`report()`), also with --report alone.
 """
 
@@ -23,10 +27,10 @@ import os
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, Sequence
+from typing import Any, Callable, Protocol, Sequence
 
 import tyro
 
@@ -34,7 +38,8 @@ import _common as C
 
 # The converted experiments, by module name (each module's docstring says what it measures).
 EXPERIMENTS = ("antialiasing", "appearance", "auto_cap", "budget", "collapse", "defaults_before_after",
-               "depth_accuracy", "masks", "pose_refinement")
+               "depth_accuracy", "fusion_gap", "masks", "mesh_chamfer", "mesh_quality", "pose_refinement", "sfm_depth",
+               "time_to_quality")
 SCHEMA = 1
 SCHEMA_FIELDS = ("name", "script", "schema", "date", "commit", "machine", "load_average_before", "options", "worker")
 NOT_READY = 3  # a worker's exit status for NotReady
@@ -72,6 +77,9 @@ class Arm:
     """TrainConfig options as config.json names them, the nested groups' with a dot (C.make_config)."""
     env: dict[str, str] = field(default_factory=dict)
     """Environment variables of the arm's process (MCSPLAT_CPU_TARGET, ...)."""
+    after: tuple[str, ...] = ()
+    """Names of arms declared with it whose records its run() reads (`recorded()`): it starts once they are
+    recorded (earlier, or in this run), and is left out when one of them is not."""
 
 
 class NotReady(Exception):
@@ -95,7 +103,13 @@ class Experiment(Protocol):
     def report(self, records: list[dict], folder: Path) -> str:
         """results.md's text from the last record of every arm (pictures may be written into `folder`)."""
 
-    # Optional: finish(arms, options, folder) runs in the runner after the arms (pictures across arms).
+    # Optional:
+    # - ROW_KEY: tuple[str, ...], the figures' fields that tell apart the records of one arm: its rows where run()
+    #   returns a list of figures (one record each), or runs kept side by side. The last record of each KEY + ROW_KEY
+    #   is reported; an arm is recorded when any record has its KEY values.
+    # - RESULTS: str, "FOLDER/STEM": the records and page are results/FOLDER/STEM.jsonl and .md (by default
+    #   "<name>/results"; with --out, OUT/STEM.jsonl and .md), for one that measures another's runs beside them.
+    # - finish(arms, options, folder) runs in the runner after the arms (pictures across arms).
 
 
 class Records:
@@ -116,6 +130,10 @@ class Records:
     def get(self, *values: Any) -> dict | None:
         return self.by_key.get(tuple(values))
 
+    def of(self, *values: Any) -> list[dict]:
+        """The last records whose key starts with `values` (an arm's rows, by its KEY values)."""
+        return [record for key, record in self.by_key.items() if key[:len(values)] == values]
+
     def latest(self) -> list[dict]:
         return list(self.by_key.values())
 
@@ -126,8 +144,17 @@ def experiment(name: str) -> Experiment:
     return importlib.import_module(name)
 
 
-def results_folder(name: str, options: Any) -> Path:
-    return Path(options.common.out) if options.common.out else C.RESULTS / name
+def places(name: str, out: Path | None = None) -> tuple[Path, Path, Path]:
+    """Experiment `name`'s (folder, records file, page): RESULTS's, or in `out` (--out) when given."""
+    place, stem = getattr(experiment(name), "RESULTS", f"{name}/results").rsplit("/", 1)
+    folder = Path(out) if out else C.RESULTS / place
+    return folder, folder / f"{stem}.jsonl", folder / f"{stem}.md"
+
+
+def recorded(name: str, folder: Path) -> Records:
+    """Experiment `name`'s records in `folder` (run()'s folder): run() finds those of the arms it waits for."""
+    module = experiment(name)
+    return Records(places(name, folder)[1], module.KEY + getattr(module, "ROW_KEY", ()))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -155,39 +182,94 @@ def run_experiment(name: str, options: Any, args: list[str]) -> int:
     """Run the arms not yet recorded (each in a worker given `args`, the experiment's own options), then write
     results.md; 1 when an arm failed."""
     module = experiment(name)
-    folder = results_folder(name, options)
-    records = Records(folder / "results.jsonl", module.KEY)
+    folder, _, page = places(name, options.common.out)
+    records = recorded(name, folder)
     failed = 0
     if not options.common.report:
-        arms = module.arms(options)
-        todo = [arm for arm in arms if options.common.rerun or records.get(*keys(module, arm)) is None]
+        try:
+            arms = ordered(module.arms(options))
+        except ValueError as error:
+            print(f"{name}: {error}", file=sys.stderr)
+            return 2
+        todo = [arm for arm in arms if options.common.rerun or not records.of(*keys(module, arm))]
         for arm in arms:
             if arm not in todo:
                 print(f"{name}: {arm.name} is recorded (--rerun runs it again)", file=sys.stderr)
         common = {"script": name, "schema": SCHEMA, "load_average_before": C.warn_if_busy() if todo else None,
                   "machine": C.machine(getattr(options, "device", "cpu")) if todo else None,
                   "commit": C.git_commit(), "options": json.loads(json.dumps(dataclasses.asdict(options), default=str))}
-        folder.mkdir(parents=True, exist_ok=True)
-        with ThreadPoolExecutor(max(1, options.common.jobs)) as pool:
-            for arm, answer in zip(todo, pool.map(lambda arm: run_worker(name, arm, args, folder), todo)):
-                if "error" in answer:
-                    failed += answer["error"] != "not ready"
-                    continue
-                record = {"name": arm.name, **common, "date": C.timestamp(), **arm.labels, **answer["figures"],
+
+        def keep(arm: Arm, answer: dict) -> None:
+            figures = answer["figures"]
+            for row in figures if isinstance(figures, list) else [figures]:
+                record = {"name": arm.name, **common, "date": C.timestamp(), **arm.labels, **row,
                           "worker": answer["worker"]}
                 records.add(record)
                 C.emit({k: v for k, v in record.items() if k not in ("machine", "options")})
+
+        folder.mkdir(parents=True, exist_ok=True)
+        failed = run_arms(name, todo, options.common.jobs, lambda arm: run_worker(name, arm, args, folder), keep)
         if hasattr(module, "finish"):
             module.finish(arms, options, folder)
     if not records.latest():
         hint = ": run it without --report first" if options.common.report else ""
         print(f"{name}: nothing yet in {records.path}{hint}", file=sys.stderr)
         return 1 if failed else 0
-    C.write_text(folder / "results.md", module.report(records.latest(), folder))
-    print(f"{name}: wrote {folder / 'results.md'}", file=sys.stderr)
+    C.write_text(page, module.report(records.latest(), folder))
+    print(f"{name}: wrote {page}", file=sys.stderr)
     if failed:
         print(f"{name}: {failed} arm(s) failed (see above)", file=sys.stderr)
     return 1 if failed else 0
+
+
+def ordered(arms: list[Arm]) -> list[Arm]:
+    """The arms in their declared order, each moved after the arms it waits for (Arm.after); ValueError for a name
+    not declared or a cycle."""
+    names = {arm.name for arm in arms}
+    for arm in arms:
+        if unknown := [other for other in arm.after if other not in names]:
+            raise ValueError(f"arm {arm.name} waits for {', '.join(unknown)}, which the experiment does not declare")
+    placed: list[Arm] = []
+    while len(placed) < len(arms):
+        done = {arm.name for arm in placed}
+        ready = [arm for arm in arms if arm.name not in done and done.issuperset(arm.after)]
+        if not ready:
+            raise ValueError("arms wait for each other in a cycle: "
+                             + ", ".join(arm.name for arm in arms if arm.name not in done))
+        placed.append(ready[0])
+    return placed
+
+
+def run_arms(name: str, todo: list[Arm], jobs: int, start: Callable[[Arm], dict],
+             keep: Callable[[Arm, dict], None]) -> int:
+    """Run the arms of `todo` (ordered()) `jobs` at a time, each once the arms it waits for are recorded, and keep()
+    each answer as it comes; an arm that waits for one not recorded (failed, left out) is left out. How many failed."""
+    unfinished = {arm.name for arm in todo}
+    missing: set[str] = set()  # finished without a record
+    pending, running, failed = list(todo), {}, 0
+    with ThreadPoolExecutor(max(1, jobs)) as pool:
+        while pending or running:
+            for arm in list(pending):
+                if lost := missing.intersection(arm.after):
+                    print(f"{name}: {arm.name} left out: {', '.join(sorted(lost))} not recorded", file=sys.stderr)
+                    pending.remove(arm)
+                    unfinished.discard(arm.name)
+                    missing.add(arm.name)
+                elif len(running) < max(1, jobs) and not unfinished.intersection(arm.after):
+                    pending.remove(arm)
+                    running[pool.submit(start, arm)] = arm
+            if pending and not running:
+                raise RuntimeError(f"{name}: arms wait for arms not run before them (give run_arms ordered() arms)")
+            finished: set[Future] = wait(running, return_when=FIRST_COMPLETED).done if running else set()
+            for future in finished:
+                arm, answer = running.pop(future), future.result()
+                unfinished.discard(arm.name)
+                if "error" in answer:
+                    failed += answer["error"] != "not ready"
+                    missing.add(arm.name)
+                else:
+                    keep(arm, answer)
+    return failed
 
 
 def keys(module: Experiment, arm: Arm) -> list:
@@ -218,7 +300,7 @@ def worker(payload: dict) -> int:
     """In the arm's own process: run it and print one JSON line, its figures and the process's own facts."""
     module = experiment(payload["experiment"])
     options = tyro.cli(module.Options, args=payload["args"])
-    arm = Arm(**payload["arm"])
+    arm = Arm(**{**payload["arm"], "after": tuple(payload["arm"]["after"])})
     if options.common.threads is not None:
         C.set_threads(options.common.threads)
     answer, sys.stdout = sys.stdout, sys.stderr  # what the run prints goes to stderr: stdout carries the answer

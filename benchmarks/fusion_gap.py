@@ -8,7 +8,8 @@ its ScalableTSDFVolume).
 
 Open3D is optional and used by this benchmark only (`.venv/bin/python -m pip install open3d==0.20.0`); without it
 the Open3D rows are skipped with one line. The runs are fused on the CPU in the first run's voxel size (as
-mesh_quality.py does) with `mcsplat export`'s defaults, stage by stage as `mcsplat.mesh.pipeline` does:
+mesh_quality.py does: the later runs wait for the first and take the voxel size it recorded) with `mcsplat export`'s
+defaults, stage by stage as `mcsplat.mesh.pipeline` does:
 
     depth        every training view's median depth where alpha >= 0.5: at each SfM point in front of the view and
                  inside it, the depth at its pixel minus the point's depth (pairs beyond 5% of R left out, as in
@@ -23,30 +24,34 @@ mesh_quality.py does) with `mcsplat export`'s defaults, stage by stage as `mcspl
     Open3D       VoxelBlockGrid TSDF integration fed the same depth maps (raw, and as confirmed) and colours, at the
                  same voxel size and band; its mesh scored alike, whole and cut to our grid's box
 
-Records: results/mesh_quality/fusion_gap.jsonl, table: results/mesh_quality/fusion_gap.md; with --picture, a
-test view of each run's SfM points coloured by their distance to the mesh (results/mesh_quality/fusion-gap-*.png).
+Records (a row per run and stage): results/mesh_quality/fusion_gap.jsonl, table: results/mesh_quality/fusion_gap.md;
+with --picture, a test view of each run's SfM points coloured by their distance to the mesh
+(results/mesh_quality/fusion-gap-*.png). A run already recorded is not measured again (--rerun measures it again).
 """
 
 from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import torch
+import tyro
 from scipy.spatial import cKDTree
 
 import _common as C
+from framework import Arm, Common, recorded
 from mesh_quality import distance_to_mesh
 
-OUT = C.RESULTS / "mesh_quality"
-DEFAULT_RUNS = [OUT / "runs" / "cup-mcmc", OUT / "runs" / "cup-adc"]
+RUNS = C.RESULTS / "mesh_quality" / "runs"
+DEFAULT_RUNS = (RUNS / "cup-mcmc", RUNS / "cup-adc")
 HIDDEN = 0.05     # pairs beyond this share of R: the point is hidden in that view (sfm_depth.py)
 CLOSE = 0.01      # "within 1% of R"
 FREE_WEIGHTS = (0.1, 0.01)  # MeshOptions.free_weight tried beside the default 1
@@ -55,6 +60,34 @@ OPEN3D_BLOCK_SIDE = 8     # voxels along a block's side: with 16 (GOF's), the me
 #                           voxels
 OPEN3D_BLOCKS = 120_000  # blocks allocated up front (the cup's raw depths touch 97k)
 OPEN3D_HINT = "open3d is missing: the Open3D rows are skipped (`.venv/bin/python -m pip install open3d==0.20.0`)"
+RESULTS = "mesh_quality/fusion_gap"  # beside the runs it measures
+KEY = ("run",)
+ROW_KEY = ("stage",)  # a record per stage of a run
+
+
+@dataclass(frozen=True)
+class Options:
+    """Where a mesh loses what its depth maps had: the export's stages one by one against the SfM points."""
+
+    runs: tuple[Path, ...] = ()
+    """Runs of a COLMAP scene (default: mesh_quality.py's cup-mcmc and cup-adc)."""
+    picture: bool = False
+    """Also draw each run's SfM points by distance."""
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
+
+
+def arms(options: Options) -> list[Arm]:
+    """An arm per run; the later ones wait for the first: they fuse in its voxel size."""
+    runs = options.runs or DEFAULT_RUNS
+    return [Arm(run.name, {"run": run.name, "run_folder": str(run)}, after=(runs[0].name,) if index else ())
+            for index, run in enumerate(runs)]
+
+
+def run(arm: Arm, options: Options, folder: Path) -> list[dict]:
+    """The run's stages, a row each."""
+    voxel_size = recorded("fusion_gap", folder).of(arm.after[0])[0]["voxel_size"] if arm.after else None
+    return measure(Path(arm.labels["run_folder"]), voxel_size, folder / f"fusion-gap-{arm.name}.png"
+                   if options.picture else None)
 
 
 # ------------------------------------------------------------------------------------------------ the stages
@@ -193,7 +226,8 @@ def open3d_mesh(cameras, depths, colours, voxel_size: float, truncation_voxels: 
                  world_to_camera=np.stack([c.world_to_camera.double().numpy() for c in cameras]),
                  depth=np.stack([torch.where(torch.isfinite(d), d, 0.0).numpy() for d in depths]),
                  rgb=np.stack([c.clamp(0, 1).numpy() for c in colours]))
-        subprocess.run([sys.executable, __file__, "--open3d-worker", str(inputs), str(outputs)], check=True)
+        subprocess.run([sys.executable, __file__, "--open3d-worker", str(inputs), str(outputs)], check=True,
+                       stdout=sys.stderr)  # stdout carries the arm's answer
         made = np.load(outputs)
         return made["vertices"], made["faces"]
 
@@ -233,7 +267,7 @@ def in_box(vertices: np.ndarray, faces: np.ndarray, grid) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------------ one run
-def measure(run: Path, voxel_size: float | None, picture: bool) -> list[dict]:
+def measure(run: Path, voxel_size: float | None, picture: Path | None) -> list[dict]:
     from mcsplat.run import trained as trained_run
     from mcsplat.mesh import DEFAULT_VOXEL_BUDGET, MeshOptions
     from mcsplat.mesh.grid import choose_grid, object_box
@@ -251,15 +285,12 @@ def measure(run: Path, voxel_size: float | None, picture: bool) -> list[dict]:
     points_np = scene.points.double().numpy()
     started = time.perf_counter()
     raw, confirmed, colours = depth_maps(trained, cameras, options)
-    base = {"run": run.name, "strategy": trained.config.strategy, "radius": radius, "voxel_size": grid.voxel_size,
-            "grid": list(grid.shape), "sfm_points": len(points), "machine": C.machine(), "commit": C.git_commit(),
-            "date": C.timestamp(), "benchmark": "fusion_gap"}
+    base = {"strategy": trained.config.strategy, "radius": radius, "voxel_size": grid.voxel_size,
+            "grid": list(grid.shape), "sfm_points": len(points)}
     records = []
 
     def add(stage: str, **figures) -> None:
-        record = {**base, "stage": stage, **figures}
-        C.emit({k: v for k, v in record.items() if k not in ("machine",)})
-        records.append(record)
+        records.append({**base, "stage": stage, **figures})
 
     raw_index, raw_difference = pairs(points, cameras, raw, radius)
     has_depth = np.zeros(len(points), dtype=bool)
@@ -289,7 +320,7 @@ def measure(run: Path, voxel_size: float | None, picture: bool) -> list[dict]:
         add(f"mesh: exported, free-space weight {free_weight:g}",
             **mesh_figures(np.asarray(after.vertices), np.asarray(after.faces), points_np, radius, has_depth)[0])
     if picture:
-        draw(trained, distance, has_depth, OUT / f"fusion-gap-{run.name}.png")
+        draw(trained, distance, has_depth, picture)
     for name, depths in (("raw", raw), ("confirmed", confirmed)):
         started = time.perf_counter()
         made = open3d_mesh(cameras, depths, colours, grid.voxel_size, grid.truncation_voxels)
@@ -331,9 +362,8 @@ def draw(trained, distance: np.ndarray, has_depth: np.ndarray, path: Path) -> No
 
 
 # ------------------------------------------------------------------------------------------------ report
-def report(records: list[dict]) -> str:
-    latest = {(r["run"], r["stage"]): r for r in records}
-    rows = list(latest.values())
+def report(rows: list[dict], folder: Path) -> str:
+    """fusion_gap.md: a row per run and stage."""
 
     def pct(key, spec=".2f"):
         return lambda r: f"{100 * r[key]:{spec}}" if key in r else ""
@@ -367,28 +397,8 @@ def report(records: list[dict]) -> str:
             "points with at least one such pair in the first stage.\n")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--runs", nargs="+", type=Path, help="default: mesh_quality.py's cup-mcmc and cup-adc")
-    parser.add_argument("--picture", action="store_true", help="also draw each run's SfM points by distance")
-    parser.add_argument("--report", action="store_true", help="only rebuild the table from the records")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--open3d-worker", nargs=2, type=Path, help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.open3d_worker:
-        open3d_worker(*args.open3d_worker)
-        return
-    C.set_threads(args.threads)
-    records_file = OUT / "fusion_gap.jsonl"
-    if not args.report:
-        voxel_size = None
-        for run in args.runs or DEFAULT_RUNS:
-            records = measure(run, voxel_size, args.picture)
-            voxel_size = voxel_size or records[0]["voxel_size"]  # the first run's, so that all fuse alike
-            C.append_jsonl(records_file, records)
-    C.write_text(OUT / "fusion_gap.md", report(C.read_jsonl(records_file)))
-    print(f"wrote {OUT / 'fusion_gap.md'}")
-
-
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:2] == ["--open3d-worker"]:  # open3d_mesh()'s process of its own
+        sys.exit(open3d_worker(Path(sys.argv[2]), Path(sys.argv[3])))
+    import framework
+    sys.exit(framework.script("fusion_gap"))

@@ -13,9 +13,10 @@ Then make the three calls back to back (a machine stays warm only about 30 s bet
                                                                weights; gpu_session.py (PHASES="..." picks phases)
 
 Give call C a timeout_s a little above MINUTES and what B's reply says is left. Warp's wheel is the reason for three
-calls: its library is 81 MB even as xz. The folder is listed in .git/info/exclude, so it never reaches a commit.
+calls: its library alone, even as xz, does not fit one. The folder is listed in .git/info/exclude, so it never reaches
+a commit.
 
-The repository's pictures (13 MB of PNG under docs/ and benchmarks/results/) would push every parcel over the limit,
+The repository's pictures (the PNGs under docs/ and benchmarks/results/) would push every parcel over the limit,
 and nothing on the GPU reads them, so make the calls from a working tree without them and put them back after:
 
     git ls-files -z '*.png' | xargs -0 rm      # before call A
@@ -24,7 +25,6 @@ and nothing on the GPU reads them, so make the calls from a working tree without
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import subprocess
@@ -32,7 +32,10 @@ import sys
 import tarfile
 import tempfile
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
+
+import tyro
 
 REPO = Path(__file__).resolve().parents[1]
 LIMIT = 64 * 2**20  # what one device call carries, the repository included
@@ -69,6 +72,16 @@ tail -n 2 /tmp/gsplat_build.log /tmp/warp_compile.log
 nvidia-smi --query-gpu=name,driver_version,memory.used --format=csv,noheader
 python3 benchmarks/gpu_session.py --phases ${PHASES:-tests parity lego capture train} --lego .gpu/c/lego --capture .gpu/c/bird --minutes ${MINUTES:-8} --out $OUT/c --runs /tmp/runs
 """
+
+
+@dataclass(frozen=True)
+class Options:
+    """Pack what gpu_session.py needs on a GPU machine without network."""
+
+    out: Path = REPO / ".gpu"
+    """The parcels' folder: inside the repository (it must travel)."""
+    shared: Path = REPO.parent / "shared" / "data"
+    """The shared data folder (lego and the bird come from it)."""
 
 
 def pinned_versions() -> dict[str, str]:
@@ -171,10 +184,7 @@ def exclude(out: Path) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--out", type=Path, default=REPO / ".gpu", help="inside the repository (it must travel)")
-    parser.add_argument("--shared", type=Path, default=REPO.parent / "shared" / "data")
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
     from mcsplat.metrics import find_lpips_weights
 
     out = args.out.resolve()

@@ -14,7 +14,7 @@ background from the start, with nvcc and ninja) or the gsplat arms are skipped, 
               tensors, the fused SSIM, and a short training run
     parity    `mcsplat train` of the capture at a quarter of its size (30,000 steps, cap 62,500) on CUDA, beside the
               same run on the CPU (same seed): the test PSNR every 2,500 steps and the training PSNR along the way.
-              The CPU arm takes 22 minutes on 2 cores, so by default its recorded log stands in for it
+              The CPU arm takes far longer than a session, so by default its recorded log stands in for it
               (--parity-reference, results/gpu_session/cpu_reference); --parity-cpu runs it here as well
     kernels   the compositing kernels alone on the rasterizer benchmark's scene (100k and 300k at 800x800): the
               tile kernels, the tile backward without its skip of unused pairs, and the scalar kernels before them
@@ -22,7 +22,7 @@ background from the start, with nvcc and ninja) or the gsplat arms are skipped, 
               takes the device's and the host's time
     lego      mcsplat against gsplat 1.5.3 (gpu_vs_gsplat.py) on lego 400, cap 300k, 150k random points
     capture   the same on a capture at full resolution, cap 1M, 500k random points
-    collapse  the same from the capture's SfM points, 14,000 steps (the cap is reached near step 11,000), with the
+    collapse  the same from the capture's SfM points, 14,000 steps (the cap is reached before the end), with the
               share of dead Gaussians every 1,000 steps on each arm: does gsplat's MCMC also end with nearly all
               dead where mcsplat's `train` at 1M does (benchmarks/README.md, "GPU")?
     train     `mcsplat train CAPTURE --steps 30000 --cap-max 1000000 --eval-every 5000`, stopped at the deadline
@@ -40,19 +40,25 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
+import dataclasses
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+import typing
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
+
+import tyro
 
 import _common as C
 
 REPO = Path(__file__).resolve().parents[1]
-PHASES = ("tests", "parity", "kernels", "profile", "lego", "capture", "collapse", "train", "agreement")
+Phase = Literal["tests", "parity", "kernels", "profile", "lego", "capture", "collapse", "train", "agreement"]
+PHASES: tuple[Phase, ...] = typing.get_args(Phase)
 # Share of the whole time each phase may take (what one phase leaves is free for the next), and the least it needs.
 SHARES = {"tests": 0.1, "parity": 0.2, "kernels": 0.05, "profile": 0.05, "lego": 0.12, "capture": 0.18,
           "collapse": 0.3, "train": 0.25, "agreement": 0.05}
@@ -63,6 +69,38 @@ PARITY_STEPS = (100, 500, 1000, 2500, 5000, 10000, 15000, 20000, 25000, 30000)
 # The lego and capture phases are the end-to-end training runs on the GPU (their test PSNR beside gsplat's).
 TEST_FILES = ["tests/render/test_composite_tiles.py", "tests/render/test_render.py",
               "tests/render/test_warp_kernels.py", "tests/training/test_ssim_warp.py"]
+
+
+@dataclass(frozen=True)
+class Options:
+    """Every GPU check of the project in one prepared command."""
+
+    lego: Path | None = None
+    """NeRF-Synthetic lego at 400x400 (transforms_*.json)."""
+    capture: Path | None = None
+    """A real capture at full resolution (COLMAP)."""
+    minutes: float = 9.5
+    """The whole session's time."""
+    phases: tuple[Phase, ...] = PHASES
+    """The phases to run (in their own order, whatever the order given)."""
+    lego_steps: int = 3000
+    """Training steps of the lego phase."""
+    capture_steps: int = 3000
+    """Training steps of the capture phase."""
+    collapse_steps: int = 14_000
+    """Training steps of the collapse phase."""
+    parity_steps: int = 30_000
+    """Training steps of each parity run."""
+    parity_cpu: bool = False
+    """Run the parity phase's CPU arm here too."""
+    parity_reference: Path = C.RESULTS / "gpu_session" / "cpu_reference"
+    """A recorded CPU run of the parity phase's command (its log.jsonl and metrics.json)."""
+    out: Path | None = None
+    """Results folder (default benchmarks/results/gpu_session)."""
+    runs: Path | None = None
+    """Where the training runs go (default: OUT/runs)."""
+    dry_run: bool = False
+    """On the CPU at toy sizes, tests only collected, no gsplat: checks the script itself."""
 
 
 class Clock:
@@ -168,10 +206,10 @@ class GsplatBuild:
         return "built" if code == 0 else f"failed (exit {code})"
 
 
-def phase_compare(args, seconds: float, log: Path, data: Path, cap: int, init: int, steps: int, timed: int,
-                  init_method: str, *extra: str) -> dict:
+def phase_compare(args, build: GsplatBuild | None, seconds: float, log: Path, data: Path, cap: int, init: int,
+                  steps: int, timed: int, init_method: str, *extra: str) -> dict:
     started = time.monotonic()
-    built = "not asked" if args.dry_run else args.gsplat_build.wait(seconds / 2)
+    built = "not asked" if build is None else build.wait(seconds / 2)
     seconds -= time.monotonic() - started
     arms = ["mcsplat"] + (["gsplat"] if built == "built" else [])
     out = args.runs / log.stem
@@ -295,7 +333,8 @@ def phase_agreement(args, seconds: float, log: Path) -> dict:
             "records": [r for r in records if not r.get("summary")]}
 
 
-def run_phase(name: str, args, seconds: float, log: Path) -> dict:
+def run_phase(name: str, args, build: GsplatBuild | None, seconds: float, log: Path) -> dict:
+    """Run one phase (gsplat's `build` for the phases that compare with it, None in a dry run)."""
     if name == "tests":
         return phase_tests(args, seconds, log)
     if name == "parity":
@@ -309,15 +348,15 @@ def run_phase(name: str, args, seconds: float, log: Path) -> dict:
     if name == "lego":
         steps, timed = (20, 10) if args.dry_run else (args.lego_steps, 1000)
         cap = 3000 if args.dry_run else 300_000
-        return phase_compare(args, seconds, log, args.lego, cap, cap // 2, steps, timed, "auto")
+        return phase_compare(args, build, seconds, log, args.lego, cap, cap // 2, steps, timed, "auto")
     if name == "capture":
         steps, timed = (20, 10) if args.dry_run else (args.capture_steps, 500)
         cap = 3000 if args.dry_run else 1_000_000
-        return phase_compare(args, seconds, log, args.capture, cap, cap // 2, steps, timed, "random")
+        return phase_compare(args, build, seconds, log, args.capture, cap, cap // 2, steps, timed, "random")
     if name == "collapse":
         steps, timed = (30, 10) if args.dry_run else (args.collapse_steps, 500)
         cap = 3000 if args.dry_run else 1_000_000
-        return phase_compare(args, seconds, log, args.capture, cap, cap // 2, steps, timed, "auto",
+        return phase_compare(args, build, seconds, log, args.capture, cap, cap // 2, steps, timed, "auto",
                              "--dead-every", "10" if args.dry_run else "1000")
     return phase_train(args, seconds, log)
 
@@ -370,35 +409,18 @@ def write_page(out: Path, records: list[dict]) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--lego", type=Path, help="NeRF-Synthetic lego at 400x400 (transforms_*.json)")
-    parser.add_argument("--capture", type=Path, help="a real capture at full resolution (COLMAP)")
-    parser.add_argument("--minutes", type=float, default=9.5, help="the whole session's time")
-    parser.add_argument("--phases", nargs="+", default=list(PHASES), choices=PHASES)
-    parser.add_argument("--lego-steps", type=int, default=3000)
-    parser.add_argument("--capture-steps", type=int, default=3000)
-    parser.add_argument("--collapse-steps", type=int, default=14_000)
-    parser.add_argument("--parity-steps", type=int, default=30_000)
-    parser.add_argument("--parity-cpu", action="store_true", help="run the parity phase's CPU arm here too")
-    parser.add_argument("--parity-reference", type=Path, default=C.RESULTS / "gpu_session" / "cpu_reference",
-                        help="a recorded CPU run of the parity phase's command (its log.jsonl and metrics.json)")
-    parser.add_argument("--out", type=Path, default=None)
-    parser.add_argument("--runs", type=Path, default=None, help="where the training runs go (default: OUT/runs)")
-    parser.add_argument("--dry-run", action="store_true",
-                        help="on the CPU at toy sizes, tests only collected, no gsplat: checks the script itself")
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
     if args.dry_run:
         demo = REPO / "data" / "lego_demo"
-        args.lego, args.capture = args.lego or demo, args.capture or demo
+        args = dataclasses.replace(args, lego=args.lego or demo, capture=args.capture or demo)
     elif not args.lego or not args.capture:
-        parser.error("--lego and --capture are needed (or --dry-run)")
-    out = args.out or C.results_dir("gpu_session")
-    out.mkdir(parents=True, exist_ok=True)
-    args.runs = args.runs or out / "runs"
+        sys.exit("gpu_session.py: error: --lego and --capture are needed (or --dry-run)")
+    out = C.results_dir("gpu_session", args.out)
+    args = dataclasses.replace(args, runs=args.runs or out / "runs")
     clock = Clock(args.minutes)
     # gsplat's build takes 12 cores for a minute or more: only for the phases that compare with it.
     compares = {"lego", "capture", "collapse"} & set(args.phases)
-    args.gsplat_build = GsplatBuild(out) if compares and not args.dry_run else None
+    build = GsplatBuild(out) if compares and not args.dry_run else None
     info = C.machine("cpu" if args.dry_run else "cuda")
     print(C.machine_line(info), flush=True)
     records = []
@@ -412,7 +434,7 @@ def main() -> None:
             log = out / f"{name}.log"
             log.write_text("")
             try:
-                record.update(run_phase(name, args, seconds, log))
+                record.update(run_phase(name, args, build, seconds, log))
             except Exception as error:  # a broken phase is a finding; the others still run
                 record["error"] = f"{type(error).__name__}: {error}"
         record.update(info)

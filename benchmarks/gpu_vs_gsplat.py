@@ -22,11 +22,13 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import torch
+import tyro
 
 import _common as C
 from mcsplat.config import ModelConfig, TrainConfig
@@ -42,15 +44,62 @@ from mcsplat.run.state import ViewSampler
 from mcsplat.step import Step
 
 
+@dataclass(frozen=True)
+class Training:
+    """What is trained, and where (gpu_vs_gsplat.py's and step_profile.py's options)."""
+
+    data: str
+    """A scene folder (lego 400 in the benchmarks' figures)."""
+    cap: int = 300_000
+    """--cap-max of the training."""
+    init: int | None = None
+    """Random initial points (default: cap / 2; with SfM points these are used instead)."""
+    init_method: Literal["auto", "random"] = "auto"
+    """random: --init random points also for a capture with SfM points (to reach a large cap within the run)."""
+    device: Literal["cuda", "cpu"] = "cuda"
+    """cuda, or cpu (for gpu_vs_gsplat.py it only checks the script, with the mcsplat arm: gsplat needs CUDA)."""
+
+    @property
+    def initial_points(self) -> int:
+        """--init, or half the cap."""
+        return self.init or self.cap // 2
+
+
+@dataclass(frozen=True)
+class Options:
+    """mcsplat against gsplat on one GPU."""
+
+    training: Annotated[Training, tyro.conf.OmitArgPrefixes]
+    arms: tuple[Literal["gsplat", "mcsplat"], ...] = ("gsplat", "mcsplat")
+    """The arms to run, in this order."""
+    steps: int = 5000
+    """Training steps of each arm."""
+    timed: int = 1000
+    """The median is taken over the last N steps."""
+    seed: int = 0
+    """Seed of the initial model and of the view order."""
+    dead_every: int = 1000
+    """Steps between two dead_share figures."""
+    out: Path | None = None
+    """Results folder (default benchmarks/results/gpu_vs_gsplat)."""
+
+
+# The table of results.md: one row per arm.
+COLUMNS = [("arm", "arm", ""), ("Gaussians", "num_gaussians", ","), ("median ms/step", "median_step_ms", ".2f"),
+           ("peak GPU MB", "peak_gpu_mb", ".0f"), ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"),
+           ("train s", "train_seconds", ".1f")]
+
+
 class Setup:
     """What both arms share: the configuration, the scene, the background and the view order."""
 
-    def __init__(self, args):
-        self.config = TrainConfig(data=Path(args.data), steps=args.steps, cap_max=args.cap, device=args.device,
-                                  seed=args.seed, downscale=getattr(args, "downscale", 1),
-                                  model=ModelConfig(num_init_points=args.init, init=args.init_method))
+    def __init__(self, training: Training, steps: int, seed: int = 0, downscale: int = 1):
+        self.config = TrainConfig(data=Path(training.data), steps=steps, cap_max=training.cap, device=training.device,
+                                  seed=seed, downscale=downscale,
+                                  model=ModelConfig(num_init_points=training.initial_points,
+                                                    init=training.init_method))
         self.plan = Plan.literal(self.config)  # the paper's schedules, taken as they are
-        self.device = torch.device(args.device)
+        self.device = torch.device(training.device)
         self.scene = load_scene(self.config.data, downscale=self.config.downscale)
         self.background = background_of(self.config, self.scene)
         self.radius = self.scene.radius
@@ -189,50 +238,27 @@ def run_arm(arm_class, setup: Setup, timed: int, dead_every: int = 1000) -> dict
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", required=True, help="a Blender scene folder (lego 400 in the benchmarks' figures)")
-    parser.add_argument("--cap", type=int, default=300_000)
-    parser.add_argument("--init", type=int, default=None, help="random initial points (default: cap / 2; with SfM "
-                                                                    "points these are used instead)")
-    parser.add_argument("--init-method", default="auto", choices=["auto", "random"],
-                        help="random: --init random points also for a capture with SfM points (to reach a large cap "
-                             "within the run)")
-    parser.add_argument("--steps", type=int, default=5000)
-    parser.add_argument("--timed", type=int, default=1000, help="the median is taken over the last N steps")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--dead-every", type=int, default=1000, help="steps between two dead_share figures")
-    parser.add_argument("--arms", nargs="+", default=["gsplat", "mcsplat"], choices=["gsplat", "mcsplat"])
-    parser.add_argument("--out", type=Path, default=None)
-    parser.add_argument("--device", default="cuda", choices=["cuda", "cpu"],
-                        help="cpu only checks the script with the mcsplat arm (gsplat needs CUDA)")
-    args = parser.parse_args()
-    C.cuda_or_exit(args.device, "gpu_vs_gsplat")
-    args.init = args.init or args.cap // 2
-    setup = Setup(args)
-    out = args.out or C.results_dir("gpu_vs_gsplat")
-    out.mkdir(parents=True, exist_ok=True)
-    info = C.machine(args.device)
+    args = tyro.cli(Options, description=__doc__)
+    training = args.training
+    C.cuda_or_exit(training.device, "gpu_vs_gsplat")
+    setup = Setup(training, args.steps, args.seed)
+    out = C.results_dir("gpu_vs_gsplat", args.out)
+    info = C.machine(training.device)
     print(C.machine_line(info), flush=True)
     records = []
     for name in args.arms:
-        print(f"{name}: {args.steps:,} steps, cap {args.cap:,}, {args.init:,} initial points", flush=True)
+        print(f"{name}: {args.steps:,} steps, cap {training.cap:,}, {training.initial_points:,} initial points",
+              flush=True)
         record = run_arm({"gsplat": GsplatArm, "mcsplat": McsplatArm}[name], setup, args.timed, args.dead_every)
         record.update(info)
         C.emit(record)
         records.append(record)
-    C.append_jsonl(out / "results.jsonl", records)
     by_arm = {r["arm"]: r for r in records}
     if len(by_arm) == 2:
         ratio = by_arm["mcsplat"]["median_step_ms"] / by_arm["gsplat"]["median_step_ms"]
         print(f"step time mcsplat / gsplat: {ratio:.2f}x; PSNR mcsplat - gsplat: "
               f"{by_arm['mcsplat']['psnr'] - by_arm['gsplat']['psnr']:+.2f} dB")
-    table = C.markdown_table(records, [("arm", "arm", ""), ("Gaussians", "num_gaussians", ","),
-                                       ("median ms/step", "median_step_ms", ".2f"),
-                                       ("peak GPU MB", "peak_gpu_mb", ".0f"),
-                                       ("PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"),
-                                       ("train s", "train_seconds", ".1f")])
-    print(table)
-    C.write_text(out / "results.md", table + "\n")
+    C.write_results(out, records, C.markdown_table(records, COLUMNS) + "\n", show=True)
 
 
 if __name__ == "__main__":

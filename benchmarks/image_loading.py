@@ -12,12 +12,15 @@ prefetched in the background).
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
 import sys
 import tempfile
+from dataclasses import dataclass
+from typing import Literal
+
+import tyro
 
 from _common import DATA_ROOT, SFM_SCENES
 
@@ -39,13 +42,22 @@ print(json.dumps({"seconds_per_step": metrics["train_seconds"] / steps, "load_se
 """
 
 
+@dataclass(frozen=True)
+class Options:
+    """Training speed and memory with images in RAM or decoded on demand."""
+
+    scene: Literal["bird", "cup"] = "cup"
+    """A real capture of the shared data."""
+    steps: int = 300
+    """Training steps of each mode."""
+    modes: tuple[Literal["resident", "lazy"], ...] = ("resident", "lazy")
+    """resident: all images decoded at load; lazy: decoded on demand through a small cache."""
+    cache_mb: float = 16.0
+    """The lazy mode's image cache (MCSPLAT_IMAGE_CACHE_MB)."""
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", choices=sorted(SFM_SCENES), default="cup")
-    parser.add_argument("--steps", type=int, default=300)
-    parser.add_argument("--modes", nargs="+", default=["resident", "lazy"], choices=["resident", "lazy"])
-    parser.add_argument("--cache-mb", type=float, default=16.0)
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
     scene = DATA_ROOT / SFM_SCENES[args.scene]
     for mode in args.modes:
         env = dict(os.environ)

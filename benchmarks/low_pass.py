@@ -13,17 +13,24 @@ value, and the difference to the first value. Results to results/low_pass/.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import subprocess
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
+
+import tyro
 
 import _common as C
 
-SCENES = {"cup": "colmap_cup", "bird": "colmap_bird", "fern": "llff_fern/fern", "lego": C.LEGO}
+Scene = Literal["cup", "bird", "fern", "lego"]
+SCENES: dict[Scene, str] = {"cup": "colmap_cup", "bird": "colmap_bird", "fern": "llff_fern/fern", "lego": C.LEGO}
 STEPS = "2000"
+# The table of results.md: one row per run.
+COLUMNS = [("scene", "scene", ""), ("eps2d", "eps2d", ".2f"), ("test PSNR", "psnr", ".2f"), ("SSIM", "ssim", ".4f"),
+           ("LPIPS-alex", "lpips", ".4f"), ("PSNR - first value", "psnr_minus_first", "+.2f")]
 
 CHILD = """
 import sys
@@ -32,6 +39,18 @@ render.render.__kwdefaults__["eps2d"] = float(sys.argv[1])
 from mcsplat.cli import main
 sys.exit(main(sys.argv[2:]))
 """
+
+
+@dataclass(frozen=True)
+class Options:
+    """3DGS's 2D low-pass filter at 0.3 pixel^2 against smaller ones."""
+
+    scenes: tuple[Scene, ...] = tuple(SCENES)
+    """Scenes of the shared data."""
+    values: tuple[float, ...] = (0.3, 0.1)
+    """Values of eps2d; the first is the baseline."""
+    data_root: Path = C.DATA_ROOT
+    """The shared data folder."""
 
 
 def train(scene: Path, value: float, run: Path) -> dict:
@@ -48,11 +67,7 @@ def train(scene: Path, value: float, run: Path) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
-    parser.add_argument("--values", nargs="+", type=float, default=[0.3, 0.1], help="the first is the baseline")
-    parser.add_argument("--data-root", type=Path, default=C.DATA_ROOT)
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
     out = C.results_dir("low_pass")
     records = []
     for name in args.scenes:
@@ -67,12 +82,7 @@ def main() -> None:
                       "date": C.timestamp()}
             C.emit(record)
             records.append(record)
-    C.append_jsonl(out / "results.jsonl", records)
-    table = C.markdown_table(records, [("scene", "scene", ""), ("eps2d", "eps2d", ".2f"), ("test PSNR", "psnr", ".2f"),
-                                       ("SSIM", "ssim", ".4f"), ("LPIPS-alex", "lpips", ".4f"),
-                                       ("PSNR - first value", "psnr_minus_first", "+.2f")])
-    print(table)
-    C.write_text(out / "results.md", table + "\n")
+    C.write_results(out, records, C.markdown_table(records, COLUMNS) + "\n", show=True)
 
 
 if __name__ == "__main__":

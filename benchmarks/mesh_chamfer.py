@@ -13,11 +13,11 @@ rounded box with a dent, a ball and a ring; git-ignored) and each arm trains on 
 refinement from step 50 every 10 steps to 2,500, SH degree +1 every 100 steps, from the Blender scenes' 100,000
 random points. Each run's mesh is exported in a fresh process by `mcsplat export RUN --format mesh` with its defaults
 into RUN/chamfer_mesh.ply (not the run's own mesh.ply, whose writing also makes the run's report again, inside the
-timing); the arms after the first fuse in the first one's voxel size (`--voxel-size`), so that the arms are meshed
-alike. With `--depth planar` the export fuses the planar depth instead of the median depth, with
-`--truncation N` in a band of N voxels (into RUN/chamfer_mesh-planar.ply, -t24.ply, ...; the arm is recorded as
-`<arm>-planar`, `<arm>-t24`). Then, in % of the true mesh's bounding-box
-diagonal (chamfer.py's docstring has the definitions):
+timing); the arms after the first wait for it and fuse in the voxel size it recorded (`--voxel-size`), so that the
+arms are meshed alike; an arm already recorded is not measured again (--rerun measures it again). With `--depth
+planar` the export fuses the planar depth instead of the median depth, with `--truncation N` in a band of N voxels
+(into RUN/chamfer_mesh-planar.ply, -t24.ply, ...; the arm is recorded as `<arm>-planar`, `<arm>-t24`). Then, in %
+of the true mesh's bounding-box diagonal (chamfer.py's docstring has the definitions):
 
     accuracy       exported surface -> true surface: median, mean, and the share within 1% (precision)
     completeness   true surface -> exported surface: median, mean, and the share within 1% (recall)
@@ -32,43 +32,77 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import json
 import os
 import re
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
 import trimesh
+import tyro
 
 import _common as C
+from framework import Arm, Common, recorded
 from mcsplat.mesh.grid import TRUNCATION_VOXELS
 import chamfer
 import exact_mesh_scene as exact
 from mesh_quality import STRATEGY_OPTIONS, TRAIN_OPTIONS, reusable
 
-OUT = C.results_dir("mesh_chamfer")
-SCENE = OUT / "scene"
-ARMS = ["mcmc", "mcmc-surface"]
+ARMS = ("mcmc", "mcmc-surface")
 PICTURE_SIDE = 360       # pixels of a picture panel's side
 PICTURE_FROM = (0.35, 0.75, 0.55)  # the pictures' view: the test camera nearest to this direction from the origin
 ERROR_SCALE = 0.02       # the error panel's colours run from 0 to this share of the true diagonal
+KEY = ("arm",)
+
+
+@dataclass(frozen=True)
+class Options:
+    """Meshes against an exact surface: Chamfer figures of `mcsplat export --format mesh`."""
+
+    arms: tuple[Literal[tuple(STRATEGY_OPTIONS)], ...] = ARMS
+    steps: int = 3000
+    """Training steps."""
+    depth: Literal["median", "planar"] = "median"
+    """The depth the export fuses."""
+    truncation: float = TRUNCATION_VOXELS
+    """The export's band, in voxels."""
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
+
+
+def arms(options: Options) -> list[Arm]:
+    """An arm per strategy, named with the export's suffix; the later ones wait for the first (its voxel size)."""
+    names = [arm + suffix(options.depth, options.truncation) for arm in options.arms]
+    return [Arm(name, {"arm": name, "strategy": arm}, after=tuple(names[:1]) if index else ())
+            for index, (arm, name) in enumerate(zip(options.arms, names))]
+
+
+def run(arm: Arm, options: Options, folder: Path) -> dict:
+    """Train the arm (a finished run is reused), export its mesh, score it against the true mesh."""
+    scene_dir = scene(folder / "scene")
+    loaded = C.load(scene_dir)
+    truth = trimesh.load(scene_dir / "mesh.ply", force="mesh", process=False)
+    run_dir = train(arm.labels["strategy"], options.steps, options.common.threads, scene_dir, folder / "runs")
+    voxel_size = recorded("mesh_chamfer", folder).get(arm.after[0])["voxel_size"] if arm.after else None
+    exported = export(run_dir, voxel_size, options.depth, options.truncation)
+    return measure(arm.name, run_dir, exported, truth, loaded, folder / f"{arm.name}.png")
 
 
 # ------------------------------------------------------------------------------------------------ scene, runs
-def scene() -> Path:
+def scene(folder: Path) -> Path:
     """The scene folder, written first unless a complete one is there (its test transforms are written last)."""
-    if not (SCENE / "transforms_test.json").is_file():
-        print(f"writing the scene into {SCENE}", file=sys.stderr, flush=True)
+    if not (folder / "transforms_test.json").is_file():
+        print(f"writing the scene into {folder}", file=sys.stderr, flush=True)
         try:
-            exact.write_scene(SCENE)
+            exact.write_scene(folder)
         except exact.SceneError as error:
             sys.exit(f"mesh_chamfer.py: {error}")
-    return SCENE
+    return folder
 
 
 def options(arm: str, steps: int) -> list[str]:
@@ -78,14 +112,15 @@ def options(arm: str, steps: int) -> list[str]:
     return [*given, *STRATEGY_OPTIONS[arm]]
 
 
-def train(arm: str, steps: int, threads: int) -> Path:
-    """The arm's run folder, trained first unless a finished run is there."""
-    run = OUT / "runs" / arm
+def train(arm: str, steps: int, threads: int | None, scene_dir: Path, runs: Path) -> Path:
+    """The arm's run folder under `runs`, trained first unless a finished run is there."""
+    run = runs / arm
     if reusable(run):
         return run
-    args = [str(scene()), "--out", str(run), "--overwrite", "--threads", str(threads), "--quiet", *options(arm, steps)]
+    args = [str(scene_dir), "--out", str(run), "--overwrite", *(["--threads", str(threads)] if threads else []),
+            "--quiet", *options(arm, steps)]
     print("mcsplat train " + " ".join(args), file=sys.stderr, flush=True)
-    C.train_with_tree(C.REPO, args, OUT / "runs" / f"{arm}.log", "mesh_chamfer.py")
+    C.train_with_tree(C.REPO, args, runs / f"{arm}.log", "mesh_chamfer.py")
     return run
 
 
@@ -112,7 +147,7 @@ def suffix(depth: str, truncation: float) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ measures
-def measure(arm: str, run: Path, exported: dict, truth: trimesh.Trimesh, loaded) -> dict:
+def measure(arm: str, run: Path, exported: dict, truth: trimesh.Trimesh, loaded, picture_path: Path) -> dict:
     """The run's record: its training figures, the exported mesh's size and its Chamfer figures."""
     from mcsplat.mesh import read_mesh
 
@@ -120,14 +155,14 @@ def measure(arm: str, run: Path, exported: dict, truth: trimesh.Trimesh, loaded)
     metrics = json.loads((run / "metrics.json").read_text())
     config = json.loads((run / "config.json").read_text())
     figures = chamfer.chamfer(mesh, truth)
-    record = {"arm": arm, "steps": metrics["steps"], "cap_max": config["cap_max"], "surface": config["surface"],
+    record = {"steps": metrics["steps"], "cap_max": config["cap_max"], "surface": config["surface"],
               "psnr": round(metrics["psnr"], 2), "ssim": round(metrics["ssim"], 4),
               "num_gaussians": metrics["num_gaussians"], "train_seconds": metrics["train_seconds"],
               "export_seconds": exported["export_seconds"], "voxel_size": exported["voxel_size"],
               "vertices": len(mesh.vertices), "faces": len(mesh.faces), "true_faces": len(truth.faces),
               "scene": {"train": len(loaded.train), "test": len(loaded.test), "size": loaded.train[0].camera.width},
               **figures}
-    picture(arm, mesh, truth, loaded, figures["diagonal"])
+    picture(arm, mesh, truth, loaded, figures["diagonal"], picture_path)
     return record
 
 
@@ -144,9 +179,9 @@ def picture_camera(loaded):
 
 
 @torch.no_grad()
-def picture(arm: str, mesh: trimesh.Trimesh, truth: trimesh.Trimesh, loaded, unit: float) -> None:
-    """results/mesh_chamfer/<arm>.png: the true mesh and the exported one shaded, and the exported one coloured by
-    each vertex's distance to the truth, from one test view."""
+def picture(arm: str, mesh: trimesh.Trimesh, truth: trimesh.Trimesh, loaded, unit: float, path: Path) -> None:
+    """`path` (results/mesh_chamfer/<arm>.png): the true mesh and the exported one shaded, and the exported one
+    coloured by each vertex's distance to the truth, from one test view."""
     from mcsplat.mesh.raster import picture as mesh_picture
 
     plt = C.pyplot()
@@ -169,7 +204,7 @@ def picture(arm: str, mesh: trimesh.Trimesh, truth: trimesh.Trimesh, loaded, uni
         axis.axis("off")
     scale = plt.cm.ScalarMappable(cmap="viridis", norm=plt.Normalize(0, 100 * ERROR_SCALE))
     figure.colorbar(scale, ax=axes[2], fraction=0.046, pad=0.02, label="% of the true diagonal")
-    figure.savefig(OUT / f"{arm}.png", dpi=100, bbox_inches="tight")
+    figure.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(figure)
 
 
@@ -178,7 +213,7 @@ def percent(key: str):
     return lambda r: "-" if r.get(key) is None else f"{100 * r[key]:.1f}"
 
 
-def report(records: list[dict]) -> str:
+def report(records: list[dict], folder: Path) -> str:
     """results.md: the table of the last record of each arm, and what the truth was."""
     table = C.markdown_table(records, [
         ("arm", "arm", ""), ("steps", "steps", ","), ("PSNR", "psnr", ".2f"), ("Gaussians", "num_gaussians", ","),
@@ -195,46 +230,13 @@ def report(records: list[dict]) -> str:
     shape = (f"The truth: {first['true_faces']:,} faces, bounding-box diagonal {first['diagonal']:.4f} scene units; "
              f"{first['scene']['train']} training and {first['scene']['test']} test views of "
              f"{first['scene']['size']}x{first['scene']['size']}.") if first else ""
-    text = (f"# Meshes against an exact surface\n\n`.venv/bin/python benchmarks/mesh_chamfer.py` (the module docstring "
-            f"says what each column is).\n\n{table}\n\nDistances in % of the true mesh's bounding-box diagonal, from "
-            f"{chamfer.SAMPLES:,} points sampled by area on each surface to the other surface. {shape} Export: "
-            f"`mcsplat export RUN --format mesh` with its defaults, in a fresh process on the CPU; the pictures are "
-            f"<arm>.png.\n")
-    C.write_text(OUT / "results.md", text)
-    return text
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--arms", nargs="+", choices=list(STRATEGY_OPTIONS), default=ARMS,
-                        help="default: %(default)s")
-    parser.add_argument("--steps", type=int, default=3000, help="training steps (default %(default)s)")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--depth", choices=["median", "planar"], default="median",
-                        help="the depth the export fuses (default %(default)s)")
-    parser.add_argument("--truncation", type=float, default=TRUNCATION_VOXELS,
-                        help="the export's band, in voxels (default %(default)s)")
-    parser.add_argument("--report", action="store_true", help="only rebuild results.md from results.jsonl")
-    args = parser.parse_args()
-    results = OUT / "results.jsonl"
-    if not args.report:
-        C.warn_if_busy()
-        folder = scene()
-        loaded = C.load(folder)
-        truth = trimesh.load(folder / "mesh.ply", force="mesh", process=False)
-        voxel_size = None
-        for arm in args.arms:  # one arm at a time: training, export, scoring
-            run = train(arm, args.steps, args.threads)
-            exported = export(run, voxel_size, args.depth, args.truncation)
-            voxel_size = voxel_size or exported["voxel_size"]
-            name = arm + suffix(args.depth, args.truncation)
-            record = {**measure(name, run, exported, truth, loaded), "machine": C.machine(), "commit": C.git_commit(),
-                      "date": C.timestamp(), "benchmark": "mesh_chamfer"}
-            C.emit(record)
-            C.append_jsonl(results, [record])
-    latest = {r["arm"]: r for r in C.read_jsonl(results)}  # the last record of each arm
-    print(report(list(latest.values())))
+    return (f"# Meshes against an exact surface\n\n`.venv/bin/python benchmarks/mesh_chamfer.py` (the module "
+            f"docstring says what each column is).\n\n{table}\n\nDistances in % of the true mesh's bounding-box "
+            f"diagonal, from {chamfer.SAMPLES:,} points sampled by area on each surface to the other surface. {shape} "
+            "Export: `mcsplat export RUN --format mesh` with its defaults, in a fresh process on the CPU; the "
+            "pictures are <arm>.png.\n")
 
 
 if __name__ == "__main__":
-    main()
+    import framework
+    sys.exit(framework.script("mesh_chamfer"))

@@ -12,8 +12,9 @@ Each scene trains (or a finished run is reused) with the squeezed schedule of th
 300 (ADC), SH degree +1 every 100 steps, images at half size (DTU at full size, from 5,000 random points as in
 auto_cap.py; lego from the default 100,000; the captures from their SfM points), into results/mesh_quality/runs/
 (git-ignored). Every run's mesh is exported in a fresh process with the command's defaults (voxel budget 2^24,
---alpha-min 0.5, --min-component 0.02), which records its time and peak memory; a scene's second strategy fuses in
-the first one's voxel size, so that MCMC and ADC are meshed alike. Then, in units of the scene radius R
+--alpha-min 0.5, --min-component 0.02), which records its time and peak memory; a scene's later arms wait for its
+first one and fuse in the voxel size it recorded, so that MCMC and ADC are meshed alike. A run already recorded is
+not measured again (--rerun measures it again). Then, in units of the scene radius R
 (3DGS's: 1.1 x the cameras' largest distance from their centre):
 
     SfM points -> mesh       distance from each COLMAP point (triangulated from image features) to the mesh: median,
@@ -33,18 +34,21 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import json
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
+import tyro
 from scipy.spatial import cKDTree
 
 import _common as C
+from framework import Arm, Common, recorded
 from mcsplat.mesh.grid import TRUNCATION_VOXELS
 
 # name -> (folder under the shared data, downscale, options of its own)
@@ -77,7 +81,59 @@ COMPLETE = 0.01           # completeness threshold, in units of R
 AGREEMENT = 0.01          # depth agreement threshold, relative to the depth
 AGREEMENT_VIEWS = 10
 PICTURE_SIDE = 320        # pixels of a picture panel's longest side
-OUT = C.results_dir("mesh_quality")
+KEY = ("run",)
+
+
+@dataclass(frozen=True)
+class Options:
+    """Meshes of trained scenes against the SfM points, MCMC against ADC."""
+
+    scenes: tuple[Literal[tuple(SCENES)], ...] | None = None
+    """Default: cup, bird, dtu, lego."""
+    strategies: tuple[Literal[tuple(STRATEGY_OPTIONS)], ...] | None = None
+    """Default: MCMC and ADC on cup and bird, MCMC on dtu and lego (with --scenes too: every strategy on each)."""
+    runs: tuple[Path, ...] = ()
+    """Measure these run folders instead of training."""
+    truncation: float = TRUNCATION_VOXELS
+    """The export's --truncation, in voxels; the runs' records and pictures are then named <run>-t<N>."""
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
+
+
+def trained_runs(options: Options) -> list[tuple[str, str]]:
+    """The (scene, strategy) pairs to train and measure."""
+    if options.scenes and options.strategies:
+        return [(scene, strategy) for scene in options.scenes for strategy in options.strategies]
+    return [(scene, strategy) for scene, strategy in DEFAULT_JOBS if (options.scenes is None or scene in options.scenes)
+            and (options.strategies is None or strategy in options.strategies)]
+
+
+def band_suffix(truncation: float) -> str:
+    """-t<N> for an export band of N voxels other than the default."""
+    return "" if truncation == TRUNCATION_VOXELS else f"-t{truncation:g}"
+
+
+def arms(options: Options) -> list[Arm]:
+    """An arm per run (<scene>-<strategy>), each after its scene's first arm: it fuses in that one's voxel size."""
+    runs = [(run.name, str(run)) for run in options.runs] or [(f"{s}-{k}", None) for s, k in trained_runs(options)]
+    first: dict[str, str] = {}  # scene (names have no dash; strategies may) -> its first arm
+    declared = []
+    for run_name, given in runs:
+        name, scene = run_name + band_suffix(options.truncation), run_name.split("-", 1)[0]
+        labels = {"run": name, "truncation_voxels": options.truncation, **({"run_folder": given} if given else {})}
+        declared.append(Arm(name, labels, after=(first[scene],) if scene in first else ()))
+        first.setdefault(scene, name)
+    return declared
+
+
+def run(arm: Arm, options: Options, folder: Path) -> dict:
+    """Train the arm's run (a finished one is reused) or take the one given, export its mesh and measure it."""
+    given = arm.labels.get("run_folder")
+    trained = arm.name.removesuffix(band_suffix(options.truncation))
+    run_dir = Path(given) if given else train(*trained.split("-", 1), folder / "runs", options.common.data_root,
+                                               options.common.threads)
+    voxel_size = recorded("mesh_quality", folder).get(arm.after[0])["voxel_size"] if arm.after else None
+    exported = export(run_dir, voxel_size, options.truncation)
+    return measure(run_dir, exported, arm.name, folder / f"{arm.name}.png")
 
 
 # ------------------------------------------------------------------------------------------------ training
@@ -90,17 +146,17 @@ def reusable(run: Path) -> bool:
             and json.loads(config.read_text()).get("scale_schedule") is False)
 
 
-def train(scene: str, strategy: str, data_root: Path, threads: int) -> Path:
-    """The run folder of (scene, strategy), trained first unless a finished run is there."""
+def train(scene: str, strategy: str, runs: Path, data_root: Path, threads: int | None) -> Path:
+    """The run folder of (scene, strategy) under `runs`, trained first unless a finished run is there."""
     folder, downscale, own_options = SCENES[scene]
-    run = OUT / "runs" / f"{scene}-{strategy}"
+    run = runs / f"{scene}-{strategy}"
     if reusable(run):
         return run
     command = [sys.executable, "-m", "mcsplat", "train", str(data_root / folder), "--out", str(run), "--overwrite",
-               "--downscale", str(downscale), "--threads", str(threads), "--quiet", *TRAIN_OPTIONS,
-               *STRATEGY_OPTIONS[strategy], *own_options]
+               "--downscale", str(downscale), *(["--threads", str(threads)] if threads else []), "--quiet",
+               *TRAIN_OPTIONS, *STRATEGY_OPTIONS[strategy], *own_options]
     print(" ".join(command[1:]), file=sys.stderr, flush=True)
-    subprocess.run(command, check=True)
+    subprocess.run(command, check=True, stdout=sys.stderr)  # stdout carries the arm's answer
     return run
 
 
@@ -130,9 +186,9 @@ def export(run: Path, voxel_size: float | None = None, truncation: float = TRUNC
     """The export worker's figures for `run`, fused in `voxel_size` where that fits 4x the default voxel budget, else
     (a model whose box is much larger: ADC's floaters) in the finest size its own box allows, as the voxel column
     then shows."""
-    size = [] if voxel_size is None else ["--voxel-size", repr(voxel_size)]
-    done = subprocess.run([sys.executable, __file__, "--export-worker", str(run), *size, "--truncation",
-                           repr(truncation)], capture_output=True, text=True)
+    asked = {"run": str(run), "voxel_size": voxel_size, "truncation": truncation}
+    done = subprocess.run([sys.executable, __file__, "--export-worker", json.dumps(asked)], capture_output=True,
+                          text=True)
     if done.returncode != 0 and voxel_size is not None and "over the budget" in done.stderr:
         print(f"{run.name}: the shared voxel size does not fit its box; fused in its own", file=sys.stderr)
         return export(run, None, truncation)
@@ -184,7 +240,7 @@ def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray
 
 
 # ------------------------------------------------------------------------------------------------ measures
-def measure(run: Path, exported: dict, name: str) -> dict:
+def measure(run: Path, exported: dict, name: str, picture_path: Path) -> dict:
     from mcsplat.run import trained as trained_run
     from mcsplat.gaussians import DEAD_OPACITY
     from mcsplat.mesh import read_mesh
@@ -213,7 +269,7 @@ def measure(run: Path, exported: dict, name: str) -> dict:
     record.update(gaussians_on_surface=float(near.mean()),
                   gaussians_on_surface_weighted=float((near * opacities[alive]).sum() / opacities[alive].sum()))
     record.update(depth_agreement(trained, vertices, faces))
-    picture(trained, vertices, faces, np.asarray(mesh.visual.vertex_colors)[:, :3], OUT / f"{name}.png")
+    picture(trained, vertices, faces, np.asarray(mesh.visual.vertex_colors)[:, :3], picture_path)
     return record
 
 
@@ -266,7 +322,7 @@ def arm_of(record: dict) -> str:
     return record["run"].split("-", 1)[1]
 
 
-def report(records: list[dict]) -> str:
+def report(records: list[dict], folder: Path) -> str:
     scenes, arms = list(dict.fromkeys(r["scene"] for r in records)), list(STRATEGY_OPTIONS)
     records = sorted(records, key=lambda r: (scenes.index(r["scene"]),
                                              arms.index(arm_of(r)) if arm_of(r) in arms else len(arms)))
@@ -296,54 +352,13 @@ def report(records: list[dict]) -> str:
                              f"{100 * m['completeness']:.1f}% vs {100 * a['completeness']:.1f}%); "
                              f"{100 * m['gaussians_on_surface']:.1f}% of {mcmc}'s Gaussians lie within {NEAR_VOXELS} "
                              f"voxels of the surface, {100 * a['gaussians_on_surface']:.1f}% of {adc}'s")
-    text = (f"# Meshes of trained scenes\n\n{table}\n\n" + "\n".join(lines) + ("\n" if lines else "") +
+    return (f"# Meshes of trained scenes\n\n{table}\n\n" + "\n".join(lines) + ("\n" if lines else "") +
             f"\nDistances in % of the scene radius R; \"on surface\": the centre within {NEAR_VOXELS} voxels of the "
             f"mesh. Export: `mcsplat export RUN --format mesh` with its defaults, in a fresh process on the CPU.\n")
-    C.write_text(OUT / "results.md", text)
-    return text
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", nargs="+", choices=list(SCENES), help="default: cup, bird, dtu, lego")
-    parser.add_argument("--strategies", nargs="+", choices=list(STRATEGY_OPTIONS), default=None)
-    parser.add_argument("--runs", nargs="+", type=Path, help="measure these run folders instead of training")
-    parser.add_argument("--data-root", type=Path, default=C.DATA_ROOT)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--report", action="store_true", help="only rebuild results.md from results.jsonl")
-    parser.add_argument("--truncation", type=float, default=TRUNCATION_VOXELS,
-                        help="the export's --truncation, in voxels (default %(default)s); the runs' records and "
-                             "pictures are then named <run>-t<N>")
-    parser.add_argument("--export-worker", help=argparse.SUPPRESS)
-    parser.add_argument("--voxel-size", type=float, help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.export_worker:
-        export_worker(args.export_worker, args.voxel_size, args.truncation)
-        return
-    results = OUT / "results.jsonl"
-    if not args.report:
-        C.warn_if_busy()
-        if args.runs:
-            runs = args.runs
-        else:
-            jobs = [(s, k) for s, k in DEFAULT_JOBS if (args.scenes is None or s in args.scenes)
-                    and (args.strategies is None or k in args.strategies)]
-            if args.scenes and args.strategies:
-                jobs = [(s, k) for s in args.scenes for k in args.strategies]
-            runs = [train(scene, strategy, args.data_root, args.threads) for scene, strategy in jobs]
-        voxel_sizes: dict[str, float] = {}  # per scene: the first run's, so that MCMC and ADC fuse in equal voxels
-        for run in runs:
-            scene = run.name.split("-", 1)[0]  # scene names have no dash; strategies may
-            exported = export(run, voxel_sizes.get(scene), args.truncation)
-            voxel_sizes.setdefault(scene, exported["voxel_size"])
-            name = run.name if args.truncation == TRUNCATION_VOXELS else f"{run.name}-t{args.truncation:g}"
-            record = {**measure(run, exported, name), "truncation_voxels": args.truncation, "machine": C.machine(),
-                      "commit": C.git_commit(), "date": C.timestamp(), "benchmark": "mesh_quality"}
-            C.emit(record)
-            C.append_jsonl(results, [record])
-    latest = {r["run"]: r for r in C.read_jsonl(results)}  # the last record of each run
-    print(report(list(latest.values())))
 
 
 if __name__ == "__main__":
-    main()
+    if sys.argv[1:2] == ["--export-worker"]:  # export()'s fresh process
+        sys.exit(export_worker(**json.loads(sys.argv[2])))
+    import framework
+    sys.exit(framework.script("mesh_quality"))

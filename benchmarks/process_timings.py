@@ -12,15 +12,30 @@ The rotation / centre errors come from pycolmap.compare_reconstructions against 
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import statistics
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
+
+import tyro
 
 from _common import DATA_ROOT
+
+
+@dataclass(frozen=True)
+class Options:
+    """`mcsplat process` at full resolution on the shared real captures."""
+
+    inputs: tuple[Literal["cup", "bird"], ...] = ("cup", "bird")
+    """cup: the photos; bird: the photos written to a video."""
+    threads: int | None = None
+    """pycolmap threads (default: all cores)."""
+    keep: Path | None = None
+    """Write the scenes under this folder and keep them."""
 
 
 def bird_video(folder: Path) -> Path:
@@ -36,15 +51,12 @@ def bird_video(folder: Path) -> Path:
 
 
 def main() -> None:
+    args = tyro.cli(Options, description=__doc__)
+
     import pycolmap
 
     from mcsplat.capture import ProcessOptions, process
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--inputs", nargs="+", default=["cup", "bird"], choices=["cup", "bird"])
-    parser.add_argument("--threads", type=int, default=None, help="pycolmap threads (default: all cores)")
-    parser.add_argument("--keep", type=Path, default=None, help="write the scenes under this folder and keep them")
-    args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
         for name in args.inputs:

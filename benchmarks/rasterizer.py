@@ -17,15 +17,17 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import json
 import math
 import platform
 import resource
 import statistics
 import time
+from dataclasses import dataclass
+from typing import Annotated, Literal
 
 import torch
+import tyro
 
 from mcsplat.camera import Camera, intrinsics
 from mcsplat.render import Splats, render, set_cpu_threads
@@ -34,6 +36,26 @@ from mcsplat.render.composite.function import CompositeFunction, cuda_kernels, s
 from mcsplat.render.paths import TORCH_BASELINE_PATH, use_render_path
 from mcsplat.render.constants import ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, TILE_SIZE, TRANSMITTANCE_MIN
 from mcsplat.render.project.torch_autograd import project_gaussians, view_dependent_colors
+
+
+@dataclass(frozen=True)
+class Options:
+    """Rasterizer speed and memory: one JSON line per configuration."""
+
+    sizes: tuple[int, ...] = (20_000, 100_000, 300_000)
+    """Numbers of Gaussians."""
+    resolutions: tuple[int, ...] = (400, 800)
+    """Square image sides."""
+    threads: tuple[int, ...] = (1, torch.get_num_threads())
+    """CPU threads (on CUDA: 1)."""
+    device: str = "cpu"
+    """cpu or cuda."""
+    repeats: int = 5
+    """Timed calls of each (medians)."""
+    cuda_kernels: tuple[Literal["tile", "tile-all", "scalar"], ...] = ("tile",)
+    """On CUDA: the compositing kernels to time side by side (the first is the main record)."""
+    no_baseline: Annotated[bool, tyro.conf.FlagCreatePairsOff] = False
+    """Skip the in-process baseline (the scalar kernels and the torch projection/binning)."""
 
 
 def make_scene(n: int, size: int, device: str, seed: int = 0):
@@ -184,23 +206,13 @@ def _per_pixel_counts(bins, inputs, size, samples: int = 400) -> tuple[float, fl
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", type=int, nargs="+", default=[20_000, 100_000, 300_000])
-    parser.add_argument("--resolutions", type=int, nargs="+", default=[400, 800])
-    parser.add_argument("--threads", type=int, nargs="+", default=[1, torch.get_num_threads()])
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--cuda-kernels", nargs="+", default=["tile"], choices=["tile", "tile-all", "scalar"],
-                        help="on CUDA: the compositing kernels to time side by side (the first is the main record)")
-    parser.add_argument("--no-baseline", action="store_true",
-                        help="skip the in-process baseline (the scalar kernels and the torch projection/binning)")
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
     threads = sorted(set(args.threads)) if args.device == "cpu" else [1]
     for size in args.resolutions:
         for n in args.sizes:
             for t in threads:
                 print(json.dumps(bench(n, size, t, args.device, args.repeats, not args.no_baseline,
-                                       tuple(args.cuda_kernels))), flush=True)
+                                       args.cuda_kernels)), flush=True)
 
 
 if __name__ == "__main__":

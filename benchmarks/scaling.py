@@ -18,19 +18,51 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
+import dataclasses
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+import tyro
 
 import _common as C
 from train_speed import Bench, bench_step, realistic_model, step_numbers, training_views
 
 LINEAR_TOLERANCE = 0.15
+
+
+@dataclass(frozen=True)
+class Options:
+    """Training step time against the number of Gaussians and against the image size."""
+
+    sizes: tuple[int, ...] = (10_000, 30_000, 100_000, 300_000)
+    """Numbers of Gaussians for sweep 1 (none: skip it)."""
+    size_resolution: int = 400
+    """Image side for sweep 1."""
+    resolutions: tuple[int, ...] = (100, 200, 400, 800)
+    """Square image sides for sweep 2 (none: skip it)."""
+    resolution_gaussians: int = 100_000
+    """N for sweep 2."""
+    threads: int | None = None
+    """CPU threads (default: all cores)."""
+    device: str = "cpu"
+    """cpu or cuda."""
+    scene: str = "lego"
+    """lego (shared data) or a scene folder."""
+    data_root: str = str(C.DATA_ROOT)
+    """The shared data folder."""
+    warmup: int = 2
+    """Untimed steps first, at each point."""
+    repeats: int = 5
+    """Timed steps at each point (their median)."""
+    seed: int = 0
+    """Seed of the stand-in model."""
+    out: str | None = None
+    """Results folder (default benchmarks/results/scaling)."""
 
 
 def time_steps(b: Bench, warmup: int, repeats: int) -> tuple[float, int]:
@@ -111,28 +143,12 @@ def markdown(points: list[dict], summaries: dict, info: dict, args) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", type=int, nargs="*", default=[10_000, 30_000, 100_000, 300_000],
-                        help="numbers of Gaussians for sweep 1 (none: skip it)")
-    parser.add_argument("--size-resolution", type=int, default=400, help="image side for sweep 1")
-    parser.add_argument("--resolutions", type=int, nargs="*", default=[100, 200, 400, 800],
-                        help="square image sides for sweep 2 (none: skip it)")
-    parser.add_argument("--resolution-gaussians", type=int, default=100_000, help="N for sweep 2")
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all cores)")
-    parser.add_argument("--device", default="cpu", help="cpu or cuda")
-    parser.add_argument("--scene", default="lego", help="lego (shared data) or a scene folder")
-    parser.add_argument("--data-root", default=str(C.DATA_ROOT))
-    parser.add_argument("--warmup", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/scaling)")
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
     C.cuda_or_exit(args.device, "scaling")
     C.set_threads(args.threads)
     if args.threads is None and args.device == "cpu":
-        args.threads = torch.get_num_threads()
-    out = Path(args.out) if args.out else C.results_dir("scaling")
-    out.mkdir(parents=True, exist_ok=True)
+        args = dataclasses.replace(args, threads=torch.get_num_threads())
+    out = C.results_dir("scaling", args.out)
     info = C.machine(args.device)
     load = C.warn_if_busy()
     scene = C.load(C.scene_path(args.scene, args.data_root))
@@ -167,11 +183,10 @@ def main() -> None:
                             "time_ratio": round(rows[-1]["step_ms"] / rows[0]["step_ms"], 3)}
         C.emit({"benchmark": "scaling", "summary": sweep, "against": f"log {key}", **summaries[sweep],
                 "device": device_name, "machine": info, "commit": C.git_commit(), "date": C.timestamp()})
-    C.append_jsonl(out / "results.jsonl", points)
-    C.write_text(out / "results.md", markdown(points, summaries, info, args))
-    plotted = plot(points, summaries, out / "scaling.png",
-                   f"Training step time, lego views, {device_name}, threads {args.threads}")
-    print(f"wrote {out / 'results.md'}" + (f" and {out / 'scaling.png'}" if plotted else ""), file=sys.stderr)
+    C.write_results(out, points, markdown(points, summaries, info, args))
+    if plot(points, summaries, out / "scaling.png",
+            f"Training step time, lego views, {device_name}, threads {args.threads}"):
+        print(f"wrote {out / 'scaling.png'}", file=sys.stderr)
 
 
 if __name__ == "__main__":

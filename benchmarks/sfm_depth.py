@@ -12,27 +12,54 @@ point's depth is kept, positive where the splats' surface lies behind the point.
 out: a point hidden behind the surface in that view (the other side of the cup, the table under it) is not an error
 of the depth. Recorded in % of the scene radius R: the median absolute difference, its 90th percentile, the median
 signed difference, and the share within 1% of R. Records: results/mesh_quality/sfm_depth.jsonl, table:
-results/mesh_quality/sfm_depth.md.
+results/mesh_quality/sfm_depth.md. A run already recorded is not measured again (--rerun measures it again); a default
+run that mesh_quality.py has not trained is left out.
 """
 
 from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
+import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 import torch
+import tyro
 
 import _common as C
+from framework import Arm, Common, NotReady
 
-OUT = C.RESULTS / "mesh_quality"
-RUNS = OUT / "runs"
+RUNS = C.RESULTS / "mesh_quality" / "runs"
 DEFAULT_RUNS = [f"{scene}-{arm}" for scene in ("cup", "bird") for arm in ("mcmc", "mcmc-surface", "adc", "adc-surface")]
 VIEW_STRIDE = 4          # every 4th training view
 ALPHA_MIN = 0.5          # the pixel must be covered, as the mesh export asks
 HIDDEN = 0.05            # differences beyond this share of R: the point is hidden in that view
+RESULTS = "mesh_quality/sfm_depth"  # beside the runs it measures
+KEY = ("run",)
+
+
+@dataclass(frozen=True)
+class Options:
+    """The splats' median depth at the SfM points, run by run."""
+
+    runs: tuple[Path, ...] = ()
+    """Runs of a COLMAP scene (default: mesh_quality.py's cup and bird runs)."""
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
+
+
+def arms(options: Options) -> list[Arm]:
+    runs = options.runs or [RUNS / name for name in DEFAULT_RUNS]
+    return [Arm(run.name, {"run": run.name, "run_folder": str(run)}) for run in runs]
+
+
+def run(arm: Arm, options: Options, folder: Path) -> dict:
+    run_dir = Path(arm.labels["run_folder"])
+    if not (run_dir / "metrics.json").is_file():
+        raise NotReady(f"{run_dir} is not a finished run")
+    return measure(run_dir)
 
 
 @torch.no_grad()
@@ -65,38 +92,21 @@ def measure(run: Path) -> dict:
     differences, radius = signed_differences(run)
     relative = differences / radius
     magnitude = np.abs(relative)
-    return {"run": run.name, "pairs": int(len(relative)), "median_abs_r": float(np.median(magnitude)),
+    return {"pairs": int(len(relative)), "median_abs_r": float(np.median(magnitude)),
             "p90_abs_r": float(np.quantile(magnitude, 0.9)), "median_signed_r": float(np.median(relative)),
-            "within_1pct_r": float((magnitude <= 0.01).mean()), "machine": C.machine(), "commit": C.git_commit(),
-            "date": C.timestamp(), "benchmark": "sfm_depth"}
+            "within_1pct_r": float((magnitude <= 0.01).mean())}
 
 
-def report(records: list[dict]) -> str:
-    latest = {r["run"]: r for r in records}
+def report(records: list[dict], folder: Path) -> str:
     columns = [("run", "run", ""), ("point-view pairs", "pairs", ","),
                ("median abs. difference %R", "", lambda r: f"{100 * r['median_abs_r']:.2f}"),
                ("p90 %R", "", lambda r: f"{100 * r['p90_abs_r']:.2f}"),
                ("median signed %R (+: behind)", "", lambda r: f"{100 * r['median_signed_r']:+.2f}"),
                ("within 1% R", "", lambda r: f"{100 * r['within_1pct_r']:.1f}%")]
     return ("# The splats' median depth at the SfM points (sfm_depth.py)\n\n"
-            + C.markdown_table(list(latest.values()), columns) + "\n")
-
-
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--runs", nargs="+", type=Path, help="default: mesh_quality.py's cup and bird runs")
-    parser.add_argument("--report", action="store_true", help="only rebuild the table from the records")
-    args = parser.parse_args()
-    records_file = OUT / "sfm_depth.jsonl"
-    if not args.report:
-        runs = args.runs or [RUNS / name for name in DEFAULT_RUNS if (RUNS / name / "metrics.json").is_file()]
-        for run in runs:
-            record = measure(run)
-            C.emit(record)
-            C.append_jsonl(records_file, [record])
-    C.write_text(OUT / "sfm_depth.md", report(C.read_jsonl(records_file)))
-    print(f"wrote {OUT / 'sfm_depth.md'}")
+            + C.markdown_table(records, columns) + "\n")
 
 
 if __name__ == "__main__":
-    main()
+    import framework
+    sys.exit(framework.script("sfm_depth"))

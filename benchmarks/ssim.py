@@ -13,12 +13,26 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
+from dataclasses import dataclass
 
 import torch
+import tyro
+
 import _common as C
 
 SIZES = (400, 800)
+
+
+@dataclass(frozen=True)
+class Options:
+    """SSIM forward + backward: torch's convolutions against the fused kernels."""
+
+    device: str = "cuda" if torch.cuda.is_available() else "cpu"
+    """cuda or cpu (default: cuda when there is one)."""
+    repeats: int | None = None
+    """Timed calls of each (default: 50 CUDA, 5 CPU)."""
+    threads: int | None = None
+    """CPU threads for torch and the Warp launcher."""
 
 
 def median_ms(ssim, image: torch.Tensor, target: torch.Tensor, repeats: int) -> float:
@@ -32,15 +46,12 @@ def median_ms(ssim, image: torch.Tensor, target: torch.Tensor, repeats: int) -> 
 
 
 def main() -> None:
+    args = tyro.cli(Options, description=__doc__)
+
     from mcsplat.losses import ssim_map
     from mcsplat.ssim.cpu import fused_ssim
     from mcsplat.ssim.warp import fused_ssim_warp
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--repeats", type=int, default=None, help="timed calls of each (default: 50 CUDA, 5 CPU)")
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads for torch and the Warp launcher")
-    args = parser.parse_args()
     C.cuda_or_exit(args.device, "ssim")
     C.set_threads(args.threads)
     device = torch.device(args.device)

@@ -21,18 +21,35 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import collections
 import contextlib
 import json
 import threading
 import time
+from dataclasses import dataclass
+from typing import Annotated
 
 import torch
+import tyro
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import _common as C
-from gpu_vs_gsplat import McsplatArm, Setup
+from gpu_vs_gsplat import McsplatArm, Setup, Training
+
+
+@dataclass(frozen=True)
+class Options:
+    """Where a training step goes: its launches counted, then torch.profiler over steps."""
+
+    training: Annotated[Training, tyro.conf.OmitArgPrefixes]
+    warm: int = 300
+    """Steps before the counted and the profiled ones (kernels compiled, the model grown)."""
+    profiled: int = 30
+    """Steps counted, then as many profiled."""
+    top: int = 15
+    """Rows of each table of operators and kernels."""
+    downscale: int = 1
+    """Load the images at 1/N of their size (a step's fixed cost: lego 400 at --downscale 6 is 66x66)."""
 
 
 class OperatorCount(TorchDispatchMode):
@@ -96,34 +113,22 @@ def views_size(setup) -> str:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--data", required=True)
-    parser.add_argument("--cap", type=int, default=300_000)
-    parser.add_argument("--init", type=int, default=None, help="random initial points (default: cap / 2)")
-    parser.add_argument("--init-method", default="auto", choices=["auto", "random"])
-    parser.add_argument("--warm", type=int, default=300)
-    parser.add_argument("--profiled", type=int, default=30)
-    parser.add_argument("--device", default="cuda", choices=["cuda", "cpu"])
-    parser.add_argument("--top", type=int, default=15)
-    parser.add_argument("--downscale", type=int, default=1, help="load the images at 1/N of their size (a step's "
-                        "fixed cost: lego 400 at --downscale 6 is 66x66)")
-    args = parser.parse_args()
-    args.init = args.init or args.cap // 2
-    args.steps, args.seed = args.warm + 2 * args.profiled, 0  # warm, counted, profiled
-    setup = Setup(args)
+    args = tyro.cli(Options, description=__doc__)
+    steps = args.warm + 2 * args.profiled  # warm, counted, profiled
+    setup = Setup(args.training, steps, downscale=args.downscale)
     arm = McsplatArm(setup)
     views = setup.views()
     for step in range(args.warm):
         arm.step(step, next(views))
     C.sync(setup.device)
     counted = count_step_work(lambda step: arm.step(step, next(views)), args.warm, args.profiled, setup.device)
-    args.warm += args.profiled
+    first_profiled = args.warm + args.profiled
     activities = [torch.profiler.ProfilerActivity.CPU]
     if setup.device.type == "cuda":
         activities.append(torch.profiler.ProfilerActivity.CUDA)
     started = time.perf_counter()
     with torch.profiler.profile(activities=activities) as profile:
-        for step in range(args.warm, args.warm + args.profiled):
+        for step in range(first_profiled, first_profiled + args.profiled):
             arm.step(step, next(views))
         C.sync(setup.device)
     wall = (time.perf_counter() - started) / args.profiled
@@ -143,7 +148,7 @@ def main() -> None:
               "host_op_ms_per_step": round(host_time / 1000 / args.profiled, 3),
               "kernel_launches_per_step": round(launches / args.profiled, 1), "profiled_steps": args.profiled,
               **counted,
-              **C.machine(args.device)}
+              **C.machine(args.training.device)}
     print(json.dumps(record), flush=True)
 
 

@@ -12,28 +12,34 @@ Arms, each run a `mcsplat train` in its own process, one at a time (run nothing 
              (as the Makefile's demo did), C the count the budget arm ended with at the same time (or, for a time
              the budget arm has not run, at the nearest one), S from the step time at the end of that budget run
              (full size, count C; where there is none, from a short calibration run of the old code), so that the
-             run takes about T minutes of training
+             run takes about T minutes of training; it waits for the budget arms of its scene, and is left out
+             (with a line) without the checkout or a budget run of its scene
     pointless  this tree, `--budget Tm` on a copy of a COLMAP capture as a transforms.json without points: the
              initialisation triangulated from the known poses, against the budget arm's SfM points
     init     this tree, `--budget Tm --model.init auto|random` on a capture that has poses but no points
              (ngp_fruit): points triangulated from the known poses against the random cube the code before it used
 
-Every run is kept (benchmarks/results/time_to_quality/runs/, git-ignored) and skipped when done: the script resumes
-where it stopped. Results: results.jsonl, results.md, quality_vs_time.png.
+Every run is kept (benchmarks/results/time_to_quality/runs/, git-ignored) and skipped when done, and an arm already
+recorded is not run again (--rerun runs it): the script resumes where it stopped. Results: results.jsonl, results.md,
+quality_vs_time.png.
 """
 
 from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import json
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
 
 import _common as C
+from framework import Arm, Common, NotReady, recorded
 from mcsplat.data import load_scene
 from mcsplat.io.transforms import write_transforms
 
@@ -45,6 +51,72 @@ INIT_SCENES, INITS = ("ngp_fruit",), ("auto", "random")  # captures without poin
 LEGO_TEST_STRIDE = 8         # lego's 200 test views: every 8th (25), as budget.py
 PAPER_STEPS = 30_000
 CALIBRATION_STEPS = 200
+ARMS = ("budget", "before", "pointless", "init")
+KEY = ("arm", "scene", "minutes")
+ROW_KEY = ("run",)  # runs made by hand (budget-repeat, budget-full-at) share an arm, a scene and a time
+
+
+@dataclass(frozen=True)
+class Options:
+    """Test quality against wall-clock time: --budget against the code before it."""
+
+    scenes: tuple[Literal[tuple(SCENES)], ...] = tuple(SCENES)
+    minutes: tuple[float, ...] = (2.0, 5.0, 10.0, 30.0)
+    """Budget arm times."""
+    before_minutes: tuple[float, ...] = (10.0, 30.0)
+    """Before arm times."""
+    pointless_minutes: tuple[float, ...] = (10.0,)
+    init_minutes: tuple[float, ...] = (5.0,)
+    arms: tuple[Literal[ARMS], ...] = ARMS
+    before_tree: Path = C.REPO.parent / "baseline"
+    """A checkout of the code before --budget (git worktree add ../baseline c12ab67)."""
+    common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
+
+
+def jobs(options: Options) -> list[tuple[str, str, float]]:
+    """(arm, scene as recorded, minutes) of every run asked for."""
+    scenes, chosen = options.scenes, options.arms
+    found = [("budget", s, m) for m in options.minutes for s in scenes] if "budget" in chosen else []
+    found += [("before", s, m) for m in options.before_minutes for s in scenes] if "before" in chosen else []
+    found += [("pointless", f"{s}-pointless", m) for m in options.pointless_minutes for s in scenes
+              if s in POINTLESS] if "pointless" in chosen else []
+    found += [("init", f"{s}-{init}", m) for m in options.init_minutes for s in scenes if s in INIT_SCENES
+              for init in INITS] if "init" in chosen else []
+    return found
+
+
+def arms(options: Options) -> list[Arm]:
+    """An arm per run; a before arm waits for its scene's budget arms (it takes the nearest one's count)."""
+    def name(arm: str, scene: str, minutes: float) -> str:
+        return f"{arm}-{scene}-{minutes:g}m"
+
+    found = jobs(options)
+    budget = {scene: tuple(name(*job) for job in found if job[:2] == ("budget", scene)) for _, scene, _ in found}
+    return [Arm(name(arm, scene, minutes), {"arm": arm, "scene": scene, "minutes": minutes},
+                after=budget[scene] if arm == "before" else ()) for arm, scene, minutes in found]
+
+
+def run(arm: Arm, options: Options, folder: Path) -> dict:
+    """Train the arm's run (a finished one is reused); its test figures."""
+    kind, scene, minutes = arm.labels["arm"], arm.labels["scene"], arm.labels["minutes"]
+    if kind == "before" and not (options.before_tree / "src" / "mcsplat").is_dir():
+        raise NotReady(f"no checkout of the earlier code at {options.before_tree} (--before-tree)")
+    nearest = nearest_budget_run(recorded("time_to_quality", folder).latest(), scene, minutes) if kind == "before" \
+        else None
+    if kind == "before" and nearest is None:
+        raise NotReady(f"no budget run of {scene} to take the count from")
+    work = folder / "runs"
+    run_dir = work / arm.name
+    started = time.perf_counter()
+    source = scene_folder(scene, options.common.data_root, work)
+    if kind == "before":
+        metrics = before_run(options.before_tree, source, run_dir, minutes, nearest["num_gaussians"], work,
+                             Path(nearest["run"]))
+    elif kind == "init":
+        metrics = budget_run(C.REPO, source, run_dir, minutes, ("--model.init", scene.split("-")[1]))
+    else:
+        metrics = budget_run(C.REPO, source, run_dir, minutes)
+    return dict(figures(metrics, run_dir), wall_clock=round(time.perf_counter() - started))
 
 
 def run_train(tree: Path, args: list[str], log: Path) -> None:
@@ -139,9 +211,8 @@ def before_run(tree: Path, scene: Path, run: Path, minutes: float, cap: int, wor
     return metrics_of(run)
 
 
-def record(arm: str, scene: str, minutes: float, metrics: dict, run: Path) -> dict:
-    return {"benchmark": "time_to_quality", "arm": arm, "scene": scene, "minutes": minutes,
-            "psnr": round(metrics["psnr"], 3), "ssim": round(metrics["ssim"], 4),
+def figures(metrics: dict, run: Path) -> dict:
+    return {"psnr": round(metrics["psnr"], 3), "ssim": round(metrics["ssim"], 4),
             "lpips": round(metrics["lpips"], 4) if metrics.get("lpips") is not None else None,
             "steps": metrics["steps"], "num_gaussians": metrics["num_gaussians"],
             "train_seconds": metrics["train_seconds"], "wall_seconds": metrics.get("wall_seconds"),
@@ -158,13 +229,13 @@ def nearest_budget_run(records: list[dict], scene: str, minutes: float) -> dict 
 
 
 # ------------------------------------------------------------------------------------------------ the report
-def report(out: Path, records: list[dict], info: dict) -> None:
+def report(records: list[dict], folder: Path) -> str:
     columns = [("scene", "scene", ""), ("arm", "arm", ""), ("minutes", "minutes", "g"), ("PSNR", "psnr", ".2f"),
                ("SSIM", "ssim", ".4f"), ("LPIPS", "lpips", ".4f"), ("steps", "steps", ","),
                ("Gaussians", "num_gaussians", ","), ("train s", "train_seconds", ".0f")]
     ordered = sorted(records, key=lambda r: (r["scene"], r["arm"], r["minutes"]))
     lines = ["# Test quality against wall-clock time", "",
-             f"Machine: {C.machine_line(info)}. {C.timestamp()}.", "",
+             f"Machine: {C.machine_line(C.machine())}. {C.timestamp()}.", "",
              "`budget`: `mcsplat train SCENE --budget Tm`; `before`: the code before it with --steps fitted to the "
              "time and the schedules scaled by hand, at the count the budget arm reached; `pointless`: the budget "
              "arm on the capture as a transforms.json without points (triangulated from the known poses); `init`: "
@@ -177,8 +248,8 @@ def report(out: Path, records: list[dict], info: dict) -> None:
              "label says F, the record's note the command).", "",
              C.markdown_table(ordered, columns), ""]
     lines += target_lines(records)
-    C.write_text(out / "results.md", "\n".join(lines) + "\n")
-    plot(out, records)
+    plot(folder, records)
+    return "\n".join(lines) + "\n"
 
 
 def target_lines(records: list[dict]) -> list[str]:
@@ -196,6 +267,8 @@ def target_lines(records: list[dict]) -> list[str]:
 
 def plot(out: Path, records: list[dict]) -> None:
     plt = C.pyplot()
+    if plt is None:
+        return
     from matplotlib.ticker import FixedLocator, NullFormatter, ScalarFormatter
     scenes = sorted({base_scene(r["scene"]) for r in records})
     fig, axes = plt.subplots(1, len(scenes), figsize=(4 * len(scenes), 3.4), squeeze=False)
@@ -233,64 +306,6 @@ def plot(out: Path, records: list[dict]) -> None:
     plt.close(fig)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
-    parser.add_argument("--minutes", nargs="+", type=float, default=[2, 5, 10, 30], help="budget arm times")
-    parser.add_argument("--before-minutes", nargs="+", type=float, default=[10, 30], help="before arm times")
-    parser.add_argument("--pointless-minutes", nargs="+", type=float, default=[10])
-    parser.add_argument("--init-minutes", nargs="+", type=float, default=[5])
-    parser.add_argument("--arms", nargs="+", default=["budget", "before", "pointless", "init"],
-                        choices=["budget", "before", "pointless", "init"])
-    parser.add_argument("--before-tree", type=Path, default=C.REPO.parent / "baseline",
-                        help="a checkout of the code before --budget (git worktree add ../baseline c12ab67)")
-    parser.add_argument("--data-root", type=Path, default=C.DATA_ROOT)
-    parser.add_argument("--out", type=Path, default=C.RESULTS / "time_to_quality")
-    parser.add_argument("--report", action="store_true", help="only remake the tables and plots")
-    args = parser.parse_args()
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    work = out / "runs"
-    info = C.machine()
-    results = out / "results.jsonl"
-    records = C.read_jsonl(results)
-    if not args.report:
-        if "before" in args.arms and not (args.before_tree / "src" / "mcsplat").is_dir():
-            sys.exit(f"time_to_quality: no checkout of the earlier code at {args.before_tree} (--before-tree)")
-        C.warn_if_busy()
-        done = {(r["arm"], r["scene"], r["minutes"]) for r in records}
-        jobs = [("budget", s, m) for m in args.minutes for s in args.scenes] if "budget" in args.arms else []
-        jobs += [("before", s, m) for m in args.before_minutes for s in args.scenes] if "before" in args.arms else []
-        jobs += [("pointless", f"{s}-pointless", m) for m in args.pointless_minutes for s in args.scenes
-                 if s in POINTLESS] if "pointless" in args.arms else []
-        jobs += [("init", f"{s}-{init}", m) for m in args.init_minutes for s in args.scenes if s in INIT_SCENES
-                 for init in INITS] if "init" in args.arms else []
-        for arm, scene, minutes in jobs:
-            if (arm, scene, minutes) in done:
-                continue
-            folder = scene_folder(scene, args.data_root, work)
-            run = work / f"{arm}-{scene}-{minutes:g}m"
-            started = time.perf_counter()
-            if arm == "before":
-                nearest = nearest_budget_run(records, scene, minutes)
-                if nearest is None:
-                    print(f"skipping before/{scene}/{minutes:g}m: no budget run of {scene} to take the count from")
-                    continue
-                metrics = before_run(args.before_tree, folder, run, minutes, nearest["num_gaussians"], work,
-                                     Path(nearest["run"]))
-            elif arm == "init":
-                metrics = budget_run(C.REPO, folder, run, minutes, ("--model.init", scene.split("-")[1]))
-            else:
-                metrics = budget_run(C.REPO, folder, run, minutes)
-            new = dict(record(arm, scene, minutes, metrics, run), wall_clock=round(time.perf_counter() - started))
-            records.append(new)
-            C.append_jsonl(results, [new])
-            C.emit(new)
-    if not records:
-        sys.exit("time_to_quality: no results yet; run the benchmark first")
-    report(out, records, info)
-    print(f"wrote {out / 'results.md'} and {out / 'quality_vs_time.png'}")
-
-
 if __name__ == "__main__":
-    main()
+    import framework
+    sys.exit(framework.script("time_to_quality"))

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import mcsplat  # noqa: F401  (first: it lets torch's OpenMP threads sleep, see mcsplat/__init__.py)
 
-import argparse
 import json
 import math
 import os
@@ -44,8 +43,11 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
+
 import torch
 import torch.nn.functional as F
+import tyro
 
 import _common as C
 from mcsplat.camera import Camera
@@ -70,6 +72,50 @@ NUM_VIEWS = 16           # training views cycled through (evenly spaced over the
 TOTAL_STEPS = 30_000     # the learning-rate schedule the steps are taken from
 REFINE_EVERY = 100
 DEAD_FRACTION = 0.01     # Gaussians made dead before each timed refine step (so relocation has work)
+
+
+@dataclass(frozen=True)
+class Options:
+    """Training speed: ms per training step and the share of each phase."""
+
+    sizes: tuple[int, ...] = (10_000, 100_000, 300_000)
+    """Numbers of Gaussians."""
+    threads: tuple[int, ...] = (1, 2)
+    """CPU threads (ignored on CUDA)."""
+    device: str = "cpu"
+    """cpu or cuda."""
+    scene: str = "lego"
+    """lego (shared data) or a scene folder."""
+    data_root: str = str(C.DATA_ROOT)
+    """The shared data folder."""
+    scene_model: Literal["realistic", "init", "sfm"] = "realistic"
+    """realistic: calibrated stand-in for a trained model; init: the MCMC random init; sfm: the scene's SfM points
+    (--sizes is then ignored)."""
+    downscale: int = 1
+    """Image downscale factor of the scene."""
+    model_from: str | None = None
+    """A trained run folder of --scene: time the steps of its model (--sizes is then ignored)."""
+    strategy: Literal["mcmc", "adc"] = "mcmc"
+    """The densification strategy of the steps."""
+    warmup: int = 3
+    """Untimed steps first."""
+    repeats: int = 10
+    """Instrumented steps (medians)."""
+    plain: int = 5
+    """Un-instrumented trainer steps (the 'step ms' figure)."""
+    refines: int = 3
+    """Timed refine steps (0: leave them out)."""
+    seed: int = 0
+    """Random seed of the model and of the refine steps."""
+    baseline: bool = False
+    """Also time plain steps through the pre-kernel render path, in the same process."""
+    builds: tuple[str, ...] = ("native",)
+    """CPU kernel builds to time, each in its own processes: native (this host's), or an LLVM CPU name (znver3: AVX2
+    without AVX-512), optionally :LANES (4, 8, 16), e.g. znver3:8."""
+    rounds: int = 1
+    """Times each configuration runs, the builds taking turns (medians over rounds: results.md shows each run)."""
+    out: str | None = None
+    """Results folder (default benchmarks/results/train_speed)."""
 
 
 # --------------------------------------------------------------------------------------------------- the scene
@@ -460,41 +506,12 @@ def plot(records: list[dict], path: Path) -> bool:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 100_000, 300_000], help="numbers of Gaussians")
-    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="CPU threads (ignored on CUDA)")
-    parser.add_argument("--device", default="cpu", help="cpu or cuda")
-    parser.add_argument("--scene", default="lego", help="lego (shared data) or a scene folder")
-    parser.add_argument("--data-root", default=str(C.DATA_ROOT))
-    parser.add_argument("--scene-model", choices=("realistic", "init", "sfm"), default="realistic",
-                        help="realistic: calibrated stand-in for a trained model; init: the MCMC random init; "
-                             "sfm: the scene's SfM points (--sizes is then ignored)")
-    parser.add_argument("--downscale", type=int, default=1, help="image downscale factor of the scene")
-    parser.add_argument("--model-from", default=None,
-                        help="a trained run folder of --scene: time the steps of its model (--sizes is then ignored)")
-    parser.add_argument("--strategy", choices=("mcmc", "adc"), default="mcmc")
-    parser.add_argument("--warmup", type=int, default=3)
-    parser.add_argument("--repeats", type=int, default=10, help="instrumented steps (medians)")
-    parser.add_argument("--plain", type=int, default=5, help="un-instrumented trainer steps (the 'step ms' figure)")
-    parser.add_argument("--refines", type=int, default=3, help="timed refine steps (0: leave them out)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--baseline", action="store_true",
-                        help="also time plain steps through the pre-kernel render path, in the same process")
-    parser.add_argument("--builds", nargs="+", default=["native"],
-                        help="CPU kernel builds to time, each in its own processes: native (this host's), or an LLVM "
-                             "CPU name (znver3: AVX2 without AVX-512), optionally :LANES (4, 8, 16), e.g. znver3:8")
-    parser.add_argument("--rounds", type=int, default=1,
-                        help="times each configuration runs, the builds taking turns (medians over rounds: "
-                             "results.md shows each run)")
-    parser.add_argument("--out", default=None, help="results folder (default benchmarks/results/train_speed)")
-    parser.add_argument("--worker", help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.worker:
-        C.emit(run_one(json.loads(args.worker)))
+    if sys.argv[1:2] == ["--worker"]:  # one configuration, in the process run_in_subprocess() started
+        C.emit(run_one(json.loads(sys.argv[2])))
         return
+    args = tyro.cli(Options, description=__doc__)
     C.cuda_or_exit(args.device, "train_speed")
-    out = Path(args.out) if args.out else C.results_dir("train_speed")
-    out.mkdir(parents=True, exist_ok=True)
+    out = C.results_dir("train_speed", args.out)
     info = C.machine(args.device)
     load = C.warn_if_busy()
     threads = sorted(set(args.threads)) if args.device == "cpu" else [None]
@@ -513,10 +530,9 @@ def main() -> None:
                       machine=info, commit=C.git_commit(), date=C.timestamp())
         C.emit(record)
         records.append(record)
-    C.append_jsonl(out / "results.jsonl", records)
-    C.write_text(out / "results.md", markdown(records, info, args))
-    plotted = plot(records, out / "phases.png")
-    print(f"wrote {out / 'results.md'}" + (f" and {out / 'phases.png'}" if plotted else ""), file=sys.stderr)
+    C.write_results(out, records, markdown(records, info, args))
+    if plot(records, out / "phases.png"):
+        print(f"wrote {out / 'phases.png'}", file=sys.stderr)
 
 
 if __name__ == "__main__":

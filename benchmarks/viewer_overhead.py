@@ -10,12 +10,14 @@ without a GPU the browser's software WebGL also takes CPU from training, so this
 
 from __future__ import annotations
 
-import argparse
 import socket
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
+
+import tyro
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests" / "support"))
@@ -29,6 +31,18 @@ from mcsplat.train import train  # noqa: E402
 from mcsplat.viewer import TrainingViewer  # noqa: E402
 
 WARMUP = 50
+
+
+@dataclass(frozen=True)
+class Options:
+    """Training speed with the live viewer open in a browser against without it."""
+
+    steps: int = 400
+    """Training steps of each run."""
+    threads: int | None = None
+    """CPU threads of the training (default: all cores)."""
+    size: str = "1280x720"
+    """Browser window, WIDTHxHEIGHT."""
 
 
 class StepClock(Subscriber):
@@ -74,11 +88,7 @@ def config(out: Path, steps: int, threads: int | None) -> TrainConfig:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--steps", type=int, default=400)
-    parser.add_argument("--threads", type=int, default=None)
-    parser.add_argument("--size", default="1280x720", help="browser window, WIDTHxHEIGHT")
-    args = parser.parse_args()
+    args = tyro.cli(Options, description=__doc__)
     width, height = (int(v) for v in args.size.split("x"))
     with tempfile.TemporaryDirectory() as tmp:
         alone = StepClock()
@@ -102,7 +112,8 @@ def main() -> None:
     rendered = frames[max(frames)][0] - frames[WARMUP][0]
     render_seconds = frames[max(frames)][1] - frames[WARMUP][1]
     print(f"without viewer: {a:.2f} steps/s; with the viewer open in a browser ({width}x{height}): {b:.2f} steps/s "
-          f"= {b / a:.0%}; the viewer pushed {rendered} images in {seconds:.0f} s ({rendered / seconds:.1f}/s), {render_seconds:.1f} s of them rendering")
+          f"= {b / a:.0%}; the viewer pushed {rendered} images in {seconds:.0f} s ({rendered / seconds:.1f}/s), "
+          f"{render_seconds:.1f} s of them rendering")
 
 
 if __name__ == "__main__":

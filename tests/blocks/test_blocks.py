@@ -24,7 +24,8 @@ from mcsplat.partition.scene import OUTSIDE_SHARE
 from mcsplat.render import render
 from mcsplat.run.trained import load
 from mcsplat.run.scene import scene_of
-from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
+from mcsplat.strategy.mcmc import MCMCConfig
+from tests.support.helpers import before_each_step, signal_at
 
 STEPS = 120
 
@@ -110,17 +111,10 @@ def test_blocks_train_stop_resume_exactly_and_merge_into_one_run(shared_data, tm
         plan_blocks(training, folder.path, count=2)
     merged = train_blocks(straight, threads=1, quiet=True)
 
-    original = MCMCStrategy.step_post_optimizer
-
-    def interrupt(self, step, *args, **kwargs):
-        if step == 70:
-            signal.raise_signal(signal.SIGINT)
-        return original(self, step, *args, **kwargs)
-
-    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", interrupt)
-    with pytest.raises(MCSplatError, match="block 0: stopped at step 71.*blocks train .* again"):
-        train_blocks(stopped, threads=1, quiet=True)
-    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", original)
+    with monkeypatch.context() as patch:
+        before_each_step(patch, signal_at(70, signal.SIGINT))
+        with pytest.raises(MCSplatError, match="block 0: stopped at step 71.*blocks train .* again"):
+            train_blocks(stopped, threads=1, quiet=True)
     assert [path.name for path in stopped.block_runs()] == ["block_00"], "block 1 waits: it never began"
     assert block_config(read_plan(stopped.plan_file), stopped, 0).resume
     assert train_blocks(stopped, threads=1, quiet=True) == merged

@@ -29,6 +29,13 @@ def load_error(path: Path, **options) -> str:
     return message
 
 
+def resized_image_error(root: Path, image: str, size: tuple[int, int], **options) -> tuple[Path, str]:
+    """Resize one image in place so it disagrees with the rest, load, return its path and the error message."""
+    path = root / image
+    Image.open(path).resize(size).save(path)
+    return path, load_error(root, **options)
+
+
 @pytest.fixture
 def bird(copy_shared) -> Path:
     return copy_shared("colmap_bird")
@@ -115,11 +122,17 @@ def test_corrupt_count_in_images_bin(bird: Path) -> None:
     assert str(path) in load_error(bird)
 
 
-def test_garbled_text_model(bird: Path) -> None:
-    model = bird / "sparse" / "0"
+def model_as_text(scene: Path) -> Path:
+    """Rewrite the scene's COLMAP model as .txt files and drop the .bin ones, so the text reader is the one used."""
+    model = scene / "sparse" / "0"
     pycolmap.Reconstruction(str(model)).write_text(str(model))
     for name in ("cameras.bin", "images.bin", "points3D.bin"):
         (model / name).unlink()
+    return model
+
+
+def test_garbled_text_model(bird: Path) -> None:
+    model = model_as_text(bird)
     lines = (model / "cameras.txt").read_text().splitlines()
     lines[5] = lines[5].replace("SIMPLE_PINHOLE 544 960", "SIMPLE_PINHOLE 544 nine-sixty")
     (model / "cameras.txt").write_text("\n".join(lines) + "\n")
@@ -128,20 +141,14 @@ def test_garbled_text_model(bird: Path) -> None:
 
 
 def test_truncated_text_images(bird: Path) -> None:
-    model = bird / "sparse" / "0"
-    pycolmap.Reconstruction(str(model)).write_text(str(model))
-    for name in ("cameras.bin", "images.bin", "points3D.bin"):
-        (model / name).unlink()
+    model = model_as_text(bird)
     text = (model / "images.txt").read_text()
     (model / "images.txt").write_text(text[: len(text) // 3])
     assert str(model / "images.txt") in load_error(bird)
 
 
 def test_camera_model_that_cannot_be_undistorted_text(bird: Path) -> None:
-    model = bird / "sparse" / "0"
-    pycolmap.Reconstruction(str(model)).write_text(str(model))
-    for name in ("cameras.bin", "images.bin", "points3D.bin"):
-        (model / name).unlink()
+    model = model_as_text(bird)
     lines = (model / "cameras.txt").read_text().splitlines()
     index = next(i for i, line in enumerate(lines) if line.startswith("7 "))
     lines[index] = lines[index].replace("SIMPLE_PINHOLE", "SIMPLE_DIVISION") + " 0.01"
@@ -194,17 +201,13 @@ def test_colmap_unreadable_image(bird: Path, damage: str) -> None:
 
 
 def test_colmap_image_of_other_size(bird: Path) -> None:
-    path = bird / "images" / "100.jpg"
-    Image.open(path).resize((272, 480)).save(path)
-    message = load_error(bird)
+    path, message = resized_image_error(bird, "images/100.jpg", (272, 480))
     assert str(path) in message and "272x480" in message and "544x960" in message
 
 
 def test_colmap_images_n_of_wrong_size(copy_shared) -> None:
     cup = copy_shared("colmap_cup")
-    path = cup / "images_4" / "5.jpg"
-    Image.open(path).resize((100, 75)).save(path)
-    message = load_error(cup, downscale=4)
+    path, message = resized_image_error(cup, "images_4/5.jpg", (100, 75), downscale=4)
     assert str(path) in message and "100x75" in message
 
 
@@ -221,9 +224,7 @@ def test_blender_unreadable_png(mini_lego: Path) -> None:
 
 
 def test_blender_image_of_other_size(mini_lego: Path) -> None:
-    path = mini_lego / "test" / "r_8.png"
-    Image.open(path).resize((150, 150)).save(path)
-    message = load_error(mini_lego)
+    path, message = resized_image_error(mini_lego, "test/r_8.png", (150, 150))
     assert str(path) in message and "150x150" in message and "200x200" in message
 
 
@@ -298,9 +299,7 @@ def test_llff_unreadable_image(fern: Path) -> None:
 
 
 def test_llff_image_of_other_size(fern: Path) -> None:
-    path = fern / "images_8" / "image011.png"
-    Image.open(path).resize((500, 378)).save(path)
-    message = load_error(fern)
+    path, message = resized_image_error(fern, "images_8/image011.png", (500, 378))
     assert str(path) in message and "500x378" in message
 
 

@@ -17,8 +17,9 @@ from mcsplat.render.bin.warp_kernels import bin_gaussians
 from mcsplat.render.composite.function import (CompositeFunction, composite, cpu_kernels, cuda_kernels, kernels_for,
                                    set_cpu_kernels, set_cuda_kernels)
 from mcsplat.render.project.torch_autograd import project_gaussians, view_dependent_colors
-from mcsplat.render.reference import reference_median_gaussian, reference_render
+from mcsplat.render.reference import reference_render
 
+from tests.support.helpers import median_gaussian_case
 from tests.training.test_pose_refinement import tilted_camera, with_view_grad
 from tests.render.test_render import (PARAMS, SEEDS, Splats, assert_close_relative, compare_with_reference,
                                       make_camera, on, random_splats, stacked_on_axis)
@@ -126,17 +127,10 @@ def test_tile_forward_is_the_scalar_forward_bit_for_bit(dtype):
 def test_tile_median_gaussian_is_the_references(seed, dtype, device):
     splats = on(device, random_splats(120, seed, dtype=dtype, log_scale=(-3.0, -1.5)))
     camera = make_camera(width=50, height=40).to(device)
-    proj = project_gaussians(*(getattr(splats, p) for p in PARAMS[:4]), camera)
-    bins = bin_gaussians(proj.tile_min, proj.tile_max, proj.depths, proj.radii, 4, 3, means2d=proj.means2d,
-                         alpha_extent=proj.alpha_extent)
-    colors = torch.ones(120, 3, dtype=dtype, device=device)
-    background = torch.zeros(3, dtype=dtype, device=device)
+    inputs, expected = median_gaussian_case(splats, camera)
     with tile_kernels_on():
-        outputs = composite(proj.means2d, proj.conics, splats.opacities, colors, proj.depths, background, bins, 50,
-                            40, median_gaussian=True)
+        outputs = composite(*inputs, median_gaussian=True)
         median = render(splats, camera, outputs={"median_depth"}).median_depth
-    expected = reference_median_gaussian(proj.means2d, proj.conics, splats.opacities, proj.depths, proj.radii,
-                                         proj.tile_min, proj.tile_max, 50, 40)
     assert torch.equal(outputs[4].long(), expected)
     torch.testing.assert_close(median, reference_render(splats, camera).median_depth, atol=1e-4, rtol=1e-5)
 

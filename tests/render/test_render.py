@@ -13,7 +13,9 @@ from mcsplat.render import Splats, render, set_cpu_threads
 from mcsplat.render.bin.warp_kernels import bin_gaussians
 from mcsplat.render.composite.function import CompositeFunction, composite, cpu_kernels, set_cpu_kernels
 from mcsplat.render.project.torch_autograd import project_gaussians
-from mcsplat.render.reference import reference_composite, reference_median_gaussian, reference_render
+from mcsplat.render.reference import reference_composite, reference_render
+
+from tests.support.helpers import median_gaussian_case
 
 SEEDS = [0, 1, 2, 3]
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
@@ -223,15 +225,8 @@ def test_median_gaussian_of_each_kernel_is_the_references(kernels, dtype, seed, 
     """The kernels' own output, on the same projected inputs: which Gaussian each pixel's median is."""
     splats = on(device, random_splats(120, seed, dtype=dtype, log_scale=(-3.0, -1.5)))
     camera = make_camera(width=50, height=40).to(device)
-    proj = project_gaussians(*(getattr(splats, p) for p in PARAMS[:4]), camera)
-    bins = bin_gaussians(proj.tile_min, proj.tile_max, proj.depths, proj.radii, 4, 3, means2d=proj.means2d,
-                         alpha_extent=proj.alpha_extent)
-    colors = torch.ones(120, 3, dtype=dtype, device=device)
-    background = torch.zeros(3, dtype=dtype, device=device)
-    outputs = composite(proj.means2d, proj.conics, splats.opacities, colors, proj.depths, background, bins, 50, 40,
-                        cpu_kernels=kernels, median_gaussian=True)
-    expected = reference_median_gaussian(proj.means2d, proj.conics, splats.opacities, proj.depths, proj.radii,
-                                         proj.tile_min, proj.tile_max, 50, 40)
+    inputs, expected = median_gaussian_case(splats, camera)
+    outputs = composite(*inputs, cpu_kernels=kernels, median_gaussian=True)
     assert outputs[4].dtype == torch.int32 and torch.equal(outputs[4].long(), expected)
     assert (expected >= 0).float().mean() > 0.3 and expected.unique().numel() > 10
 

@@ -10,7 +10,6 @@ import subprocess
 import sys
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Callable
 
 import pytest
 
@@ -19,8 +18,9 @@ from mcsplat.cli import main
 from mcsplat.errors import MCSplatError
 from mcsplat.io.checkpoint import load_checkpoint, save_checkpoint
 from mcsplat.run.folder import render_file
-from mcsplat.strategy.mcmc import MCMCConfig, MCMCStrategy
+from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.train import train
+from tests.support.helpers import before_each_step, crash_at, signal_at
 from tests.training.test_train_e2e import small_config
 
 HOLD_LOCK = """
@@ -138,30 +138,8 @@ def sigterm_reaches_no_default():
     signal.signal(signal.SIGTERM, previous)
 
 
-def before_each_step(monkeypatch, action: Callable[[int], None]) -> None:
-    """Call action(step) in every training step, before MCMC's refinement (to crash, send a signal, move a clock)."""
-    original = MCMCStrategy.step_post_optimizer
-
-    def patched(self, step, *args, **kwargs):
-        action(step)
-        return original(self, step, *args, **kwargs)
-
-    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", patched)
-
-
-def crash_at(step_to_fail: int) -> Callable[[int], None]:
-    def crash(step: int) -> None:
-        if step == step_to_fail:
-            raise RuntimeError("simulated crash")
-    return crash
-
-
 def test_sigterm_saves_a_checkpoint_then_stops(tmp_path, mini_demo, monkeypatch, sigterm_reaches_no_default):
-    def terminate(step: int) -> None:
-        if step == 37:
-            signal.raise_signal(signal.SIGTERM)
-
-    before_each_step(monkeypatch, terminate)
+    before_each_step(monkeypatch, signal_at(37, signal.SIGTERM))
     with pytest.raises(MCSplatError, match="stopped at step 38.*--resume"):
         train(mini_config(mini_demo, tmp_path / "run", steps=200))
     assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == 38

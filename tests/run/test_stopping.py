@@ -18,8 +18,8 @@ from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.errors import MCSplatError
 from mcsplat.io.checkpoint import load_checkpoint
 from mcsplat.train import train
-from tests.support.helpers import demo_photos_scene
-from tests.run.test_run_folder import before_each_step, mini_config
+from tests.support.helpers import before_each_step, demo_photos_scene, signal_at
+from tests.run.test_run_folder import mini_config
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -133,11 +133,7 @@ def test_sighup_while_the_points_are_triangulated_leaves_no_folder(tmp_path, cap
 
 def test_sighup_while_training_saves_a_checkpoint_then_stops(tmp_path, mini_demo, monkeypatch,
                                                               signals_reach_no_default):
-    def hang_up(step: int) -> None:
-        if step == 3:
-            signal.raise_signal(signal.SIGHUP)
-
-    before_each_step(monkeypatch, hang_up)
+    before_each_step(monkeypatch, signal_at(3, signal.SIGHUP))
     with pytest.raises(MCSplatError, match="stopped at step 4.*--resume"):
         train(mini_config(mini_demo, tmp_path / "run", steps=50))
     assert load_checkpoint(tmp_path / "run" / "checkpoint.pt")["step"] == 4

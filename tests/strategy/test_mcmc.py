@@ -19,6 +19,7 @@ from mcsplat.strategy import MCMCConfig, MCMCStrategy, Strategy
 from mcsplat.strategy import mcmc as mcmc_module
 from mcsplat.strategy.mcmc import grow, inject_noise, noise_gate, prune_to_cap, relocate_dead
 from mcsplat.strategy.relocation import MAX_OPACITY, binomial_table, relocation_params, sample_by_weight
+from tests.support.helpers import random_adam_step
 
 RADIUS = 2.0
 
@@ -43,12 +44,7 @@ def adam_with_moments(model: GaussianModel, seed: int = 0):
     saved = {k: model.params[k].detach().clone() for k in PARAM_KEYS}
     g = torch.Generator().manual_seed(seed)
     for _ in range(2):
-        loss = sum((model.params[k] * torch.randn(model.params[k].shape, generator=g)).sum() for k in PARAM_KEYS)
-        for opt in optimizers.values():
-            opt.zero_grad(set_to_none=True)
-        loss.backward()
-        for opt in optimizers.values():
-            opt.step()
+        random_adam_step(model, optimizers, g)
     with torch.no_grad():
         for k in PARAM_KEYS:
             model.params[k].copy_(saved[k])

@@ -107,7 +107,7 @@ def test_noise_schedules_start_together_and_end_where_they_say():
 
 def test_the_parameter_noise_decay_is_fitted_to_the_run_length(tmp_path):
     plan = initial_plan(TrainConfig(data=tmp_path, steps=3000))
-    assert plan.mcmc.param_noise_decay ** 3000 == pytest.approx(0.9995 ** 30_000, rel=1e-9)
+    assert plan.schedule.param_noise_decay ** 3000 == pytest.approx(0.9995 ** 30_000, rel=1e-9)
     with pytest.raises(ValueError, match="param_noise_decay"):
         MCMCConfig(param_noise_decay=0.0)
     with pytest.raises(ValueError, match="noise_schedule"):
@@ -144,7 +144,7 @@ def test_the_trainer_hands_the_chosen_schedule_to_the_strategy(tmp_path, mini_de
     assert (saved.noise_schedule, saved.noise_all_params, saved.noise_gated, saved.noise_lr) == ("linear", True,
                                                                                                   False, 5.0)
     assert saved.param_noise_decay == 0.9995, "the option as asked"
-    assert plan.mcmc.param_noise_decay == pytest.approx(0.9995 ** (30_000 / 20)), "fitted to 20 steps, in the plan"
+    assert plan.schedule.param_noise_decay == pytest.approx(0.9995 ** (30_000 / 20)), "fitted to 20 steps, in the plan"
     assert len(seen) == 20
     rates = [rate for _, rate in seen]
     steps_differences = [b - a for a, b in zip(rates, rates[1:])]

@@ -13,6 +13,7 @@ import os
 import signal
 from datetime import timedelta
 from pathlib import Path
+from typing import Callable
 
 import torch.distributed as dist
 
@@ -29,9 +30,7 @@ def run(rank: int, world_size: int, init_file: str, results: str, configs: list[
     """`configs[rank]` is this process's configuration. `crash`: {"rank": r, "step": s, "how": "raise" | "exit" |
     "sigterm"} makes rank r (-1: every rank) fail at step s, by an exception, by dying on the spot, or by being sent
     SIGTERM (what torchrun passes on to its processes when it is stopped)."""
-    os.environ["GLOO_SOCKET_IFNAME"] = "lo"  # gloo's connections between the processes stay on this machine
-    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world_size,
-                            timeout=timedelta(seconds=timeout))
+    _join_group(rank, world_size, init_file, timeout)
     if crash and crash["rank"] in (rank, -1):
         _fail_at(ADCStrategy if configs[rank].strategy == "adc" else MCMCStrategy, crash["step"], crash["how"])
     final = {}
@@ -42,13 +41,30 @@ def run(rank: int, world_size: int, init_file: str, results: str, configs: list[
         return original_finish(self, *args)
 
     trainer.TrainingRun._finish = finish
+
+    def training() -> dict:
+        try:
+            metrics = train.train(configs[rank])
+        except RuntimeError as error:
+            return {"crash": str(error)}
+        return {"metrics": {k: v for k, v in metrics.items() if k != "per_view_psnr"}, **final}
+
+    _write_outcome(rank, results, training)
+
+
+def _join_group(rank: int, world_size: int, init_file: str, timeout: float) -> None:
+    os.environ["GLOO_SOCKET_IFNAME"] = "lo"  # gloo's connections between the processes stay on this machine
+    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world_size,
+                            timeout=timedelta(seconds=timeout))
+
+
+def _write_outcome(rank: int, results: str, work: Callable[[], dict]) -> None:
+    """Write what `work` returns, or the MCSplatError it stopped with, to <results>/rank<N>.json; the process group
+    is left either way."""
     try:
-        metrics = train.train(configs[rank])
-        outcome = {"metrics": {k: v for k, v in metrics.items() if k != "per_view_psnr"}, **final}
+        outcome = work()
     except MCSplatError as error:
         outcome = {"error": str(error)}
-    except RuntimeError as error:
-        outcome = {"crash": str(error)}
     finally:
         if dist.is_initialized():
             dist.destroy_process_group()
@@ -78,9 +94,7 @@ def reduce_once(rank: int, world_size: int, init_file: str, results: str) -> Non
     from mcsplat.distributed import join
     from mcsplat.gaussians import GaussianModel
 
-    os.environ["GLOO_SOCKET_IFNAME"] = "lo"
-    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world_size,
-                            timeout=timedelta(seconds=60))
+    _join_group(rank, world_size, init_file, 60)
     try:
         team = join("cpu", 60)
         model = GaussianModel.empty(3, sh_degree=1)
@@ -121,9 +135,7 @@ def train_blocks_run(rank: int, world_size: int, init_file: str, results: str, f
     from mcsplat.blocks import train_blocks
     from mcsplat.partition import BlocksFolder
 
-    os.environ["GLOO_SOCKET_IFNAME"] = "lo"
-    dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=world_size,
-                            timeout=timedelta(seconds=300))
+    _join_group(rank, world_size, init_file, 300)
     import mcsplat.blocks.train as block_training
 
     trained = []
@@ -134,12 +146,9 @@ def train_blocks_run(rank: int, world_size: int, init_file: str, results: str, f
         return original(config, *args, **kwargs)
 
     block_training.train = recording
-    try:
+
+    def training() -> dict:
         merged = train_blocks(BlocksFolder(folder), threads=1, quiet=True)
-        outcome = {"trained": trained, "merged": merged}
-    except MCSplatError as error:
-        outcome = {"error": str(error)}
-    finally:
-        if dist.is_initialized():
-            dist.destroy_process_group()
-    (Path(results) / f"rank{rank}.json").write_text(json.dumps(outcome))
+        return {"trained": trained, "merged": merged}
+
+    _write_outcome(rank, results, training)

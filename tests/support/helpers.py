@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import math
 import shutil
+import signal
 import struct
 import subprocess
 import sys
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -147,3 +149,65 @@ def views_a_term_spoke_on(monkeypatch, term_class: type) -> dict[str, list[bool]
 
     monkeypatch.setattr(term_class, "__call__", recorded)
     return given
+
+
+def median_gaussian_case(splats, camera) -> tuple[tuple, torch.Tensor]:
+    """`splats` projected and binned for `camera`, as composite()'s positional inputs (white Gaussians on black), and
+    the reference's median Gaussian of each pixel: what a kernel's median_gaussian output must equal."""
+    from mcsplat.render.bin.warp_kernels import bin_gaussians
+    from mcsplat.render.constants import TILE_SIZE
+    from mcsplat.render.project.torch_autograd import project_gaussians
+    from mcsplat.render.reference import reference_median_gaussian
+
+    proj = project_gaussians(splats.means, splats.quats, splats.scales, splats.opacities, camera)
+    width, height = camera.width, camera.height
+    bins = bin_gaussians(proj.tile_min, proj.tile_max, proj.depths, proj.radii, -(-width // TILE_SIZE),
+                         -(-height // TILE_SIZE), means2d=proj.means2d, alpha_extent=proj.alpha_extent)
+    colors = torch.ones(splats.means.shape[0], 3, dtype=splats.means.dtype, device=splats.means.device)
+    background = torch.zeros(3, dtype=splats.means.dtype, device=splats.means.device)
+    inputs = (proj.means2d, proj.conics, splats.opacities, colors, proj.depths, background, bins, width, height)
+    expected = reference_median_gaussian(proj.means2d, proj.conics, splats.opacities, proj.depths, proj.radii,
+                                         proj.tile_min, proj.tile_max, width, height)
+    return inputs, expected
+
+
+def random_adam_step(model, optimizers, seed: int | torch.Generator) -> None:
+    """One step of every optimizer on a random linear loss of all the model's parameters: deterministic in `seed`, or
+    drawn from a generator that carries on between calls."""
+    from mcsplat.gaussians import PARAM_KEYS
+
+    g = seed if isinstance(seed, torch.Generator) else torch.Generator().manual_seed(seed)
+    loss = sum((model.params[k] * torch.randn(model.params[k].shape, generator=g)).sum() for k in PARAM_KEYS)
+    for opt in optimizers.values():
+        opt.zero_grad(set_to_none=True)
+    loss.backward()
+    for opt in optimizers.values():
+        opt.step()
+
+
+def before_each_step(monkeypatch, action: Callable[[int], None]) -> None:
+    """Call action(step) in every training step, before MCMC's refinement (to crash, send a signal, move a clock)."""
+    from mcsplat.strategy.mcmc import MCMCStrategy
+
+    original = MCMCStrategy.step_post_optimizer
+
+    def patched(self, step, *args, **kwargs):
+        action(step)
+        return original(self, step, *args, **kwargs)
+
+    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", patched)
+
+
+def crash_at(step_to_fail: int) -> Callable[[int], None]:
+    def crash(step: int) -> None:
+        if step == step_to_fail:
+            raise RuntimeError("simulated crash")
+    return crash
+
+
+def signal_at(step_to_signal: int, signum: signal.Signals) -> Callable[[int], None]:
+    """The process sends itself `signum` in that step, as a terminal or a batch scheduler would."""
+    def send(step: int) -> None:
+        if step == step_to_signal:
+            signal.raise_signal(signum)
+    return send

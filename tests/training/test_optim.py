@@ -11,6 +11,7 @@ import torch
 from mcsplat.gaussians import PARAM_KEYS, GaussianModel
 from mcsplat.optim import (OptimConfig, append_rows, copy_rows, make_optimizers, means_lr_at, remove_rows,
                            set_means_lr, set_rows, zero_moments)
+from tests.support.helpers import random_adam_step
 
 RADIUS = 3.0
 
@@ -22,17 +23,6 @@ def random_model(n: int, seed: int = 0) -> GaussianModel:
         for key in PARAM_KEYS:
             model.params[key].copy_(torch.randn(model.params[key].shape, generator=g))
     return model
-
-
-def fake_step(model: GaussianModel, optimizers, seed: int) -> None:
-    """One Adam step on a random linear loss of every parameter (deterministic in `seed`)."""
-    g = torch.Generator().manual_seed(seed)
-    loss = sum((model.params[k] * torch.randn(model.params[k].shape, generator=g)).sum() for k in PARAM_KEYS)
-    for opt in optimizers.values():
-        opt.zero_grad(set_to_none=True)
-    loss.backward()
-    for opt in optimizers.values():
-        opt.step()
 
 
 def moments(optimizers, key):
@@ -72,7 +62,7 @@ def test_means_lr_schedule_is_log_linear():
 def test_append_rows_extends_params_and_state_with_zero_moments():
     model = random_model(20)
     optimizers = make_optimizers(model, OptimConfig(), RADIUS)
-    fake_step(model, optimizers, seed=1)
+    random_adam_step(model, optimizers, seed=1)
     before = {k: model.params[k].detach().clone() for k in PARAM_KEYS}
     old_moments = {k: tuple(t.clone() for t in moments(optimizers, k)) for k in PARAM_KEYS}
     rows = {k: torch.randn((4,) + before[k].shape[1:]) for k in PARAM_KEYS}
@@ -88,7 +78,7 @@ def test_append_rows_extends_params_and_state_with_zero_moments():
         assert torch.equal(exp_avg[:20], old_moments[key][0]) and torch.equal(exp_avg_sq[:20], old_moments[key][1])
         assert torch.count_nonzero(exp_avg[20:]) == 0 and torch.count_nonzero(exp_avg_sq[20:]) == 0
         assert torch.equal(step, old_moments[key][2])
-    fake_step(model, optimizers, seed=2)  # the optimizers keep working
+    random_adam_step(model, optimizers, seed=2)  # the optimizers keep working
 
 
 def test_surgery_leaves_the_old_rows_on_the_same_trajectory():
@@ -97,15 +87,15 @@ def test_surgery_leaves_the_old_rows_on_the_same_trajectory():
     opt_plain = make_optimizers(plain, OptimConfig(), RADIUS)
     opt_edited = make_optimizers(edited, OptimConfig(), RADIUS)
     for seed in range(3):
-        fake_step(plain, opt_plain, seed)
-        fake_step(edited, opt_edited, seed)
+        random_adam_step(plain, opt_plain, seed)
+        random_adam_step(edited, opt_edited, seed)
     append_rows(edited, opt_edited, {k: torch.ones((5,) + plain.params[k].shape[1:]) for k in PARAM_KEYS})
     mask = torch.zeros(20, dtype=torch.bool)
     mask[15:] = True
     remove_rows(edited, opt_edited, mask)
     for seed in range(3, 6):
-        fake_step(plain, opt_plain, seed)
-        fake_step(edited, opt_edited, seed)
+        random_adam_step(plain, opt_plain, seed)
+        random_adam_step(edited, opt_edited, seed)
     for key in PARAM_KEYS:
         assert torch.equal(plain.params[key], edited.params[key])
 
@@ -113,7 +103,7 @@ def test_surgery_leaves_the_old_rows_on_the_same_trajectory():
 def test_remove_rows_by_mask():
     model = random_model(12)
     optimizers = make_optimizers(model, OptimConfig(), RADIUS)
-    fake_step(model, optimizers, seed=4)
+    random_adam_step(model, optimizers, seed=4)
     mask = torch.tensor([i % 3 == 0 for i in range(12)])
     before = {k: model.params[k].detach().clone() for k in PARAM_KEYS}
     old = {k: moments(optimizers, k)[0].clone() for k in PARAM_KEYS}
@@ -132,7 +122,7 @@ def test_remove_rows_by_mask():
 def test_copy_set_and_zero_moments_at_indices():
     model = random_model(10)
     optimizers = make_optimizers(model, OptimConfig(), RADIUS)
-    fake_step(model, optimizers, seed=5)
+    random_adam_step(model, optimizers, seed=5)
     params_before = {k: model.params[k] for k in PARAM_KEYS}
     state_before = {k: tuple(t.clone() for t in moments(optimizers, k)) for k in PARAM_KEYS}
     copy_rows(model, torch.tensor([0, 1]), torch.tensor([7, 8]))
@@ -165,16 +155,16 @@ def test_helpers_work_before_the_first_step():
     append_rows(model, optimizers, {k: torch.zeros((2,) + model.params[k].shape[1:]) for k in PARAM_KEYS})
     remove_rows(model, optimizers, torch.tensor([True, False, False, False, False, False, True]))
     assert model.num_gaussians == 5
-    fake_step(model, optimizers, seed=6)
+    random_adam_step(model, optimizers, seed=6)
     assert moments(optimizers, "means")[0].shape == (5, 3)
 
 
 def test_optimizer_state_survives_the_checkpoint_round_trip_after_surgery():
     model = random_model(8)
     optimizers = make_optimizers(model, OptimConfig(), RADIUS)
-    fake_step(model, optimizers, seed=7)
+    random_adam_step(model, optimizers, seed=7)
     append_rows(model, optimizers, {k: torch.randn((3,) + model.params[k].shape[1:]) for k in PARAM_KEYS})
-    fake_step(model, optimizers, seed=8)
+    random_adam_step(model, optimizers, seed=8)
     buffer = io.BytesIO()  # through torch.save: state_dict()s share memory with the live tensors
     torch.save({"model": model.state_dict(), "optim": {k: o.state_dict() for k, o in optimizers.items()}}, buffer)
     buffer.seek(0)
@@ -187,8 +177,8 @@ def test_optimizer_state_survives_the_checkpoint_round_trip_after_surgery():
     for key in PARAM_KEYS:
         for a, b in zip(moments(optimizers, key), moments(restored_opt, key)):
             assert torch.equal(a, b)
-    fake_step(model, optimizers, seed=9)
-    fake_step(restored, restored_opt, seed=9)
+    random_adam_step(model, optimizers, seed=9)
+    random_adam_step(restored, restored_opt, seed=9)
     for key in PARAM_KEYS:
         assert torch.equal(model.params[key], restored.params[key])
 

@@ -22,6 +22,7 @@ from mcsplat.run.evaluation import evaluate
 from mcsplat.initialization import initial_model
 from mcsplat.run.trained import load
 from mcsplat.train import train
+from tests.support.helpers import before_each_step, crash_at, signal_at
 
 DEMO = Path(__file__).resolve().parents[2] / "data" / "lego_demo"
 
@@ -90,21 +91,11 @@ def test_resume_after_a_crash_and_after_ctrl_c_matches_an_uninterrupted_run(tmp_
     train(small_config(tmp_path / "straight", steps=steps))
     expected = final_params(tmp_path / "straight")
 
-    from mcsplat.strategy.mcmc import MCMCStrategy
-    original = MCMCStrategy.step_post_optimizer
-
-    def crash_at(step_to_fail):
-        def patched(self, step, *args, **kwargs):
-            if step == step_to_fail:
-                raise RuntimeError("simulated crash")
-            return original(self, step, *args, **kwargs)
-        return patched
-
     # A crash between checkpoints: the last periodic checkpoint (step 100) is what survives.
-    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", crash_at(130))
-    with pytest.raises(RuntimeError, match="simulated crash"):
-        train(small_config(tmp_path / "crashed", steps=steps, save_every=100))
-    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", original)
+    with monkeypatch.context() as patch:
+        before_each_step(patch, crash_at(130))
+        with pytest.raises(RuntimeError, match="simulated crash"):
+            train(small_config(tmp_path / "crashed", steps=steps, save_every=100))
     # A kill during a checkpoint write would also leave its temporary file: resume removes it.
     leftover = tmp_path / "crashed" / ".checkpoint.k1ll3d_x.tmp.pt"
     leftover.write_bytes(b"half a checkpoint")
@@ -116,15 +107,10 @@ def test_resume_after_a_crash_and_after_ctrl_c_matches_an_uninterrupted_run(tmp_
         assert torch.equal(resumed[key], expected[key]), key
 
     # Ctrl-C: the step finishes, a checkpoint is written, and the run stops with a hint to resume.
-    def interrupt(self, step, *args, **kwargs):
-        if step == 77:
-            signal.raise_signal(signal.SIGINT)
-        return original(self, step, *args, **kwargs)
-
-    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", interrupt)
-    with pytest.raises(MCSplatError, match="stopped at step 78.*--resume"):
-        train(small_config(tmp_path / "interrupted", steps=steps))
-    monkeypatch.setattr(MCMCStrategy, "step_post_optimizer", original)
+    with monkeypatch.context() as patch:
+        before_each_step(patch, signal_at(77, signal.SIGINT))
+        with pytest.raises(MCSplatError, match="stopped at step 78.*--resume"):
+            train(small_config(tmp_path / "interrupted", steps=steps))
     # The saved configuration rules on resume: a different --steps on the command line is ignored. A run folder
     # moved elsewhere continues where it now is.
     (tmp_path / "interrupted").rename(tmp_path / "moved")

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from datetime import timedelta
 from typing import Any
 
-from ..errors import MCSplatError
+from ..distributed.team import alone, join_torchrun
 
 # A rank that has trained its blocks waits this long for the others (a block of a large scene trains for hours).
 WAIT = timedelta(days=7)
@@ -48,17 +48,9 @@ def join_workers() -> Workers:
     import torch.distributed as dist
 
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    if not dist.is_available():
+    if alone():
         return Workers()
-    owns = False
-    if not dist.is_initialized():
-        if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
-            return Workers()
-        try:
-            dist.init_process_group(backend="gloo", timeout=WAIT)
-        except (RuntimeError, ValueError) as error:
-            raise MCSplatError(f"could not join the other processes ({str(error).splitlines()[0]}); start them "
-                               f"with torchrun, e.g. `torchrun --nproc-per-node 2 -m mcsplat blocks train OUT`") \
-                from None
-        owns = True
+    owns = not dist.is_initialized()
+    if owns:
+        join_torchrun("gloo", WAIT, "processes", "torchrun --nproc-per-node 2 -m mcsplat blocks train OUT")
     return Workers(dist.get_rank(), dist.get_world_size(), local_rank, owns)

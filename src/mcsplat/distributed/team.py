@@ -279,27 +279,42 @@ def join(device_name: str, timeout: float) -> SingleProcess | ProcessGroup:
     initialised (tests, scripts); a process started alone trains alone."""
     import torch.distributed as dist
 
-    if not dist.is_available():
+    if alone():
         return SingleProcess()
-    owns_group = False
-    if not dist.is_initialized():
-        if int(os.environ.get("WORLD_SIZE", "1")) <= 1:
-            return SingleProcess()
+    owns_group = not dist.is_initialized()
+    if owns_group:
         cuda = device_name == "cuda" or (device_name == "auto" and torch.cuda.is_available())
         if cuda:
             torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
-        try:
-            dist.init_process_group(backend="nccl" if cuda else "gloo", timeout=timedelta(seconds=timeout))
-        except (RuntimeError, ValueError) as error:
-            raise MCSplatError(f"could not join the other training processes ({str(error).splitlines()[0]}); start "
-                               f"them with torchrun, e.g. `torchrun --nproc-per-node 2 -m mcsplat train DATA`") \
-                from None
-        owns_group = True
+        join_torchrun("nccl" if cuda else "gloo", timedelta(seconds=timeout), "training processes",
+                      "torchrun --nproc-per-node 2 -m mcsplat train DATA")
     if dist.get_world_size() == 1:
         if owns_group:
             dist.destroy_process_group()
         return SingleProcess()
     return ProcessGroup(owns_group, timeout)
+
+
+def alone() -> bool:
+    """Whether this process has no others to work with: torch.distributed is missing, or no process group is made
+    and torchrun started no other process."""
+    import torch.distributed as dist
+
+    if not dist.is_available():
+        return True
+    return not dist.is_initialized() and int(os.environ.get("WORLD_SIZE", "1")) <= 1
+
+
+def join_torchrun(backend: str, timeout: timedelta, processes: str, command: str) -> None:
+    """Make the process group of torchrun's processes (its environment variables say who they are); when that fails,
+    say how to start them (`processes`: what they are called, `command`: an example command line)."""
+    import torch.distributed as dist
+
+    try:
+        dist.init_process_group(backend=backend, timeout=timeout)
+    except (RuntimeError, ValueError) as error:
+        raise MCSplatError(f"could not join the other {processes} ({str(error).splitlines()[0]}); start them with "
+                           f"torchrun, e.g. `{command}`") from None
 
 
 def command_for(world_size: int) -> str:

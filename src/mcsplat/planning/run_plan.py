@@ -67,7 +67,12 @@ class Plan:
     @classmethod
     def from_record(cls, record: Any, strategy: str, source: str = "config.json") -> Plan:
         """The plan that `record()` wrote for a run of `strategy` (a value of another type, a key missing or unknown:
-        one line naming it). Another strategy's schedule beside it (files written before 2026-11-29) is left aside."""
+        one line naming it). Another strategy's schedule beside it (files written before 2026-11-29) is left aside; a
+        plan of another strategy alone is read as it is (config.json's strategy edited by hand: the resume's
+        comparison names it)."""
+        if isinstance(record, dict):
+            held = [group for group in SCHEDULES if group in record]
+            strategy = strategy if strategy in held or len(held) != 1 else held[0]
         if isinstance(record, dict) and strategy in record:
             schedule = checked_dataclass(SCHEDULES[strategy], record[strategy], source, f"plan.{strategy}.",
                                          complete=True)
