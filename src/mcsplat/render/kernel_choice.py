@@ -16,39 +16,40 @@ CPU_KERNELS = ("simd", "scalar", "tile")
 # "tile-all": the tile backward without its skip of pairs no pixel of a warp uses (composite/warp_tiles.py's
 # backward_kernel).
 CUDA_KERNELS = ("tile", "tile-all", "scalar")
-_cpu_kernels = "simd"
-_cuda_kernels = "tile"
+# The choice per kind of device (the keys name it in errors) and the names it may take.
+_chosen = {"CPU": "simd", "CUDA": "tile"}
+_CHOICES = {"CPU": CPU_KERNELS, "CUDA": CUDA_KERNELS}
+
+
+def _choose(device: str, name: str) -> None:
+    if name not in _CHOICES[device]:
+        raise ValueError(f"{device} kernels must be one of {', '.join(_CHOICES[device])}, got {name!r}")
+    _chosen[device] = name
 
 
 def set_cpu_kernels(name: str) -> None:
     """'simd' (the default), 'scalar' or 'tile' (the CUDA kernels on CPU fibers, for tests): which kernels float32
     renders on the CPU use."""
-    global _cpu_kernels
-    if name not in CPU_KERNELS:
-        raise ValueError(f"CPU kernels must be one of {', '.join(CPU_KERNELS)}, got {name!r}")
-    _cpu_kernels = name
+    _choose("CPU", name)
 
 
 def cpu_kernels() -> str:
-    return _cpu_kernels
+    return _chosen["CPU"]
 
 
 def set_cuda_kernels(name: str) -> None:
     """'tile' (the default), 'tile-all' or 'scalar': which compositing kernels CUDA renders use."""
-    global _cuda_kernels
-    if name not in CUDA_KERNELS:
-        raise ValueError(f"CUDA kernels must be one of {', '.join(CUDA_KERNELS)}, got {name!r}")
-    _cuda_kernels = name
+    _choose("CUDA", name)
 
 
 def cuda_kernels() -> str:
-    return _cuda_kernels
+    return _chosen["CUDA"]
 
 
 def kernels_for(tensor: torch.Tensor, cpu_choice: str | None = None) -> str:
     """'simd', 'scalar', 'tile' or 'tile-all': the kernels a render of `tensor` runs (`cpu_choice` overrides the
     CPU's)."""
     if tensor.device.type == "cuda":
-        return _cuda_kernels
-    chosen = cpu_choice or _cpu_kernels
+        return _chosen["CUDA"]
+    chosen = cpu_choice or _chosen["CPU"]
     return "scalar" if chosen == "simd" and tensor.dtype != torch.float32 else chosen

@@ -139,6 +139,21 @@ def _statistics_along_rows(offset: int, image: _Image, target: _Image, rows: _Pl
     rows[4, channel, row, column] = sum_xy
 
 
+@wp.func
+def _statistics_down_columns(rows: _Planes, channel: int, row: int, column: int):
+    """mu_x, mu_y, <x^2>, <y^2>, <xy>: the statistics blurred along the rows (rows[0..4, c]), now down the columns."""
+    return (_down_column(rows, 0, channel, row, column), _down_column(rows, 1, channel, row, column),
+            _down_column(rows, 2, channel, row, column), _down_column(rows, 3, channel, row, column),
+            _down_column(rows, 4, channel, row, column))
+
+
+@wp.func
+def _partials_down_columns(rows: _Planes, channel: int, row: int, column: int):
+    """The partials by mu_x, <x^2> and <xy> blurred along the rows (rows[0..2, c]), now down the columns."""
+    return (_down_column(rows, 0, channel, row, column), _down_column(rows, 1, channel, row, column),
+            _down_column(rows, 2, channel, row, column))
+
+
 @wp.kernel
 def _ssim_down_columns(offset: int, rows: _Planes, partials: _Planes):
     """S of each pixel and channel (into rows[5, c], beside the statistics it comes from), and its partial
@@ -147,11 +162,7 @@ def _ssim_down_columns(offset: int, rows: _Planes, partials: _Planes):
     channel, row, column = _pixel(offset + wp.tid(), height, width)
     if row >= height or column >= width:
         return
-    mu_x = _down_column(rows, 0, channel, row, column)
-    mu_y = _down_column(rows, 1, channel, row, column)
-    mean_xx = _down_column(rows, 2, channel, row, column)
-    mean_yy = _down_column(rows, 3, channel, row, column)
-    mean_xy = _down_column(rows, 4, channel, row, column)
+    mu_x, mu_y, mean_xx, mean_yy, mean_xy = _statistics_down_columns(rows, channel, row, column)
     var_x = mean_xx - mu_x * mu_x
     var_y = mean_yy - mu_y * mu_y
     cov = mean_xy - mu_x * mu_y
@@ -186,9 +197,7 @@ def _gradient_down_columns(offset: int, rows: _Planes, image: _Image, target: _I
     channel, row, column = _pixel(offset + wp.tid(), height, width)
     if row >= height or column >= width:
         return
-    d_mu = _down_column(rows, 0, channel, row, column)
-    d_xx = _down_column(rows, 1, channel, row, column)
-    d_xy = _down_column(rows, 2, channel, row, column)
+    d_mu, d_xx, d_xy = _partials_down_columns(rows, channel, row, column)
     x = image[row, column, channel]
     y = target[row, column, channel]
     # grad_output is read on the device: converting it to a Python float would wait for the GPU.

@@ -5,4 +5,5 @@
   side.
 - warp_tiles.py: CUDA's tile kernels (a block of threads per tile; on the CPU as cooperative fibers for the tests).
 - warp_scalar.py: the scalar Warp kernels (a thread per pixel: float64 on the CPU, the baseline).
+- warp_pixel.py: the Warp functions both kernel families call per pixel (alpha, outputs, the backward's walk).
 """

@@ -52,6 +52,13 @@ _PRELUDE = read_snippet(__package__, "cpu_simd_prelude.h", {
     "TRANSMITTANCE_MIN": TRANSMITTANCE_MIN, "TILE_SIZE": TILE_SIZE})
 
 
+def _list_entry(gradient_rows: str) -> str:
+    """List entry k of the tile's walk (`for k` from start to end): asks for the record PREFETCH_DISTANCE entries ahead
+    (and, backward, its row of `gradient_rows`), skips the entry where its mask marks no active block, and otherwise
+    holds the Gaussian g, its record `row` and the scalars mx, my, ca, cb, cc, opacity."""
+    return read_snippet(__package__, "cpu_simd_entry.h", {"GRADIENT_ROWS": gradient_rows})
+
+
 def _evaluate_block(taking_part: str) -> str:
     """Evaluates one Gaussian (scalars mx, my, ca, cb, cc, opacity) on block b in two steps: the power, and the lanes
     where it is in [power_skip, 0]; then, only where some lane that still takes part (`taking_part`) is in range, the
@@ -71,11 +78,12 @@ def _forward_body(with_median: bool) -> str:
     median = {mark: read_snippet(__package__, name, {"MEDIAN_TRANSMITTANCE": MEDIAN_TRANSMITTANCE}) if with_median
               else "" for mark, name in _MEDIAN_LINES.items()}
     return read_snippet(__package__, "cpu_simd_forward.cpp", {
-        "PRELUDE": _PRELUDE, "EVALUATE_BLOCK": _evaluate_block("~done[b]"), **median})
+        "PRELUDE": _PRELUDE, "LIST_ENTRY": _list_entry("nullptr"), "EVALUATE_BLOCK": _evaluate_block("~done[b]"),
+        **median})
 
 
 _BACKWARD_BODY = read_snippet(__package__, "cpu_simd_backward.cpp", {
-    "PRELUDE": _PRELUDE, "EVALUATE_BLOCK": _evaluate_block("last[b] > index")})
+    "PRELUDE": _PRELUDE, "LIST_ENTRY": _list_entry("grads_"), "EVALUATE_BLOCK": _evaluate_block("last[b] > index")})
 
 # 512-bit vectors where the CPU has them (clang otherwise splits a 16-lane vector into two 256-bit halves; on AVX2 the
 # 16 lanes take two registers each, and 8-lane vectors over half-blocks measured no faster there). Fused multiply-add

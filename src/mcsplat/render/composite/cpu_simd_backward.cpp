@@ -41,12 +41,7 @@
     }
 
     for (int k = start; k < end && active; ++k) {
-        prefetch_ahead(k, grads_);
-        int blocks = pair_masks_[k] & active;
-        if (!blocks) continue;
-        const int g = ids[k];
-        const float* row = rows + 10 * g;
-        const float mx = row[0], my = row[1], ca = row[2], cb = row[3], cc = row[4], opacity = row[5];
+{{LIST_ENTRY}}
         const float cr = row[6], cg = row[7], cbl = row[8], z = row[9];
         const int index = k - start;
         vf sum_mx = 0.0f, sum_my = 0.0f, sum_ca = 0.0f, sum_cb = 0.0f, sum_cc = 0.0f, sum_op = 0.0f;

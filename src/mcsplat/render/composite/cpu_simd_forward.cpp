@@ -11,12 +11,7 @@
     }
     int* contributed_ = (int*)contributed.data;
     for (int k = start; k < end && active; ++k) {
-        prefetch_ahead(k, nullptr);
-        int blocks = pair_masks_[k] & active;
-        if (!blocks) continue;
-        const int g = ids[k];
-        const float* row = rows + 10 * g;
-        const float mx = row[0], my = row[1], ca = row[2], cb = row[3], cc = row[4], opacity = row[5];
+{{LIST_ENTRY}}
         bool composited = false;
         while (blocks) {
             const int b = __builtin_ctz(blocks);

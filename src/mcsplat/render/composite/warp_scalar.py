@@ -22,24 +22,20 @@ warp instead of one per pixel (gsplat does the same). On the CPU, and for float6
 and every pixel adds its own terms.
 """
 
-from __future__ import annotations
-
 import functools
 
 import warp as wp
 
-from ..constants import (ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, MEDIAN_TRANSMITTANCE, PIXELS_PER_TILE, POWER_SKIP,
-                        TILE_SIZE, TRANSMITTANCE_MIN)
+from ..constants import ALPHA_MIN, MEDIAN_TRANSMITTANCE, PIXELS_PER_TILE, TRANSMITTANCE_MIN
+from .warp_pixel import (RECORD_WIDTH, IntArray1, IntArray2, array_types, pixel_functions, pixel_in_tile,
+                         record_type, vector_type)
 
 
 @wp.func
 def pixel_of_thread(t: int, first_tile: int, tiles_x: int):
     """(tile, pixel x, pixel y, bit of the pixel's 4x4 block) of thread t: 256 consecutive threads per tile."""
     tile = first_tile + t / PIXELS_PER_TILE
-    local = t % PIXELS_PER_TILE
-    px = (tile % tiles_x) * TILE_SIZE + local % TILE_SIZE
-    py = (tile / tiles_x) * TILE_SIZE + local / TILE_SIZE
-    block_bit = 1 << ((local / TILE_SIZE / BLOCK_SIZE) * BLOCK_SIZE + (local % TILE_SIZE) / BLOCK_SIZE)
+    px, py, block_bit = pixel_in_tile(tile, t % PIXELS_PER_TILE, tiles_x)
     return tile, px, py, block_bit
 
 
@@ -106,24 +102,20 @@ def median_forward_kernel(dtype):
 @functools.lru_cache(maxsize=None)
 def _forward_kernel(dtype, with_median: bool):
     # Two kernels from one body: wp.static drops the median's lines from the training kernel at compile time.
-    vec3 = wp.types.vector(3, dtype)
+    vec3 = vector_type(3, dtype)
+    pixel = pixel_functions(dtype)
+    Array1, Array2, Array3 = array_types(dtype)
 
     @wp.kernel(module="unique")
-    def composite_forward(
-        first_tile: int, tiles_x: int, width: int, height: int,
-        tile_ranges: wp.array2d(dtype=wp.int32), gaussian_ids: wp.array(dtype=wp.int32),
-        pair_masks: wp.array(dtype=wp.int32),
-        means2d: wp.array2d(dtype=dtype), conics: wp.array2d(dtype=dtype), opacities: wp.array(dtype=dtype),
-        colors: wp.array2d(dtype=dtype), depths: wp.array(dtype=dtype), background: wp.array(dtype=dtype),
-        out_rgb: wp.array3d(dtype=dtype), out_transmittance: wp.array2d(dtype=dtype),
-        out_depth: wp.array2d(dtype=dtype), out_last: wp.array2d(dtype=wp.int32),
-        contributed: wp.array(dtype=wp.int32), out_median: wp.array2d(dtype=wp.int32),
-    ):
+    def composite_forward(first_tile: int, tiles_x: int, width: int, height: int, tile_ranges: IntArray2,
+                          gaussian_ids: IntArray1, pair_masks: IntArray1, means2d: Array2, conics: Array2,
+                          opacities: Array1, colors: Array2, depths: Array1, background: Array1, out_rgb: Array3,
+                          out_transmittance: Array2, out_depth: Array2, out_last: IntArray2, contributed: IntArray1,
+                          out_median: IntArray2):
         tile, px, py, block_bit = pixel_of_thread(wp.tid(), first_tile, tiles_x)
         if px >= width or py >= height:
             return
-        pix_x = dtype(px) + dtype(0.5)
-        pix_y = dtype(py) + dtype(0.5)
+        pix_x, pix_y = pixel.centre(px, py)
         start = tile_ranges[tile, 0]
         end = tile_ranges[tile, 1]
 
@@ -136,12 +128,8 @@ def _forward_kernel(dtype, with_median: bool):
             if (pair_masks[k] & block_bit) == 0:
                 continue
             g = gaussian_ids[k]
-            dx = means2d[g, 0] - pix_x
-            dy = means2d[g, 1] - pix_y
-            power = dtype(-0.5) * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) - conics[g, 1] * dx * dy
-            if power > dtype(0.0) or power < dtype(POWER_SKIP):
-                continue
-            alpha = wp.min(dtype(ALPHA_MAX), opacities[g] * wp.exp(power))
+            alpha = pixel.alpha(means2d[g, 0], means2d[g, 1], conics[g, 0], conics[g, 1], conics[g, 2], opacities[g],
+                                pix_x, pix_y)
             if alpha < dtype(ALPHA_MIN):
                 continue
             next_transmittance = transmittance * (dtype(1.0) - alpha)
@@ -157,11 +145,8 @@ def _forward_kernel(dtype, with_median: bool):
             last = k - start + 1
             contributed[g] = 1
 
-        for ch in range(3):
-            out_rgb[py, px, ch] = rgb[ch] + transmittance * background[ch]
-        out_transmittance[py, px] = transmittance
-        out_depth[py, px] = depth
-        out_last[py, px] = last
+        pixel.write(px, py, rgb, transmittance, depth, last, background, out_rgb, out_transmittance, out_depth,
+                    out_last)
         if wp.static(with_median):
             out_median[py, px] = median
 
@@ -170,7 +155,10 @@ def _forward_kernel(dtype, with_median: bool):
 
 @functools.lru_cache(maxsize=None)
 def _backward_kernel(dtype):
-    vec3 = wp.types.vector(3, dtype)
+    vec3 = vector_type(3, dtype)
+    record = record_type(dtype)
+    pixel = pixel_functions(dtype)
+    Array1, Array2, Array3 = array_types(dtype)
     single = dtype == wp.float32
     warp_sum = _warp_sum_lanes if single else _warp_sum_one
     warp_max = _warp_max_lanes if single else _warp_max_one
@@ -178,112 +166,45 @@ def _backward_kernel(dtype):
     leads_warp = _leads_warp_lanes if single else _leads_warp_one
 
     @wp.kernel(module="unique")
-    def composite_backward(
-        first_tile: int, tiles_x: int, width: int, height: int,
-        tile_ranges: wp.array2d(dtype=wp.int32), gaussian_ids: wp.array(dtype=wp.int32),
-        pair_masks: wp.array(dtype=wp.int32),
-        means2d: wp.array2d(dtype=dtype), conics: wp.array2d(dtype=dtype), opacities: wp.array(dtype=dtype),
-        colors: wp.array2d(dtype=dtype), depths: wp.array(dtype=dtype), background: wp.array(dtype=dtype),
-        final_transmittance: wp.array2d(dtype=dtype), last_contributor: wp.array2d(dtype=wp.int32),
-        grad_rgb: wp.array3d(dtype=dtype), grad_alpha: wp.array2d(dtype=dtype), grad_depth: wp.array2d(dtype=dtype),
-        grad_means2d: wp.array2d(dtype=dtype), grad_conics: wp.array2d(dtype=dtype),
-        grad_opacities: wp.array(dtype=dtype), grad_colors: wp.array2d(dtype=dtype),
-        grad_depths: wp.array(dtype=dtype),
-    ):
+    def composite_backward(first_tile: int, tiles_x: int, width: int, height: int, tile_ranges: IntArray2,
+                           gaussian_ids: IntArray1, pair_masks: IntArray1, means2d: Array2, conics: Array2,
+                           opacities: Array1, colors: Array2, depths: Array1, background: Array1,
+                           final_transmittance: Array2, last_contributor: IntArray2, grad_rgb: Array3,
+                           grad_alpha: Array2, grad_depth: Array2, grad_means2d: Array2, grad_conics: Array2,
+                           grad_opacities: Array1, grad_colors: Array2, grad_depths: Array1):
         tile, px, py, block_bit = pixel_of_thread(wp.tid(), first_tile, tiles_x)
-        # A pixel outside the image (a partial tile) stays in the loop, contributing nothing: its warp's shuffles
-        # need every lane.
-        inside = px < width and py < height
-        qx = wp.min(px, width - 1)
-        qy = wp.min(py, height - 1)
-        pix_x = dtype(px) + dtype(0.5)
-        pix_y = dtype(py) + dtype(0.5)
+        # A pixel outside the image (a partial tile) stays in the loop with last contributor 0, contributing nothing:
+        # its warp's shuffles need every lane.
+        pix_x, pix_y = pixel.centre(px, py)
         start = tile_ranges[tile, 0]
-        last = int(0)
-        if inside:
-            last = last_contributor[qy, qx]
-
-        t_final = final_transmittance[qy, qx]
-        dl_drgb = vec3(grad_rgb[qy, qx, 0], grad_rgb[qy, qx, 1], grad_rgb[qy, qx, 2])
-        dl_ddepth = grad_depth[qy, qx]
-        dl_dalpha_out = grad_alpha[qy, qx]
-        bg = vec3(background[0], background[1], background[2])
-        bg_term = wp.dot(bg, dl_drgb)
-
-        transmittance = t_final
-        behind_rgb = vec3(dtype(0.0), dtype(0.0), dtype(0.0))  # colour composited behind the current Gaussian
-        behind_depth = dtype(0.0)
-        next_alpha = dtype(0.0)
-        next_rgb = vec3(dtype(0.0), dtype(0.0), dtype(0.0))
-        next_depth = dtype(0.0)
-        zero = dtype(0.0)
+        last, upstream = pixel.upstream(px, py, width, height, final_transmittance, last_contributor, grad_rgb,
+                                        grad_alpha, grad_depth, background)
+        walk = pixel.start_walk(upstream)
         for j in range(warp_max(last) - 1, -1, -1):
             g = gaussian_ids[start + j]
-            dx = means2d[g, 0] - pix_x
-            dy = means2d[g, 1] - pix_y
             ca = conics[g, 0]
             cb = conics[g, 1]
             cc = conics[g, 2]
-            power = dtype(-0.5) * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
-            gauss = wp.exp(wp.min(power, zero))
-            raw_alpha = opacities[g] * gauss
-            alpha = wp.min(dtype(ALPHA_MAX), raw_alpha)
-            used = (j < last and (pair_masks[start + j] & block_bit) != 0 and power <= zero
-                    and power >= dtype(POWER_SKIP) and alpha >= dtype(ALPHA_MIN))
-            # The ten terms of this pixel (zero where it does not use the Gaussian).
-            d_color = vec3(zero, zero, zero)
-            d_depth = zero
-            d_opacity = zero
-            d_mean_x = zero
-            d_mean_y = zero
-            d_conic_a = zero
-            d_conic_b = zero
-            d_conic_c = zero
+            dx, dy, power, gauss, raw_alpha, alpha = pixel.falloff(means2d[g, 0], means2d[g, 1], ca, cb, cc,
+                                                                   opacities[g], pix_x, pix_y)
+            used = j < last and (pair_masks[start + j] & block_bit) != 0 and pixel.passes(power, alpha)
+            terms = record()  # this pixel's ten terms, zero where it does not use the Gaussian
             if used:
-                one_minus_alpha = dtype(1.0) - alpha
-                transmittance = transmittance / one_minus_alpha
-                weight = alpha * transmittance
                 color = vec3(colors[g, 0], colors[g, 1], colors[g, 2])
-                depth = depths[g]
-                d_color = weight * dl_drgb
-                d_depth = weight * dl_ddepth
-
-                behind_rgb = next_alpha * next_rgb + (dtype(1.0) - next_alpha) * behind_rgb
-                behind_depth = next_alpha * next_depth + (dtype(1.0) - next_alpha) * behind_depth
-                next_alpha = alpha
-                next_rgb = color
-                next_depth = depth
-
-                dl_dalpha = transmittance * (wp.dot(color - behind_rgb, dl_drgb) + (depth - behind_depth) * dl_ddepth)
-                # The background and the output alpha (1 - T_final) both depend on alpha through T_final.
-                dl_dalpha = dl_dalpha + (t_final / one_minus_alpha) * (dl_dalpha_out - bg_term)
-                if raw_alpha <= dtype(ALPHA_MAX):  # clamped: alpha no longer depends on opacity or position
-                    d_opacity = gauss * dl_dalpha
-                    dl_dpower = raw_alpha * dl_dalpha
-                    d_mean_x = -dl_dpower * (ca * dx + cb * dy)
-                    d_mean_y = -dl_dpower * (cb * dx + cc * dy)
-                    d_conic_a = dtype(-0.5) * dl_dpower * dx * dx
-                    d_conic_b = -dl_dpower * dx * dy
-                    d_conic_c = dtype(-0.5) * dl_dpower * dy * dy
+                walk, terms = pixel.step_back(walk, upstream, alpha, raw_alpha, gauss, color, depths[g], dx, dy, ca,
+                                              cb, cc)
             if warp_any(wp.where(used, 1, 0)) == 0:
                 continue
-            d_color = vec3(warp_sum(d_color[0]), warp_sum(d_color[1]), warp_sum(d_color[2]))
-            d_depth = warp_sum(d_depth)
-            d_opacity = warp_sum(d_opacity)
-            d_mean_x = warp_sum(d_mean_x)
-            d_mean_y = warp_sum(d_mean_y)
-            d_conic_a = warp_sum(d_conic_a)
-            d_conic_b = warp_sum(d_conic_b)
-            d_conic_c = warp_sum(d_conic_c)
+            for term in range(RECORD_WIDTH):
+                terms[term] = warp_sum(terms[term])
             if leads_warp() == 1:  # lane 0 on CUDA; every pixel that used it elsewhere
+                wp.atomic_add(grad_means2d, g, 0, terms[0])
+                wp.atomic_add(grad_means2d, g, 1, terms[1])
+                for k in range(3):
+                    wp.atomic_add(grad_conics, g, k, terms[2 + k])
+                wp.atomic_add(grad_opacities, g, terms[5])
                 for ch in range(3):
-                    wp.atomic_add(grad_colors, g, ch, d_color[ch])
-                wp.atomic_add(grad_depths, g, d_depth)
-                wp.atomic_add(grad_opacities, g, d_opacity)
-                wp.atomic_add(grad_means2d, g, 0, d_mean_x)
-                wp.atomic_add(grad_means2d, g, 1, d_mean_y)
-                wp.atomic_add(grad_conics, g, 0, d_conic_a)
-                wp.atomic_add(grad_conics, g, 1, d_conic_b)
-                wp.atomic_add(grad_conics, g, 2, d_conic_c)
+                    wp.atomic_add(grad_colors, g, ch, terms[6 + ch])
+                wp.atomic_add(grad_depths, g, terms[9])
 
     return composite_backward

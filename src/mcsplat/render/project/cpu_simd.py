@@ -47,28 +47,39 @@ _SH_CONSTANTS = {"SH_C0": SH_C0, "SH_C1": SH_C1, **{f"SH_C2_{k}": value for k, v
                  **{f"SH_C3_{k}": value for k, value in enumerate(SH_C3)}}
 _SH_LITERALS = {name: repr(float(value)) for name, value in _SH_CONSTANTS.items()}
 
+
+def _load(dst: str, array: str, stride: int) -> str:
+    """lanes_in from the kernel's float32 array parameter `array`, read through its data pointer."""
+    return lanes_in(dst, f"((const float*){array}.data)", stride)
+
+
+def _store(values: list[str], array: str, kind: str = "f") -> str:
+    """lanes_out into the kernel's array parameter `array` (float32, or int32 for kind "i")."""
+    return lanes_out(values, f"(({'int' if kind == 'i' else 'float'}*){array}.data)", kind)
+
+
 _PRELUDE = read_snippet(__package__, "cpu_simd_prelude.h", {
-    "VECTOR_TYPES": VECTOR_TYPES, "LANES": LANES, "LOAD_MEAN": lanes_in("mean", "means_", 3),
-    "LOAD_S": lanes_in("s", "scales_", 3), "LOAD_Q_RAW": lanes_in("q_raw", "quats_", 4)})
+    "VECTOR_TYPES": VECTOR_TYPES, "LANES": LANES, "LOAD_MEAN": _load("mean", "means", 3),
+    "LOAD_S": _load("s", "scales", 3), "LOAD_Q_RAW": _load("q_raw", "quats", 4)})
 _GEOMETRY = read_snippet(__package__, "cpu_simd_geometry.h", _SH_LITERALS)
 
 _FORWARD_BODY = read_snippet(__package__, "cpu_simd_forward.cpp", {
     "PRELUDE": _PRELUDE, "GEOMETRY": _GEOMETRY, "TILE_SIZE": TILE_SIZE,
-    "LOAD_OPACITY_ROW": lanes_in("opacity_row", "opacities_", 1),
-    "STORE_MEANS2D": lanes_out(["mean2d[0]", "mean2d[1]"], "means2d_"),
-    "STORE_CONICS": lanes_out(["conic[0]", "conic[1]", "conic[2]"], "conics_"),
-    "STORE_DEPTHS": lanes_out(["p[2]"], "depths_"),
-    "STORE_COMPENSATIONS": lanes_out(["compensation"], "compensations_"),
-    "STORE_RADII": lanes_out(["kept_radius"], "radii_", "i"),
-    "STORE_TILE_MIN": lanes_out(["kept_lo_x", "kept_lo_y"], "tile_min_", "i"),
-    "STORE_TILE_MAX": lanes_out(["kept_hi_x", "kept_hi_y"], "tile_max_", "i"),
-    "STORE_ALPHA_EXTENT": lanes_out(["box_x", "box_y"], "alpha_extent_")})
+    "LOAD_OPACITY_ROW": _load("opacity_row", "opacities", 1),
+    "STORE_MEANS2D": _store(["mean2d[0]", "mean2d[1]"], "out_means2d"),
+    "STORE_CONICS": _store(["conic[0]", "conic[1]", "conic[2]"], "out_conics"),
+    "STORE_DEPTHS": _store(["p[2]"], "out_depths"),
+    "STORE_COMPENSATIONS": _store(["compensation"], "out_compensations"),
+    "STORE_RADII": _store(["kept_radius"], "out_radii", "i"),
+    "STORE_TILE_MIN": _store(["kept_lo_x", "kept_lo_y"], "out_tile_min", "i"),
+    "STORE_TILE_MAX": _store(["kept_hi_x", "kept_hi_y"], "out_tile_max", "i"),
+    "STORE_ALPHA_EXTENT": _store(["box_x", "box_y"], "out_alpha_extent")})
 
 _BACKWARD_BODY = read_snippet(__package__, "cpu_simd_backward.cpp", {
     "PRELUDE": _PRELUDE, "GEOMETRY": _GEOMETRY, **_SH_LITERALS,
-    "LOAD_G_MEAN2D": lanes_in("g_mean2d", "g_means2d_", 2), "LOAD_G_CONIC": lanes_in("g_conic", "g_conics_", 3),
-    "LOAD_G_COLOR": lanes_in("g_color", "g_colors_", 3), "LOAD_G_DEPTH_ROW": lanes_in("g_depth_row", "g_depths_", 1),
-    "LOAD_G_COMPENSATION_ROW": lanes_in("g_compensation_row", "g_compensations_", 1),
+    "LOAD_G_MEAN2D": _load("g_mean2d", "grad_means2d", 2), "LOAD_G_CONIC": _load("g_conic", "grad_conics", 3),
+    "LOAD_G_COLOR": _load("g_color", "grad_colors", 3), "LOAD_G_DEPTH_ROW": _load("g_depth_row", "grad_depths", 1),
+    "LOAD_G_COMPENSATION_ROW": _load("g_compensation_row", "grad_compensations", 1),
     "STORE_OUT_MEANS": lanes_out(["kept_mean[0]", "kept_mean[1]", "kept_mean[2]"], "out_means_"),
     "STORE_OUT_SCALES": lanes_out(["kept_scale[0]", "kept_scale[1]", "kept_scale[2]"], "out_scales_"),
     "STORE_OUT_QUATS": lanes_out(["kept_q[0]", "kept_q[1]", "kept_q[2]", "kept_q[3]"], "out_quats_")})

@@ -1,11 +1,6 @@
 {{PRELUDE}}
 
-    const float* g_means2d_ = (const float*)grad_means2d.data;
-    const float* g_conics_ = (const float*)grad_conics.data;
-    const float* g_depths_ = (const float*)grad_depths.data;
-    const float* g_colors_ = (const float*)grad_colors.data;
     const float* colors_ = (const float*)colors.data;  // the forward's: where it is 0 the clamp stops the gradient
-    const float* g_compensations_ = (const float*)grad_compensations.data;
     vf g_mean2d[2], g_conic[3], g_depth_row[1], g_color[3], g_compensation_row[1] = {(vf)0.0f};
 {{LOAD_G_MEAN2D}}
 {{LOAD_G_CONIC}}

@@ -14,7 +14,6 @@
         }
         for (int ch = 0; ch < 3; ++ch) colors_[3 * (first + l) + ch] = sum[ch] + 0.5f > 0.0f ? sum[ch] + 0.5f : 0.0f;
     }
-    const float* opacities_ = (const float*)opacities.data;
     vf opacity_row[1];
 {{LOAD_OPACITY_ROW}}
 
@@ -51,14 +50,6 @@
     const vf box_x = select(has_box, vsqrt(k_box * vmax(a, (vf)0.0f)) * 1.001f + 0.01f, (vf)0.0f);
     const vf box_y = select(has_box, vsqrt(k_box * vmax(c, (vf)0.0f)) * 1.001f + 0.01f, (vf)0.0f);
 
-    float* means2d_ = (float*)out_means2d.data;
-    float* conics_ = (float*)out_conics.data;
-    float* depths_ = (float*)out_depths.data;
-    float* compensations_ = (float*)out_compensations.data;
-    int* radii_ = (int*)out_radii.data;
-    int* tile_min_ = (int*)out_tile_min.data;
-    int* tile_max_ = (int*)out_tile_max.data;
-    float* alpha_extent_ = (float*)out_alpha_extent.data;
     const vi kept_radius = valid & __builtin_convertvector(radius, vi);
     const vi kept_lo_x = valid & __builtin_convertvector(lo_x, vi);
     const vi kept_lo_y = valid & __builtin_convertvector(lo_y, vi);

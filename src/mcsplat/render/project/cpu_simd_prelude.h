@@ -47,9 +47,6 @@
     const int basis_count = (sh_degree + 1) * (sh_degree + 1);
 
     // The chunk's Gaussians in lanes (spare lanes repeat the last one).
-    const float* means_ = (const float*)means.data;
-    const float* quats_ = (const float*)quats.data;
-    const float* scales_ = (const float*)scales.data;
     vf mean[3], q_raw[4], s[3];
 {{LOAD_MEAN}}
 {{LOAD_S}}

@@ -43,6 +43,7 @@ def projection_kernels(dtype):
     vec2 = wp.types.vector(2, dtype)
     vec3 = wp.types.vector(3, dtype)
     vec4 = wp.types.vector(4, dtype)
+    vec16 = wp.types.vector(16, dtype)
     mat22 = wp.types.matrix((2, 2), dtype)
     mat23 = wp.types.matrix((2, 3), dtype)
     mat33 = wp.types.matrix((3, 3), dtype)
@@ -58,6 +59,36 @@ def projection_kernels(dtype):
         tan_fovy = dtype(0.5) * dtype(height) / fy
         return (cx / fx + dtype(0.3) * tan_fovx, (dtype(width) - cx) / fx + dtype(0.3) * tan_fovx,
                 cy / fy + dtype(0.3) * tan_fovy, (dtype(height) - cy) / fy + dtype(0.3) * tan_fovy)
+
+    @wp.func
+    def camera_point(rotation: mat33, translation: vec3, mean: vec3, near: dtype, far: dtype):
+        """(p, in range, safe depth): the camera-space position, whether its depth is within the planes, and that
+        depth or 1. Culled Gaussians still flow through the maths: the safe depth keeps their (unused) gradients
+        finite."""
+        p = rotation @ mean + translation
+        in_range = p[2] > near and p[2] < far
+        return p, in_range, wp.where(in_range, p[2], one)
+
+    @wp.func
+    def scaled_rotation(q_raw: vec4, scale: vec3):
+        """(|q| clamped at 1e-12, unit q, R(q), M = R(q) diag(s)): the 3D covariance is M M^T."""
+        q_norm = wp.max(wp.length(q_raw), dtype(1e-12))
+        q = q_raw / q_norm
+        rot = quat_rotation(q[0], q[1], q[2], q[3])
+        return q_norm, q, rot, rot @ wp.diag(scale)
+
+    @wp.func
+    def screen_covariance(rotation: mat33, m: mat33, jacobian: mat23, eps2d: dtype, in_range: bool):
+        """(V = W M M^T W^T, cov2d = J V J^T, a, b, c, valid, det_safe): the 2D covariance (a, b; b, c) with the
+        low-pass on its diagonal, whether its conic is valid, and its determinant or 1."""
+        cov_cam = rotation @ (m @ wp.transpose(m)) @ wp.transpose(rotation)
+        cov2d = jacobian @ cov_cam @ wp.transpose(jacobian)
+        a = cov2d[0, 0] + eps2d
+        b = cov2d[0, 1]
+        c = cov2d[1, 1] + eps2d
+        det = a * c - b * b
+        valid = in_range and det > zero
+        return cov_cam, cov2d, a, b, c, valid, wp.where(valid, det, one)
 
     @wp.func
     def sh_color(sh_dc: wp.array2d(dtype=vec3), sh_rest: wp.array2d(dtype=vec3), shift: int, i: int,
@@ -106,29 +137,15 @@ def projection_kernels(dtype):
     ):
         i = offset + wp.tid()
         mean = means[i]
-        p = rotation @ mean + translation
-        z = p[2]
-        in_range = z > near and z < far
-        # Culled Gaussians still flow through the maths: a safe depth keeps their (unused) gradients finite.
-        z_safe = wp.where(in_range, z, one)
+        p, in_range, z_safe = camera_point(rotation, translation, mean, near, far)
         lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos = view_limits(fx, fy, cx, cy, width, height)
         tx = z_safe * wp.clamp(p[0] / z_safe, -lim_x_neg, lim_x_pos)
         ty = z_safe * wp.clamp(p[1] / z_safe, -lim_y_neg, lim_y_pos)
         jacobian = mat23(fx / z_safe, zero, -fx * tx / (z_safe * z_safe),
                          zero, fy / z_safe, -fy * ty / (z_safe * z_safe))
 
-        q = quats[i]
-        q = q / wp.max(wp.length(q), dtype(1e-12))
-        rot = quat_rotation(q[0], q[1], q[2], q[3])
-        m = rot @ wp.diag(scales[i])
-        cov_cam = rotation @ (m @ wp.transpose(m)) @ wp.transpose(rotation)
-        cov2d = jacobian @ cov_cam @ wp.transpose(jacobian)
-        a = cov2d[0, 0] + eps2d
-        b = cov2d[0, 1]
-        c = cov2d[1, 1] + eps2d
-        det = a * c - b * b
-        valid = in_range and det > zero
-        det_safe = wp.where(valid, det, one)
+        _q_norm, _q, _rot, m = scaled_rotation(quats[i], scales[i])
+        _cov_cam, cov2d, a, b, c, valid, det_safe = screen_covariance(rotation, m, jacobian, eps2d, in_range)
         conics[i] = vec3(c / det_safe, -b / det_safe, a / det_safe)
         if antialiased != 0:
             # Mip-Splatting's 2D filter: the low-pass widens the splat, so its opacity shrinks by the ratio of the
@@ -139,7 +156,7 @@ def projection_kernels(dtype):
             compensations[i] = one
         mean2d = vec2(fx * p[0] / z_safe + cx, fy * p[1] / z_safe + cy)
         means2d[i] = mean2d
-        depths[i] = z
+        depths[i] = p[2]
 
         # View-dependent colour along the camera-to-Gaussian direction (3DGS's SH order and signs).
         d = wp.normalize(mean - camera_center)
@@ -214,10 +231,7 @@ def projection_kernels(dtype):
 
         # ---- forward, again
         mean = means[i]
-        p = rotation @ mean + translation
-        z = p[2]
-        in_range = z > near and z < far
-        z_safe = wp.where(in_range, z, one)
+        p, in_range, z_safe = camera_point(rotation, translation, mean, near, far)
         lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos = view_limits(fx, fy, cx, cy, width, height)
         u = p[0] / z_safe
         v = p[1] / z_safe
@@ -228,19 +242,9 @@ def projection_kernels(dtype):
         z2 = z_safe * z_safe
         jacobian = mat23(fx / z_safe, zero, -fx * tx / z2, zero, fy / z_safe, -fy * ty / z2)
         q_raw = quats[i]
-        q_norm = wp.max(wp.length(q_raw), dtype(1e-12))
-        q = q_raw / q_norm
-        rot = quat_rotation(q[0], q[1], q[2], q[3])
         scale = scales[i]
-        m = rot @ wp.diag(scale)
-        cov_cam = rotation @ (m @ wp.transpose(m)) @ wp.transpose(rotation)
-        cov2d = jacobian @ cov_cam @ wp.transpose(jacobian)
-        a = cov2d[0, 0] + eps2d
-        b = cov2d[0, 1]
-        c = cov2d[1, 1] + eps2d
-        det = a * c - b * b
-        valid = in_range and det > zero
-        det_safe = wp.where(valid, det, one)
+        q_norm, q, rot, m = scaled_rotation(q_raw, scale)
+        cov_cam, _cov2d, a, b, c, valid, det_safe = screen_covariance(rotation, m, jacobian, eps2d, in_range)
 
         # ---- conic = (c, -b, a) / det
         g_det = -(g_conic[0] * c - g_conic[1] * b + g_conic[2] * a) / (det_safe * det_safe)
@@ -327,40 +331,28 @@ def projection_kernels(dtype):
                  wp.where(color[1] + dtype(0.5) >= zero, g_color[1], zero),
                  wp.where(color[2] + dtype(0.5) >= zero, g_color[2], zero))
         out_dc[i, 0] = dtype(SH_C0) * g
+        s = vec16()  # s[k] = g . (coefficient of basis function k), for the bands up to sh_degree
+        for k in range(1, (sh_degree + 1) * (sh_degree + 1)):
+            s[k] = wp.dot(g, sh_rest[i, rest_shift + k - 1])
         g_d = vec3(zero, zero, zero)
         if sh_degree >= 1:
-            s1 = wp.dot(g, sh_rest[i, rest_shift])
-            s2 = wp.dot(g, sh_rest[i, rest_shift + 1])
-            s3 = wp.dot(g, sh_rest[i, rest_shift + 2])
             out_rest[i, rest_shift] = -dtype(SH_C1) * dy * g
             out_rest[i, rest_shift + 1] = dtype(SH_C1) * dz * g
             out_rest[i, rest_shift + 2] = -dtype(SH_C1) * dx * g
-            g_d = dtype(SH_C1) * vec3(-s3, -s1, s2)
+            g_d = dtype(SH_C1) * vec3(-s[3], -s[1], s[2])
         if sh_degree >= 2:
-            s4 = wp.dot(g, sh_rest[i, rest_shift + 3])
-            s5 = wp.dot(g, sh_rest[i, rest_shift + 4])
-            s6 = wp.dot(g, sh_rest[i, rest_shift + 5])
-            s7 = wp.dot(g, sh_rest[i, rest_shift + 6])
-            s8 = wp.dot(g, sh_rest[i, rest_shift + 7])
             out_rest[i, rest_shift + 3] = dtype(SH_C2_0) * dx * dy * g
             out_rest[i, rest_shift + 4] = dtype(SH_C2_1) * dy * dz * g
             out_rest[i, rest_shift + 5] = dtype(SH_C2_2) * (two * zz - xx - yy) * g
             out_rest[i, rest_shift + 6] = dtype(SH_C2_3) * dx * dz * g
             out_rest[i, rest_shift + 7] = dtype(SH_C2_4) * (xx - yy) * g
             g_d = g_d + vec3(
-                dtype(SH_C2_0) * dy * s4 - two * dtype(SH_C2_2) * dx * s6 + dtype(SH_C2_3) * dz * s7
-                + two * dtype(SH_C2_4) * dx * s8,
-                dtype(SH_C2_0) * dx * s4 + dtype(SH_C2_1) * dz * s5 - two * dtype(SH_C2_2) * dy * s6
-                - two * dtype(SH_C2_4) * dy * s8,
-                dtype(SH_C2_1) * dy * s5 + dtype(4.0) * dtype(SH_C2_2) * dz * s6 + dtype(SH_C2_3) * dx * s7)
+                dtype(SH_C2_0) * dy * s[4] - two * dtype(SH_C2_2) * dx * s[6] + dtype(SH_C2_3) * dz * s[7]
+                + two * dtype(SH_C2_4) * dx * s[8],
+                dtype(SH_C2_0) * dx * s[4] + dtype(SH_C2_1) * dz * s[5] - two * dtype(SH_C2_2) * dy * s[6]
+                - two * dtype(SH_C2_4) * dy * s[8],
+                dtype(SH_C2_1) * dy * s[5] + dtype(4.0) * dtype(SH_C2_2) * dz * s[6] + dtype(SH_C2_3) * dx * s[7])
         if sh_degree >= 3:
-            s9 = wp.dot(g, sh_rest[i, rest_shift + 8])
-            s10 = wp.dot(g, sh_rest[i, rest_shift + 9])
-            s11 = wp.dot(g, sh_rest[i, rest_shift + 10])
-            s12 = wp.dot(g, sh_rest[i, rest_shift + 11])
-            s13 = wp.dot(g, sh_rest[i, rest_shift + 12])
-            s14 = wp.dot(g, sh_rest[i, rest_shift + 13])
-            s15 = wp.dot(g, sh_rest[i, rest_shift + 14])
             out_rest[i, rest_shift + 8] = dtype(SH_C3_0) * dy * (dtype(3.0) * xx - yy) * g
             out_rest[i, rest_shift + 9] = dtype(SH_C3_1) * dx * dy * dz * g
             out_rest[i, rest_shift + 10] = dtype(SH_C3_2) * dy * (dtype(4.0) * zz - xx - yy) * g
@@ -369,17 +361,17 @@ def projection_kernels(dtype):
             out_rest[i, rest_shift + 13] = dtype(SH_C3_5) * dz * (xx - yy) * g
             out_rest[i, rest_shift + 14] = dtype(SH_C3_6) * dx * (xx - dtype(3.0) * yy) * g
             g_d = g_d + vec3(
-                dtype(SH_C3_0) * dtype(6.0) * dx * dy * s9 + dtype(SH_C3_1) * dy * dz * s10
-                - dtype(SH_C3_2) * two * dx * dy * s11 - dtype(SH_C3_3) * dtype(6.0) * dx * dz * s12
-                + dtype(SH_C3_4) * (dtype(4.0) * zz - dtype(3.0) * xx - yy) * s13
-                + dtype(SH_C3_5) * two * dx * dz * s14 + dtype(SH_C3_6) * dtype(3.0) * (xx - yy) * s15,
-                dtype(SH_C3_0) * dtype(3.0) * (xx - yy) * s9 + dtype(SH_C3_1) * dx * dz * s10
-                + dtype(SH_C3_2) * (dtype(4.0) * zz - xx - dtype(3.0) * yy) * s11
-                - dtype(SH_C3_3) * dtype(6.0) * dy * dz * s12 - dtype(SH_C3_4) * two * dx * dy * s13
-                - dtype(SH_C3_5) * two * dy * dz * s14 - dtype(SH_C3_6) * dtype(6.0) * dx * dy * s15,
-                dtype(SH_C3_1) * dx * dy * s10 + dtype(SH_C3_2) * dtype(8.0) * dy * dz * s11
-                + dtype(SH_C3_3) * (dtype(6.0) * zz - dtype(3.0) * xx - dtype(3.0) * yy) * s12
-                + dtype(SH_C3_4) * dtype(8.0) * dx * dz * s13 + dtype(SH_C3_5) * (xx - yy) * s14)
+                dtype(SH_C3_0) * dtype(6.0) * dx * dy * s[9] + dtype(SH_C3_1) * dy * dz * s[10]
+                - dtype(SH_C3_2) * two * dx * dy * s[11] - dtype(SH_C3_3) * dtype(6.0) * dx * dz * s[12]
+                + dtype(SH_C3_4) * (dtype(4.0) * zz - dtype(3.0) * xx - yy) * s[13]
+                + dtype(SH_C3_5) * two * dx * dz * s[14] + dtype(SH_C3_6) * dtype(3.0) * (xx - yy) * s[15],
+                dtype(SH_C3_0) * dtype(3.0) * (xx - yy) * s[9] + dtype(SH_C3_1) * dx * dz * s[10]
+                + dtype(SH_C3_2) * (dtype(4.0) * zz - xx - dtype(3.0) * yy) * s[11]
+                - dtype(SH_C3_3) * dtype(6.0) * dy * dz * s[12] - dtype(SH_C3_4) * two * dx * dy * s[13]
+                - dtype(SH_C3_5) * two * dy * dz * s[14] - dtype(SH_C3_6) * dtype(6.0) * dx * dy * s[15],
+                dtype(SH_C3_1) * dx * dy * s[10] + dtype(SH_C3_2) * dtype(8.0) * dy * dz * s[11]
+                + dtype(SH_C3_3) * (dtype(6.0) * zz - dtype(3.0) * xx - dtype(3.0) * yy) * s[12]
+                + dtype(SH_C3_4) * dtype(8.0) * dx * dz * s[13] + dtype(SH_C3_5) * (xx - yy) * s[14])
         length = wp.length(offset_dir)
         g_offset = vec3(zero, zero, zero)  # of mean - camera centre
         if length > zero:
