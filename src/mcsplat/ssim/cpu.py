@@ -1,9 +1,9 @@
 """Fused SSIM for float32 images on the CPU: the mean SSIM of losses.py (and the L1 term beside it) with their
 gradient, in one kernel forward and one backward.
 
-torch's depthwise convolution is slow on the CPU (the loss took 40-60 ms of a 400x400 training step); here the
-separable 11-tap Gaussian window runs as plain C++ loops over contiguous rows that clang vectorises. With the
-windowed statistics mu_x, mu_y, <x^2>, <y^2>, <xy> of each pixel and channel,
+torch's depthwise convolution is slow on the CPU (docs/measurements-log.md, "CPU kernels (rasterizer.py,
+train_speed.py), 2026-11-22"); here the separable 11-tap Gaussian window runs as plain C++ loops over contiguous rows
+that clang vectorises. With the windowed statistics mu_x, mu_y, <x^2>, <y^2>, <xy> of each pixel and channel,
 
     S = (2 mu_x mu_y + C1)(2 cov + C2) / ((mu_x^2 + mu_y^2 + C1)(var_x + var_y + C2)),
 
@@ -16,9 +16,11 @@ into a ring of the last 11 rows, blurs them down the columns from the ring, and 
 (and each row's sums of S and of |x - y|). Backward: the same for the three partials, combined into the gradient
 with L1's sign(x - y). The rows a range's window reaches beyond it are blurred by that range too, so every output
 row is computed the same way whatever the threads (the result does not depend on them). Holding the row-blurred
-rows in the ring instead of 15 full planes halved the forward's time at 800x600; summing each blurred value's 11 taps
+rows in the ring instead of 15 full planes made the forward faster, and so did summing each blurred value's 11 taps
 in a register, and the rows' sums in lanes outside the pixel loops (a running double sum kept clang from vectorising
-the loop it sat in), halved it again. CUDA and float64 keep the other paths of losses.py.
+the loop it sat in): docs/measurements-log.md, "The CPU loss fused with L1, the window sliding down each thread's
+rows (train_speed.py, side by side), 2026-11-26" and "The CPU loss's blurs in registers; --budget's size never steps
+back, 2026-11-27". CUDA and float64 keep the other paths of losses.py.
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """The SSIM of 3DGS (its window and constants) and a fused SSIM in plain Warp kernels, for CUDA first.
 
-On CUDA, torch's separable depthwise convolutions take about 0.35 ms of GPU time forward + backward at 400x400 on an
-H100 and some forty launches; these four launches take about 0.07 ms. The kernels are plain per-thread code (no
-native snippets, no tile API), so the same code runs on the CPU, where the tests check it; training on the CPU
-keeps ssim/cpu.py, which is several times faster there.
+On CUDA, torch's separable depthwise convolutions take some forty launches forward + backward; these four launches take
+a fraction of their GPU time (docs/measurements-log.md, "GPU: the tile kernels and the fused SSIM, 2026-11-26"). The
+kernels are plain per-thread code (no native snippets, no tile API), so the same code runs on the CPU, where the tests
+check it; training on the CPU keeps ssim/cpu.py, which is several times faster there.
 
 With the windowed statistics mu_x, mu_y, <x^2>, <y^2>, <xy> of each pixel and channel,
 

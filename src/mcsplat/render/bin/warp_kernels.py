@@ -10,14 +10,16 @@ counts them without walking them; a prefix sum in depth order gives every Gaussi
 writes its pairs there front to back, keyed by their tile. A stable radix sort of the tile keys (one pass of 16 bits
 up to 65,536 tiles) then groups the pairs by tile, each tile front to back. One sort of the pairs by (tile, depth)
 gives the same lists but needs three 16-bit passes over pairs that outnumber the Gaussians ten to one, and walking
-every tile of the rectangle twice cost as much again: on the cup's trained model (72k Gaussians, 819k pairs) the
-binning took twice as long that way (27.4 against 13.4 ms in a training step).
+every tile of the rectangle twice cost as much again (both shapes timed on the cup's trained model:
+docs/measurements-log.md, "The coarse phase's length chosen by --budget, and binning by depth then tile, 2026-11-26
+(later)").
 
 CUDA runs these Warp kernels and Warp's CUB radix sort; this shape has been checked on the CPU only (the tests compare
 the lists with the torch binning's) until a GPU run is recorded in benchmarks/README.md ("GPU"). The CPU runs the
 same steps as C++ loops over ranges of Gaussians (cpu_loops.py, with the offsets and the split of the sorted pairs
-in one pass each instead of torch's gathers and scatters) around the same radix sorts: the same lists, in 100k
-Gaussians' binning 3.9 ms instead of 6.2 (2 cores); set_cpu_kernels("scalar") puts the Warp kernels back.
+in one pass each instead of torch's gathers and scatters) around the same radix sorts: the same lists, in less time
+(benchmarks/results/train_speed/2026-11-27-kernels-side-by-side.md, "The pieces alone"); set_cpu_kernels("scalar")
+puts the Warp kernels back.
 """
 
 from __future__ import annotations

@@ -1,18 +1,18 @@
 """EWA projection and SH colour of every Gaussian in one kernel, with its backward: a Warp kernel (CUDA, float64, and
 the CPU's second opinion) defined here, or for float32 on the CPU the SIMD kernels of cpu_simd.py (16 Gaussians
-per vector: at 100k on 2 cores 1.0 ms forward and 2.0 backward against this kernel's 4.3 and 8.5), chosen as
-kernel_choice.py says.
+per vector, several times faster than this kernel there: "The pieces alone" in
+benchmarks/results/train_speed/2026-11-27-kernels-side-by-side.md), chosen as kernel_choice.py says.
 
 Same maths and conventions as torch_autograd.py (which stays as the readable torch version and the benchmarks'
 baseline): OpenCV camera, pixel centres at +0.5, the 3DGS low-pass filter (+eps2d on the 2D covariance diagonal;
 antialiased, with Mip-Splatting's opacity compensation as an output), the Jacobian's view direction clamped to 1.3x the
 field of view, SH colour + 0.5 clamped at 0. One thread per Gaussian; the kernel is straight-line code; the backward
-kernel recomputes it and applies the chain rule by hand (Warp's generated adjoint is correct here but 5x slower than the
-forward on the CPU), and on request each Gaussian's share of the view matrix's gradient (pose refinement). The tests
-hold both against the torch version, the dense reference renderer and torch's gradcheck in float64. On the CPU, ranges
-of Gaussians run from the rasterizer's thread pool; each thread writes only its own Gaussians, so the result does not
-depend on timing. tests/render/test_project_simd.py holds the SIMD kernels to the float64 truth as closely as this
-kernel in float32.
+kernel recomputes it and applies the chain rule by hand (Warp's generated adjoint is correct here but far slower than
+the forward on the CPU: docs/measurements-log.md, "CPU kernels (rasterizer.py, train_speed.py), 2026-11-22"), and on
+request each Gaussian's share of the view matrix's gradient (pose refinement). The tests hold both against the torch
+version, the dense reference renderer and torch's gradcheck in float64. On the CPU, ranges of Gaussians run from the
+rasterizer's thread pool; each thread writes only its own Gaussians, so the result does not depend on timing.
+tests/render/test_project_simd.py holds the SIMD kernels to the float64 truth as closely as this kernel in float32.
 
 (No `from __future__ import annotations` here: Warp reads the kernels' annotations as live objects.)
 """
