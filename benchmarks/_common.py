@@ -199,8 +199,9 @@ def test_subset(stride: int, max_views: int):
     import importlib
     import importlib.util
 
-    # The module through which a run loads its scene (run/scene.py; run/folder.py in checkouts before it).
-    names = [name for name in ("mcsplat.run.scene", "mcsplat.run.folder") if importlib.util.find_spec(name)]
+    # The module through which a run loads its scene (run/scene.py; run_scene.py or run_dir.py in older checkouts).
+    names = [name for name in ("mcsplat.run.scene", "mcsplat.run_scene", "mcsplat.run_dir")
+             if importlib.util.find_spec(name.rpartition(".")[0]) and importlib.util.find_spec(name)]
     loader = next(module for module in map(importlib.import_module, names) if hasattr(module, "load_scene"))
     original = loader.load_scene
 

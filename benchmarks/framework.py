@@ -226,6 +226,9 @@ def ordered(arms: list[Arm]) -> list[Arm]:
     """The arms in their declared order, each moved after the arms it waits for (Arm.after); ValueError for a name
     not declared or a cycle."""
     names = {arm.name for arm in arms}
+    if len(names) < len(arms):
+        twice = sorted({arm.name for arm in arms if [a.name for a in arms].count(arm.name) > 1})
+        raise ValueError(f"two arms are named {', '.join(twice)}: give each run its own folder name")
     for arm in arms:
         if unknown := [other for other in arm.after if other not in names]:
             raise ValueError(f"arm {arm.name} waits for {', '.join(unknown)}, which the experiment does not declare")

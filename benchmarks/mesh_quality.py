@@ -72,6 +72,9 @@ STRATEGY_OPTIONS["mcmc-surface-antialiased"] = STRATEGY_OPTIONS["mcmc-surface"] 
 STRATEGY_OPTIONS["adc-surface"] = STRATEGY_OPTIONS["adc"] + ["--surface"]
 # --surface's normal term from half way instead of 0.23 of the run (its PSNR cost, issue 59)
 STRATEGY_OPTIONS["mcmc-surface-late"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--surface-from", "0.5"]
+# ... and with the flattening at a tenth of PGSR's weight, or off: whether it is the flattening that costs the PSNR
+STRATEGY_OPTIONS["mcmc-surface-flatten10"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--surface-flatten", "10"]
+STRATEGY_OPTIONS["mcmc-surface-flatten0"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--surface-flatten", "0"]
 # Depth supervision from the SfM points each image saw, from the first step (COLMAP scenes only: cup and bird)
 SPARSE_DEPTH = ["--sparse-depth", "0.1", "--sparse-depth-from", "0"]
 STRATEGY_OPTIONS["mcmc-sparse-depth"] = STRATEGY_OPTIONS["mcmc"] + SPARSE_DEPTH

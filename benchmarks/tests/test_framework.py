@@ -166,6 +166,8 @@ def test_the_arms_are_ordered_after_the_arms_they_wait_for():
         framework.ordered([arm_after("a", "c"), arm_after("b"), arm_after("c", "d"), arm_after("d", "a")])
     with pytest.raises(ValueError, match="waits for x, which"):
         framework.ordered([arm_after("a", "x")])
+    with pytest.raises(ValueError, match="two arms are named a: "):
+        framework.ordered([arm_after("a"), arm_after("b"), arm_after("a")])
 
 
 def test_an_arm_starts_once_the_arms_it_waits_for_are_recorded(capsys):

@@ -12,9 +12,9 @@ A group may have any of:
     unused_options() -> tuple[str, ...]          its options that would be ignored as the others are set (a new
                                                  run refuses them when the command line names them)
 
-`state.start`, `run_scene.scene_of` and the end of a run ask every group of the configuration (`config.
-feature_groups`) in the order TrainConfig declares them, which is the order of their modules in a step and of
-their loss terms in the sum. docs/extending.md adds a feature this way.
+`run/state.py`'s `start`, `run/scene.py`'s `scene_of` and the end of a run ask every group of the configuration
+(`config.feature_groups`) in the order TrainConfig declares them, which is the order of their modules in a step and
+of their loss terms in the sum. docs/extending.md adds a feature this way.
 """
 
 from __future__ import annotations

@@ -15,9 +15,11 @@ import pytest
 
 from mcsplat import subscribers
 from mcsplat.cli import main
+from mcsplat.config import to_jsonable
 from mcsplat.errors import MCSplatError
 from mcsplat.io.checkpoint import load_checkpoint, save_checkpoint
 from mcsplat.run.folder import render_file
+from mcsplat.strategy.adc import ADCSchedule
 from mcsplat.strategy.mcmc import MCMCConfig
 from mcsplat.train import train
 from tests.support.helpers import before_each_step, crash_at, signal_at
@@ -219,6 +221,8 @@ def test_a_hand_edited_config_is_refused_on_resume_in_one_line(tmp_path, mini_de
              ({"optim": {**written["optim"], "betas": [0.9]}}, "optim.betas is [0.9], not a list of 2 values"),
              ({"mcmc": {**written["mcmc"], "cap_max": -5}}, "config.json: mcmc.cap_max must be a whole number"),
              ({"strategy": "adc"}, 'config.json: strategy is "adc", but checkpoint.pt was trained with "mcmc"'),
+             ({"strategy": "adc", "plan": {**written["plan"], "adc": to_jsonable(ADCSchedule())}},  # as of 2026-11-28
+              'config.json: strategy is "adc", but checkpoint.pt was trained with "mcmc"'),
              ({"model": {**written["model"], "sh_degree": 1}}, "config.json: model.sh_degree is 1, but checkpoint.pt")]
     for edit, expected in edits:
         (run / "config.json").write_text(json.dumps({**written, **edit}))

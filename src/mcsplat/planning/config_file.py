@@ -5,7 +5,7 @@ The file holds the options as the command line (or the Python API) gave them, th
 (the steps and the schedules fitted to them, the cap and the growth rate, the coarse-to-fine resolution, the
 learning rates scaled for the processes, `world_size`, and --budget's record of how it planned: Plan.record), and
 `scene`: a fingerprint of the scene the run trains on (its kind, its views' counts, a digest of their names and image
-sizes; run_scene.scene_fingerprint), by which --resume knows it wherever it is now.
+sizes; run/scene.py's scene_fingerprint), by which --resume knows it wherever it is now.
 
 Files written until 2026-11-28 have no `plan`: the plan's values stood in the options' places, with `world_size`
 and `budget_plan` beside them (and, before the plan had a type, `schedule_fitted`, left aside). Read back, those

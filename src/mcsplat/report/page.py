@@ -61,8 +61,9 @@ def render_page(title: str, runs: list[RunRecord], figures: list[tuple[str, str,
              f"<style>{STYLE}</style></head><body><h1>{html.escape(title)}</h1>", _summary(runs)]
     for run in runs:
         data = html.escape(str(run.config.get("data", "")))
-        parts.append(f"<p><b>{html.escape(run.name)}</b>: {data}, cap "
-                     f"{html.escape(str(run.config.get('mcmc', {}).get('cap_max', 'n/a')))}, "
+        strategy = run.config.get("strategy", "mcmc")  # the cap of the run's strategy, as its plan has it
+        cap = run.config.get(strategy, {}).get("cap_max", "n/a")
+        parts.append(f"<p><b>{html.escape(run.name)}</b>: {data}, cap {html.escape(str(cap))}, "
                      f"{html.escape(str(run.path))}</p>")
         parts.append(_budget_plan(run))
     for name, caption, png in figures:

@@ -92,7 +92,7 @@ def refuse_changes(config: TrainConfig, given: frozenset[str], saved: TrainConfi
     typed = flat_options(to_jsonable(config))
     asked = flat_options(options_with_plan(config, initial_plan(config, plan.world_size)))
     edited, ignored = [], []
-    for key in sorted(on_file):
+    for key in sorted(on_file, key=lambda key: (key != "strategy", key)):  # an edited strategy named first
         if resume_policy(key) or key.startswith("budget_plan."):
             continue
         # A setting newer than the checkpoint's copy (an option added since) was trained at config.json's value.
