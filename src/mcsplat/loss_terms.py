@@ -8,10 +8,11 @@ term, in this order (the order of the additions, so that a CPU run is bit for bi
     strategy               the strategy's regularizers (MCMC's opacity and scale L1; ADC's, zero by default)
     each module's          a per-image module's regularizer (per_image.py), e.g. --appearance's pull to identity
 
-A new loss is one more term in the list that state.start makes (docs/extending.md, "A loss term"); the step does
-not change (--surface's terms are in surface_terms.py, the depth priors' in depth_supervision/). A term that reads an output the
-render gives only on request (the normal map, the median depth) names it in `render_outputs`, render()'s
-keyword: the step asks for the union of its terms' outputs, so that a run whose terms read none pays for none.
+A new loss is one more term in the list that run/state.py's start makes (docs/extending.md, "A loss term"); the
+step does not change (--surface's terms are in surface_terms.py, the depth priors' in depth_supervision/). A term
+that reads an output the render gives only on request (the normal map, the median depth) names it in
+`render_outputs`, render()'s keyword: the step asks for the union of its terms' outputs, so that a run whose terms
+read none pays for none.
 """
 
 from __future__ import annotations

@@ -303,7 +303,8 @@ def test_a_resumed_budget_run_keeps_the_ceiling_it_started_with():
     assert budget_planner(saved, plan, scene).ceiling == 120_000
     older = json.loads(json.dumps(options_with_plan(config, planner.plan)))
     saved, plan = read_record(older)
-    assert saved.mcmc.cap_max == planner.plan.schedule.cap_max, "the older layout: the option's place held the plan's cap"
+    assert saved.mcmc.cap_max == planner.plan.schedule.cap_max, \
+        "the older layout: the option's place held the plan's cap"
     assert budget_planner(saved, plan, scene).ceiling == 120_000
 
 

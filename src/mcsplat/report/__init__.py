@@ -1,9 +1,9 @@
 """The run report: report.html (self-contained) and its PNG plots, for one run or a comparison of several.
 
 `make_report([run_dir])` writes RUN/report.html and RUN/plots/*.png; `make_report([a, b, ...], out=DIR)` compares
-runs on the same plots. ReportWriter makes it at the end of every training run (a subscriber, run/events.py). When the
-run folder holds a mesh (RUN/mesh.ply, from `mcsplat export --format mesh`, which remakes the report), the report pictures
-it from a few test views (mesh.py).
+runs on the same plots. ReportWriter makes it at the end of every training run (a subscriber, run/events.py). When
+the run folder holds a mesh (RUN/mesh.ply, from `mcsplat export --format mesh`, which remakes the report), the report
+pictures it from a few test views (mesh.py).
 """
 
 from __future__ import annotations
