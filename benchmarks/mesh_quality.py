@@ -75,6 +75,8 @@ STRATEGY_OPTIONS["mcmc-surface-late"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--s
 # ... and with the flattening at a tenth of PGSR's weight, or off: whether it is the flattening that costs the PSNR
 STRATEGY_OPTIONS["mcmc-surface-flatten10"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--surface-flatten", "10"]
 STRATEGY_OPTIONS["mcmc-surface-flatten0"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--surface-flatten", "0"]
+# ... and with the depth-normal term at a third of PGSR's weight
+STRATEGY_OPTIONS["mcmc-surface-normal005"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--surface-normal", "0.005"]
 # Depth supervision from the SfM points each image saw, from the first step (COLMAP scenes only: cup and bird)
 SPARSE_DEPTH = ["--sparse-depth", "0.1", "--sparse-depth-from", "0"]
 STRATEGY_OPTIONS["mcmc-sparse-depth"] = STRATEGY_OPTIONS["mcmc"] + SPARSE_DEPTH
