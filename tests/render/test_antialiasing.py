@@ -42,7 +42,7 @@ def test_projection_kernel_compensation_matches_torch_in_float64(device):
     camera = make_camera(width=70, height=50, distance=3.0).to(device)
     kernel_in = [getattr(splats, p).clone().requires_grad_() for p in PARAMS]
     torch_in = [getattr(splats, p).clone().requires_grad_() for p in PARAMS]
-    set_cpu_threads(2)
+    set_cpu_threads(2, split_small_work=True)
     try:
         projection, _ = project_and_shade(*kernel_in, camera, 3, antialiased=True)
     finally:

@@ -52,7 +52,7 @@ def test_simd_kernels_match_scalar_kernels(scene, threads):
     splats = random_splats(n, 5, log_scale=log_scale, opacity=opacity)
     camera = Camera(K=intrinsics(50.0, 52.0, width / 2 + 1.3, height / 2 - 0.7),
                     world_to_camera=make_camera().world_to_camera, width=width, height=height)
-    set_cpu_threads(threads)
+    set_cpu_threads(threads, split_small_work=True)
     try:
         (simd_out, simd_grads), (scalar_out, scalar_grads) = (
             composite_with(k, splats, camera, [0.2, 0.5, 0.9], seed=3) for k in ("simd", "scalar"))

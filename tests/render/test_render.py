@@ -377,7 +377,7 @@ def test_threaded_cpu_launcher_matches_single_thread():
     results = []
     try:
         for threads in (1, 2):
-            set_cpu_threads(threads)
+            set_cpu_threads(threads, split_small_work=True)
             inputs = leaf(splats)
             out = render(inputs, camera, background=(0.3, 0.3, 0.3))
             (out.rgb * torch.linspace(0, 1, 3)).sum().backward()
@@ -459,7 +459,7 @@ def test_threaded_backward_is_bitwise_reproducible():
     camera = make_camera(width=128, height=96, distance=2.5)
     grads = []
     try:
-        set_cpu_threads(2)
+        set_cpu_threads(2, split_small_work=True)
         for _ in range(3):
             inputs = leaf(splats)
             out = render(inputs, camera)

@@ -33,7 +33,7 @@ def test_projection_kernel_matches_torch_in_float64(sh_degree, opacity_aware_rad
     camera = make_camera(width=70, height=50, distance=3.0).to(device)
     kernel_in = [getattr(splats, p).clone().requires_grad_() for p in PARAMS]
     torch_in = [getattr(splats, p).clone().requires_grad_() for p in PARAMS]
-    set_cpu_threads(2)
+    set_cpu_threads(2, split_small_work=True)
     try:
         projection, colors = project_and_shade(*kernel_in, camera, sh_degree, opacity_aware_radius=opacity_aware_radius)
     finally:
@@ -156,7 +156,7 @@ def test_covariance_times_matches_the_batched_matrix_product(device):
     quats, scales = torch.randn(n, 4, generator=g, dtype=torch.float64), torch.rand(n, 3, generator=g) + 0.1
     vectors = torch.randn(n, 3, generator=g, dtype=torch.float64)
     quats, scales, vectors = quats.to(device), scales.to(device), vectors.to(device)
-    set_cpu_threads(2)
+    set_cpu_threads(2, split_small_work=True)
     try:
         got = covariance_times(quats, scales.double(), vectors)
     finally:
@@ -177,7 +177,7 @@ def test_covariance_times_in_float32_is_float32_close_to_float64(n, device):
     quats[::101] *= 1e-14
     scales = torch.rand(n, 3, generator=g, dtype=torch.float64) + 0.1
     vectors = torch.randn(n, 3, generator=g, dtype=torch.float64)
-    set_cpu_threads(2)
+    set_cpu_threads(2, split_small_work=True)
     try:
         got = covariance_times(*(t.float().to(device) for t in (quats, scales, vectors))).cpu().double()
     finally:

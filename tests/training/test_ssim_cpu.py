@@ -40,7 +40,7 @@ def test_the_fused_photometric_loss_matches_torch_in_float64(size):
     fused = image.clone().requires_grad_()
     reference = image.double().requires_grad_()
     try:
-        set_cpu_threads(2)
+        set_cpu_threads(2, split_small_work=True)
         loss = photometric_loss(fused, target, ssim_weight=0.2)
         loss.backward()
     finally:
@@ -61,7 +61,7 @@ def test_fused_ssim_is_the_cpu_float32_path_and_does_not_depend_on_threads():
     results = []
     try:
         for threads in (1, 2):
-            set_cpu_threads(threads)
+            set_cpu_threads(threads, split_small_work=True)
             x = image.clone().requires_grad_()
             photometric_loss(x, target).backward()
             results.append((ssim(x, target).detach(), x.grad))

@@ -26,7 +26,11 @@ _initialised = False
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
 _cpu_threads: int | None = None
+_split_small_work = False
 BANDS_PER_THREAD = 4
+# Below this many tiles a thread, one thread composites a step faster than two: handing a band to the pool and waiting
+# for it costs more than the few tiles save (docs/measurements-log.md, "A small step on one thread", 2026-11-29).
+MIN_TILES_PER_WORKER = 64
 
 
 def _cuda_driver_present() -> bool:
@@ -75,12 +79,19 @@ def ensure_warp() -> None:
         _initialised = True
 
 
-def set_cpu_threads(num_threads: int | None) -> None:
-    """Threads for CPU compositing; None follows torch.get_num_threads()."""
-    global _cpu_threads
+def set_cpu_threads(num_threads: int | None, split_small_work: bool = False) -> None:
+    """Threads for the CPU kernels; None follows torch.get_num_threads(). Work too small to pay for a thread's
+    hand-off (MIN_TILES_PER_WORKER, ssim/cpu.py's ROWS_PER_THREAD) takes fewer of them, unless `split_small_work`:
+    every thread takes a share however small (the tests that check the seams between the shares on small inputs)."""
+    global _cpu_threads, _split_small_work
     if num_threads is not None and num_threads < 1:
         raise ValueError(f"the number of CPU threads must be at least 1, got {num_threads}")
-    _cpu_threads = num_threads
+    _cpu_threads, _split_small_work = num_threads, split_small_work
+
+
+def splits_small_work() -> bool:
+    """Whether set_cpu_threads asked every thread to take a share of small work too."""
+    return _split_small_work
 
 
 def cpu_threads() -> int:
@@ -213,7 +224,10 @@ def run_tiled(kernel, num_blocks: int, arguments: list, device: torch.device, bl
 
 
 def num_workers_for(device: torch.device, num_tiles: int) -> int:
-    return 1 if device.type == "cuda" else max(1, min(cpu_threads(), num_tiles))
+    """The CPU threads that composite `num_tiles` tiles: at least MIN_TILES_PER_WORKER each."""
+    if device.type == "cuda":
+        return 1
+    return max(1, min(cpu_threads(), num_tiles // (1 if _split_small_work else MIN_TILES_PER_WORKER)))
 
 
 def warp_scalar(dtype: torch.dtype):

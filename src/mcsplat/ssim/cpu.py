@@ -32,7 +32,7 @@ import warp as wp
 
 from ..compute.cpp_snippets import read_snippet
 from ..compute.cpu_target import kernel_flags
-from ..compute.runtime import cpu_threads, ensure_warp, flat_view, run_ranges
+from ..compute.runtime import cpu_threads, ensure_warp, flat_view, run_ranges, splits_small_work
 from .warp import SSIM_C1, SSIM_C2, SSIM_SIGMA, SSIM_WINDOW
 
 # The window and constants are defined once, in ssim/warp.py.
@@ -96,11 +96,13 @@ def _backward(offset: int, parts: int, width: int, height: int, partials: _float
 
 KERNELS = [_forward, _backward]
 ROWS_PER_PART = 32  # fewer rows a thread would blur its range's 10 neighbouring rows along too often
+ROWS_PER_THREAD = 64  # and fewer a second thread's hand-off costs more than its rows save (a small step's image)
 
 
 def _parts(height: int) -> int:
-    """The row ranges a pass is cut into: one per CPU thread, each at least ROWS_PER_PART rows."""
-    return max(1, min(cpu_threads(), height // ROWS_PER_PART))
+    """The row ranges a pass is cut into: one per CPU thread, each at least ROWS_PER_THREAD rows (ROWS_PER_PART
+    where set_cpu_threads asks every thread to take a share of small work too)."""
+    return max(1, min(cpu_threads(), height // (ROWS_PER_PART if splits_small_work() else ROWS_PER_THREAD)))
 
 
 def forward_scratch_floats(width: int) -> int:
