@@ -77,6 +77,9 @@ STRATEGY_OPTIONS["mcmc-surface-flatten10"] = STRATEGY_OPTIONS["mcmc-surface"] + 
 STRATEGY_OPTIONS["mcmc-surface-flatten0"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--surface-flatten", "0"]
 # ... and with the depth-normal term at a third of PGSR's weight
 STRATEGY_OPTIONS["mcmc-surface-normal005"] = STRATEGY_OPTIONS["mcmc-surface"] + ["--surface-normal", "0.005"]
+# The same three with another seed: how far single runs of this schedule differ
+for _arm in ("mcmc", "mcmc-surface", "mcmc-surface-normal005"):
+    STRATEGY_OPTIONS[f"{_arm}-seed1"] = STRATEGY_OPTIONS[_arm] + ["--seed", "1"]
 # Depth supervision from the SfM points each image saw, from the first step (COLMAP scenes only: cup and bird)
 SPARSE_DEPTH = ["--sparse-depth", "0.1", "--sparse-depth-from", "0"]
 STRATEGY_OPTIONS["mcmc-sparse-depth"] = STRATEGY_OPTIONS["mcmc"] + SPARSE_DEPTH
