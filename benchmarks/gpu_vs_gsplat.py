@@ -35,7 +35,7 @@ from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.data import load_scene
 from mcsplat.losses import photometric_loss
 from mcsplat.metrics import psnr, ssim_metric
-from mcsplat.optim import make_optimizers, means_lr_at, set_means_lr
+from mcsplat.optim import make_optimizers, means_lr_at, set_means_lr, update_for
 from mcsplat.render import render
 from mcsplat.initialization import initial_model
 from mcsplat.run.scene import background_of
@@ -124,10 +124,12 @@ class McsplatArm:
         self.model, generator = setup.fresh()
         self.optimizers = make_optimizers(self.model, setup.config.optim, setup.radius)
         self.strategy = make_strategy(setup.config, setup.plan, setup.radius, generator)
+        self.update = update_for(setup.device)  # the trainer's (on the CPU: the projection's backward fused with Adam)
 
     def step(self, step: int, view) -> None:
         s = self.setup
-        Step(self.model, self.optimizers, self.strategy, s.config, s.radius, s.background, s.device)(step, view, s.plan)
+        Step(self.model, self.optimizers, self.strategy, s.config, s.radius, s.background, s.device,
+             update=self.update)(step, view, s.plan)
 
     def count(self) -> int:
         return self.model.num_gaussians

@@ -54,7 +54,7 @@ from mcsplat.camera import Camera
 from mcsplat.config import TrainConfig
 from mcsplat.data import View
 from mcsplat.gaussians import GaussianModel
-from mcsplat.optim import make_optimizers, means_lr_at
+from mcsplat.optim import PlainUpdate, make_optimizers, means_lr_at, update_for
 from mcsplat.render import RenderResult
 from mcsplat.render.composite.function import CompositeFunction
 from mcsplat.render.paths import TORCH_BASELINE_PATH, RenderPath, current_render_path, use_render_path
@@ -112,6 +112,9 @@ class Options:
     builds: tuple[str, ...] = ("native",)
     """CPU kernel builds to time, each in its own processes: native (this host's), or an LLVM CPU name (znver3: AVX2
     without AVX-512), optionally :LANES (4, 8, 16), e.g. znver3:8."""
+    updates: tuple[Literal["auto", "plain"], ...] = ("auto",)
+    """The step's parameter update, each in its own processes: auto (the trainer's: on the CPU the projection's
+    backward fused with Adam, optim/fused_projection.py) or plain (autograd finishes every gradient, then Adam)."""
     rounds: int = 1
     """Times each configuration runs, the builds taking turns (medians over rounds: results.md shows each run)."""
     out: str | None = None
@@ -173,9 +176,11 @@ class Bench:
     radius: float
     device: torch.device
     config: TrainConfig
+    update: object  # optim.ParameterUpdate
 
     @classmethod
-    def make(cls, model: GaussianModel, scene, cameras, images, device: str, strategy: str = "mcmc") -> "Bench":
+    def make(cls, model: GaussianModel, scene, cameras, images, device: str, strategy: str = "mcmc",
+             update: str = "auto") -> "Bench":
         device = torch.device(device)
         model = model.to(device)
         # SH degree 3 from the first step timed (sh_increase_every 1), the learning rates of a 30,000-step run.
@@ -188,7 +193,8 @@ class Bench:
         else:
             strat = ADCStrategy(ADCConfig(cap_max=n), scene.radius, generator)
         views = [View(camera, image, f"view{i}") for i, (camera, image) in enumerate(zip(cameras, images))]
-        return cls(model, optimizers, strat, views, tuple(scene.background), scene.radius, device, config)
+        chosen = update_for(device) if update == "auto" else PlainUpdate()
+        return cls(model, optimizers, strat, views, tuple(scene.background), scene.radius, device, config, chosen)
 
     def camera(self, i: int) -> Camera:
         return self.views[i % len(self.views)].camera
@@ -309,7 +315,8 @@ def bench_step(b: Bench, step: int, i: int, marks: StepMarks | None = None) -> i
     marks = marks or StepMarks()
     if isinstance(marks, PhaseClock):
         marks.start()
-    one_step = Step(b.model, b.optimizers, b.strategy, b.config, b.radius, b.background, b.device, phases=marks)
+    one_step = Step(b.model, b.optimizers, b.strategy, b.config, b.radius, b.background, b.device, phases=marks,
+                    update=b.update)
     one_step(step, b.views[i % len(b.views)], Plan.literal(b.config))
     return marks.pairs
 
@@ -359,7 +366,7 @@ def run_one(cfg: dict) -> dict:
         model = builder(cfg["gaussians"], cfg["seed"])
     if device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
-    b = Bench.make(model, scene, cameras, images, device, cfg["strategy"])
+    b = Bench.make(model, scene, cameras, images, device, cfg["strategy"], cfg.get("update", "auto"))
     steps = step_numbers()
     view = 0
     for _ in range(cfg["warmup"]):
@@ -403,6 +410,7 @@ def run_one(cfg: dict) -> dict:
         "threads": cfg["threads"] if device == "cpu" else None,
         "scene_model": f"run {cfg['model_from']}" if cfg.get("model_from") else cfg["scene_model"],
         "strategy": cfg["strategy"], "build": cfg.get("build", "native"),
+        "update": f"{cfg.get('update', 'auto')} ({type(b.update).__name__})",
         "step_ms": round(C.median(plain) * 1000.0 + refine_extra_ms / REFINE_EVERY, 1) if plain else None,
         "instrumented_step_ms": round(ms["total"] + refine_extra_ms / REFINE_EVERY, 1),
         "baseline_step_ms": round(C.median(baseline) * 1000.0, 1) if baseline else None,
@@ -455,6 +463,8 @@ def markdown(records: list[dict], info: dict, args) -> str:
     cols = [("Gaussians", "gaussians", ""), ("threads", "threads", "")]
     if any(r.get("build", "native") != "native" for r in records):
         cols += [("build", "build", "")]
+    if len({r.get("update") for r in records}) > 1:
+        cols += [("update", "update", "")]
     cols += [("step ms", "step_ms", ".1f")]
     if records and records[0].get("baseline_step_ms"):
         cols += [("baseline ms", "baseline_step_ms", ".1f"), ("speed-up", "speedup_over_baseline", ".2f")]
@@ -517,9 +527,11 @@ def main() -> None:
     threads = sorted(set(args.threads)) if args.device == "cpu" else [None]
     records = []
     sizes = [0] if args.scene_model == "sfm" or args.model_from else args.sizes  # the points or the run fix it
-    runs = [(n, t, build) for _ in range(args.rounds) for n in sizes for t in threads for build in args.builds]
-    for n, t, build in runs:
+    runs = [(n, t, build, update) for _ in range(args.rounds) for n in sizes for t in threads for build in args.builds
+            for update in args.updates]
+    for n, t, build, update in runs:
         cfg = {"gaussians": n, "threads": t, "device": args.device, "scene_model": args.scene_model, "build": build,
+               "update": update,
                "strategy": args.strategy, "warmup": args.warmup, "repeats": args.repeats, "plain": args.plain,
                "refines": args.refines, "seed": args.seed, "baseline": args.baseline,
                "downscale": args.downscale, "model_from": args.model_from,

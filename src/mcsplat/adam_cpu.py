@@ -68,10 +68,11 @@ def matches_torch() -> bool:
 
 
 def applies(param: torch.Tensor, state: dict) -> bool:
-    """Whether a parameter (with a gradient) and its Adam state are what the kernel takes: contiguous float32 on the
-    CPU, the state's moments alike and its step counter a float32 number (torch's fused Adam's)."""
+    """Whether a parameter, its gradient (if it has one) and its Adam state are what the kernel takes: contiguous
+    float32 on the CPU, the state's moments alike and its step counter a float32 number (torch's fused Adam's)."""
     grad = param.grad
-    tensors = [param, grad] + [state[k] for k in ("exp_avg", "exp_avg_sq") if k in state]
+    tensors = [param] + ([grad] if grad is not None else []) + [
+        state[k] for k in ("exp_avg", "exp_avg_sq") if k in state]
     step = state.get("step")
     return (all(t.device.type == "cpu" and t.dtype == torch.float32 and t.is_contiguous() and not t.is_sparse
                 and t.shape == param.shape for t in tensors)

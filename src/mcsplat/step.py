@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Protocol, Sequence
 
 import torch
@@ -27,7 +27,7 @@ from .errors import MCSplatError
 from .gaussians import GaussianModel
 from .loss_terms import LossTerm, StepContext, render_outputs, standard_terms, total_loss
 from .metrics import psnr
-from .optim import means_lr_at, set_means_lr
+from .optim import ParameterUpdate, PlainUpdate, means_lr_at, set_means_lr
 from .per_image import PerImageModule
 from .planning import Plan
 from .render import RenderResult
@@ -70,8 +70,10 @@ class Step:
     processes it averages the gradients and the two values, distributed/team.py); each of `modules` sees the
     view's camera and render, in order, and takes its own step after the scene's; the loss is the sum of
     `loss_terms` (by default loss_terms.standard_terms: photometric, the strategy's, each module's); `phases`, when
-    given, is told where each step is. The model's parameters and Adam's state change as the run goes (row surgery
-    replaces them in place in `model.params` and the optimizers), never the objects themselves."""
+    given, is told where each step is; `update` takes the optimizers' step around the render and after the backward
+    (optim/update.py: the plain one, or on the CPU the projection's backward fused with Adam). The model's
+    parameters and Adam's state change as the run goes (row surgery replaces them in place in `model.params` and the
+    optimizers), never the objects themselves."""
 
     model: GaussianModel
     optimizers: dict[str, torch.optim.Optimizer]
@@ -84,6 +86,7 @@ class Step:
     modules: Sequence[PerImageModule] = ()
     loss_terms: Sequence[LossTerm] | None = None
     phases: StepPhases | None = None
+    update: ParameterUpdate = field(default_factory=PlainUpdate)
 
     def on(self, model: GaussianModel, optimizers: dict, strategy: Strategy) -> Step:
         """The same step on another model, alone and without the run's modules and terms (--budget times throwaway
@@ -107,8 +110,9 @@ class Step:
         if terms is None:
             terms = standard_terms(self.config.ssim_weight, strategy, modules)
         lap("other")
-        result = render.render(model, camera, self.background, plan.sh_degree_at(step),
-                               outputs=render_outputs(terms, step, plan.steps))
+        with self.update.rendering(model):
+            result = render.render(model, camera, self.background, plan.sh_degree_at(step),
+                                   outputs=render_outputs(terms, step, plan.steps))
         lap("render")
         rgb = result.rgb
         for module in modules:
@@ -127,7 +131,7 @@ class Step:
             raise MCSplatError(f"step {step}: the loss became {loss_value}; lower the learning rates or the loss "
                                f"terms' weights (--surface-*, --appearance-*, --*depth*), or check the input images")
         lap("reduce")
-        optim.step_optimizers(optimizers)  # and the gradients dropped
+        self.update.step(optimizers)  # and the gradients dropped
         for module in modules:
             module.step(step, plan)
         lap("optimizer")

@@ -21,6 +21,7 @@ from .run.events import (CheckpointWritten, Control, EvalDone, KernelsCompiling,
                      RunStarted, StepDone, close_all)
 from .gaussians import GaussianModel
 from .io.lock import FolderLock
+from .optim import update_for
 from .planning import Plan, run_record
 from .run.metrics import RunFacts, metrics
 from .run.setup import set_up
@@ -52,7 +53,7 @@ class TrainingRun:
         state = self.state
         self.one_step = Step(state.model, state.optimizers, state.strategy, self.config, self.scene.radius,
                              self.background, self.device, reduce=self.requests.reduce, modules=state.modules,
-                             loss_terms=state.loss_terms)
+                             loss_terms=state.loss_terms, update=update_for(self.device, team.world_size))
         self._written_plan = self.plan  # what config.json holds
         self._saved_at = -1  # the step of the last checkpoint written
         self._emit: Listener = lambda event: None

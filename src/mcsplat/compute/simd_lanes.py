@@ -60,10 +60,11 @@ def lanes_in(dst: str, src: str, stride: int, kind: str = "f") -> str:
 """
 
 
-def lanes_out(values: list[str], dst: str, kind: str = "f") -> str:
+def lanes_out(values: list[str], dst: str, kind: str = "f", row: str = "first") -> str:
     """C++ that writes the vectors `values` (one per component) as the chunk's rows of an interleaved array
-    (dst[stride * (first + l) + k] = values[k] lane l): a full chunk as one shuffle and one vector store per
-    16 entries, a short one lane by lane."""
+    (dst[stride * (row + l) + k] = values[k] lane l; `row`, the row of the chunk's first item, is `first` unless the
+    array holds only some rows): a full chunk as one shuffle and one vector store per 16 entries, a short one lane by
+    lane."""
     lanes, stride = LANES, len(values)
     stores = "\n".join(
         f"        *(v{kind}_u*)(row + {lanes * m}) = __builtin_shufflevector(all, all, "
@@ -73,12 +74,12 @@ def lanes_out(values: list[str], dst: str, kind: str = "f") -> str:
     return f"""
     {{
         if (count == {lanes}) {{
-            auto* row = {dst} + {stride} * first;
+            auto* row = {dst} + {stride} * ({row});
             const auto all = {concatenated([f"(v{kind})({v})" for v in values])};
 {stores}
         }} else {{
             for (int l = 0; l < count; ++l) {{
-                const int i = first + l;
+                const int i = ({row}) + l;
                 {singles}
             }}
         }}

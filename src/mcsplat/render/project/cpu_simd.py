@@ -75,18 +75,36 @@ _FORWARD_BODY = read_snippet(__package__, "cpu_simd_forward.cpp", {
     "STORE_TILE_MAX": _store(["kept_hi_x", "kept_hi_y"], "out_tile_max", "i"),
     "STORE_ALPHA_EXTENT": _store(["box_x", "box_y"], "out_alpha_extent")})
 
-_BACKWARD_BODY = read_snippet(__package__, "cpu_simd_backward.cpp", {
-    "PRELUDE": _PRELUDE, "GEOMETRY": _GEOMETRY, **_SH_LITERALS,
-    "LOAD_G_MEAN2D": _load("g_mean2d", "grad_means2d", 2), "LOAD_G_CONIC": _load("g_conic", "grad_conics", 3),
-    "LOAD_G_COLOR": _load("g_color", "grad_colors", 3), "LOAD_G_DEPTH_ROW": _load("g_depth_row", "grad_depths", 1),
-    "LOAD_G_COMPENSATION_ROW": _load("g_compensation_row", "grad_compensations", 1),
-    "STORE_OUT_MEANS": lanes_out(["kept_mean[0]", "kept_mean[1]", "kept_mean[2]"], "out_means_"),
-    "STORE_OUT_SCALES": lanes_out(["kept_scale[0]", "kept_scale[1]", "kept_scale[2]"], "out_scales_"),
-    "STORE_OUT_QUATS": lanes_out(["kept_q[0]", "kept_q[1]", "kept_q[2]", "kept_q[3]"], "out_quats_")})
 
 
-# Same options as the compositing kernels (render/composite/cpu_simd.py): 512-bit vectors where the CPU has them, fused
-# multiply-add.
+def backward_source(outputs: dict[str, str] | None = None, out_first: str = "0") -> str:
+    """The backward's C++ body. `outputs` names a float pointer for each of the gradients' arrays ("means",
+    "quats", "scales", "dc", "rest"; default: the kernel's out_* arrays), holding rows from `out_first` on (0: all of
+    them; the fused update's scratch rows hold the chunk's alone, from `first`)."""
+    pointers = {key: f"(float*)out_{key}.data" for key in ("means", "quats", "scales", "dc", "rest")}
+    pointers.update(outputs or {})
+    row = f"first - ({out_first})"
+    # A lambda called in place (its returns leave the backward alone): a kernel that works on after it (the fused
+    # update) then compiles it as this one does, the same fused multiply-adds, the same gradients to the bit.
+    return "[&]() {\n" + read_snippet(__package__, "cpu_simd_backward.cpp", {
+        "PRELUDE": _PRELUDE, "GEOMETRY": _GEOMETRY, **_SH_LITERALS,
+        **{f"OUT_{key.upper()}": pointer for key, pointer in pointers.items()}, "OUT_FIRST": out_first,
+        "LOAD_G_MEAN2D": _load("g_mean2d", "grad_means2d", 2), "LOAD_G_CONIC": _load("g_conic", "grad_conics", 3),
+        "LOAD_G_COLOR": _load("g_color", "grad_colors", 3),
+        "LOAD_G_DEPTH_ROW": _load("g_depth_row", "grad_depths", 1),
+        "LOAD_G_COMPENSATION_ROW": _load("g_compensation_row", "grad_compensations", 1),
+        "STORE_OUT_MEANS": lanes_out(["kept_mean[0]", "kept_mean[1]", "kept_mean[2]"], "out_means_", row=row),
+        "STORE_OUT_SCALES": lanes_out(["kept_scale[0]", "kept_scale[1]", "kept_scale[2]"], "out_scales_", row=row),
+        "STORE_OUT_QUATS": lanes_out(["kept_q[0]", "kept_q[1]", "kept_q[2]", "kept_q[3]"], "out_quats_",
+                                     row=row)}) + "\n}();\n"
+
+
+_BACKWARD_BODY = backward_source()
+
+
+# 512-bit vectors where the CPU has them, fused multiply-add within a statement only (`on`, decided by the compiler's
+# front end): the fused update's copy of the backward (optim/fused_projection.py) then rounds as this one, where
+# `fast` would fuse across statements differently in another kernel.
 wp.set_module_options({"cpu_compiler_flags": kernel_flags("-mprefer-vector-width=512 -ffp-contract=fast")})
 
 _int_array = wp.array(dtype=wp.int32)

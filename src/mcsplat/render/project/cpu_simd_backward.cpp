@@ -15,20 +15,23 @@
     const vi reached = (g_mean2d[0] != 0.0f) | (g_mean2d[1] != 0.0f) | (g_conic[0] != 0.0f) | (g_conic[1] != 0.0f)
         | (g_conic[2] != 0.0f) | (g_depth != 0.0f) | (g_color[0] != 0.0f) | (g_color[1] != 0.0f)
         | (g_color[2] != 0.0f) | (g_compensation != 0.0f);
-    float* out_means_ = (float*)out_means.data;
-    float* out_quats_ = (float*)out_quats.data;
-    float* out_scales_ = (float*)out_scales.data;
-    float* out_dc_ = (float*)out_dc.data;
-    float* out_rest_ = (float*)out_rest.data;
+    // The gradients' rows: the whole arrays', or (the fused update, optim/fused_projection.py) the chunk's own from
+    // row out_first on.
+    float* out_means_ = {{OUT_MEANS}};
+    float* out_quats_ = {{OUT_QUATS}};
+    float* out_scales_ = {{OUT_SCALES}};
+    float* out_dc_ = {{OUT_DC}};
+    float* out_rest_ = {{OUT_REST}};
     float* out_view_ = (float*)out_view.data;
+    const int out_first = {{OUT_FIRST}};
     const int view_width = view_grad ? 12 : 0;
     if (!any_lane(reached)) {
         for (int l = 0; l < count; ++l) {
-            const int i = first + l;
-            for (int k = 0; k < 3; ++k) { out_means_[3 * i + k] = 0.0f; out_scales_[3 * i + k] = 0.0f; }
-            for (int k = 0; k < 4; ++k) out_quats_[4 * i + k] = 0.0f;
-            for (int k = 0; k < 3; ++k) out_dc_[i * dc_stride + k] = 0.0f;
-            for (int k = 0; k < 3 * rest_count; ++k) out_rest_[i * rest_stride + 3 * rest_shift + k] = 0.0f;
+            const int i = first + l, o = i - out_first;
+            for (int k = 0; k < 3; ++k) { out_means_[3 * o + k] = 0.0f; out_scales_[3 * o + k] = 0.0f; }
+            for (int k = 0; k < 4; ++k) out_quats_[4 * o + k] = 0.0f;
+            for (int k = 0; k < 3; ++k) out_dc_[o * dc_stride + k] = 0.0f;
+            for (int k = 0; k < 3 * rest_count; ++k) out_rest_[o * rest_stride + 3 * rest_shift + k] = 0.0f;
             for (int k = 0; k < view_width; ++k) out_view_[12 * i + k] = 0.0f;
         }
         return;
@@ -133,8 +136,8 @@
     vf g_d[3] = {zero, zero, zero};
     for (int l = 0; l < count; ++l) {
         const int i = first + l;
-        float* dc_out = out_dc_ + i * dc_stride;
-        float* rest_out = out_rest_ + i * rest_stride + 3 * rest_shift;
+        float* dc_out = out_dc_ + (i - out_first) * dc_stride;
+        float* rest_out = out_rest_ + (i - out_first) * rest_stride + 3 * rest_shift;
         if (!reached[l]) {
             for (int k = 0; k < 3; ++k) dc_out[k] = 0.0f;
             for (int k = 0; k < 3 * rest_count; ++k) rest_out[k] = 0.0f;

@@ -27,7 +27,7 @@ from ...compute.runtime import ensure_warp, run_ranges, warp_scalar, warp_view
 from ...geometry.covariance import rotation_function
 from ...geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from ..constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
-from . import cpu_simd as simd
+from . import cpu_simd as simd, deferred
 from .cpu_simd import CAMERA_LAYOUT
 from ..kernel_choice import kernels_for
 from .torch_autograd import Projection
@@ -409,7 +409,8 @@ class _ProjectFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means, quats, scales, sh_dc, sh_rest, opacities, camera_args: tuple, sh_degree: int,
-                opacity_aware_radius: bool, antialiased: bool, world_to_camera: torch.Tensor | None):
+                opacity_aware_radius: bool, antialiased: bool, world_to_camera: torch.Tensor | None,
+                deferral: deferred.Deferral | None):
         ensure_warp()
         ctx.set_materialize_grads(False)  # the backward takes None (no zeros made for the outputs without gradient)
         ctx.together = sh_rest is None
@@ -429,6 +430,7 @@ class _ProjectFunction(torch.autograd.Function):
         ctx.save_for_backward(means, quats, scales, sh_dc, sh_rest, colors if ctx.simd else None)
         ctx.camera_args, ctx.sh_degree, ctx.antialiased = camera_args, sh_degree, antialiased
         ctx.view_like = None if world_to_camera is None else world_to_camera.detach()
+        ctx.deferral = deferral if ctx.simd else None
         ctx.mark_non_differentiable(radii, tile_min, tile_max, alpha_extent)
         return means2d, conics, depths, colors, compensations, radii, tile_min, tile_max, alpha_extent
 
@@ -439,6 +441,12 @@ class _ProjectFunction(torch.autograd.Function):
             (grad_means2d, means[:, :2]), (grad_conics, means), (grad_depths, means[:, 0]), (grad_colors, means),
             (grad_compensations, means[:, 0]))]
         view_grad = ctx.needs_input_grad[10]
+        if ctx.deferral is not None:  # the update finishes these gradients (deferred.py)
+            ctx.deferral.pending = deferred.DeferredBackward(
+                means, quats, scales, sh_dc, sh_rest, ctx.packed_camera, *ctx.camera_args[7:9], ctx.sh_degree,
+                ctx.antialiased, colors, upstream)
+            ctx.deferral = None
+            return (None,) * 12
         if ctx.simd:
             grads, per_gaussian_view = simd.project_backward(
                 means, quats, scales, sh_dc, sh_rest, ctx.together, ctx.packed_camera, *ctx.camera_args[7:9],
@@ -455,7 +463,7 @@ class _ProjectFunction(torch.autograd.Function):
             grad_view[:3, :3] = summed[:9].reshape(3, 3)
             grad_view[:3, 3] = summed[9:]
             grad_view = grad_view.to(ctx.view_like)
-        return (*grads[:4], grad_rest, None, None, None, None, None, grad_view)
+        return (*grads[:4], grad_rest, None, None, None, None, None, grad_view, None)
 
 
 def _scalar_forward(means, quats, scales, opacities, sh_dc, sh_rest, together: bool, camera_args: tuple,
@@ -536,12 +544,20 @@ def project_and_shade(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     """project_gaussians + view_dependent_colors of torch_autograd.py in one kernel -> (Projection, colors [N, 3]).
 
     `sh` holds every SH coefficient [N, K, 3], or, with `sh_rest` [N, K - 1, 3] given, the DC band [N, 1, 3] only.
-    Where the camera's `world_to_camera` requires grad, it gets its gradient too (in its own dtype).
+    Where the camera's `world_to_camera` requires grad, it gets its gradient too (in its own dtype). Within
+    deferred.deferring, the parameters' gradients may be left to the optimizer step (deferred.py).
     """
     camera_args = _camera_arguments(camera, near, far, eps2d)
     view = camera.world_to_camera if camera.world_to_camera.requires_grad else None  # pose refinement
+    deferral = deferred.current()
+    if deferral is not None and (view is not None or kernels_for(means) != "simd"
+                                 or not deferral.accepts(means, quats, scales, sh, sh_rest)):
+        deferral = None
+    if deferral is not None:
+        deferral.taken = True
     means2d, conics, depths, colors, compensations, radii, tile_min, tile_max, alpha_extent = _ProjectFunction.apply(
-        means, quats, scales, sh, sh_rest, opacities, camera_args, sh_degree, opacity_aware_radius, antialiased, view)
+        means, quats, scales, sh, sh_rest, opacities, camera_args, sh_degree, opacity_aware_radius, antialiased, view,
+        deferral)
     return Projection(means2d=means2d, conics=conics, depths=depths, radii=radii, tile_min=tile_min,
                       tile_max=tile_max, alpha_extent=alpha_extent,
                       compensations=compensations if antialiased else None), colors

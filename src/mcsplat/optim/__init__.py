@@ -18,8 +18,11 @@ Appending and removing replace the Parameter objects (the model's and the optimi
 `.grad` is dropped). The optimizers stay plain torch.optim.Adam, so their state_dict()/load_state_dict() round trip
 works as usual for checkpoints, as long as the model has the checkpoint's size when they are built.
 
-`step_optimizers` takes every optimizer's step: on the CPU in one launch over all their tensors (adam_cpu.py: torch's
-fused Adam's arithmetic to the bit, on torch's own state), elsewhere each optimizer's own.
+`step_optimizers` (stepping.py) takes every optimizer's step: on the CPU in one launch over all their tensors
+(adam_cpu.py: torch's fused Adam's arithmetic to the bit, on torch's own state), elsewhere each optimizer's own. A
+training step's `ParameterUpdate` (update.py) wraps it; on the CPU the projection's backward applies it
+(fused_projection.py). Both keep Adam's state in the torch.optim.Adam objects, so that row surgery, checkpoints and
+resume do not know which ran.
 """
 
 from __future__ import annotations
@@ -29,13 +32,14 @@ from dataclasses import dataclass, fields
 from typing import Mapping
 
 import torch
-from torch.optim import optimizer as torch_optimizer
 
-from . import adam_cpu
-from .gaussians import PARAM_KEYS, GaussianModel
+from ..gaussians import PARAM_KEYS, GaussianModel
+from .stepping import step_optimizers
+from .update import ParameterUpdate, PlainUpdate, training_kernels, update_for
 
 __all__ = ["OptimConfig", "make_optimizers", "means_lr_at", "set_means_lr", "step_optimizers", "training_kernels",
-           "append_rows", "copy_rows", "set_rows", "remove_rows", "zero_moments"]
+           "ParameterUpdate", "PlainUpdate", "update_for", "append_rows", "copy_rows", "set_rows", "remove_rows",
+           "zero_moments"]
 
 Optimizers = Mapping[str, torch.optim.Optimizer]
 
@@ -114,64 +118,6 @@ def set_means_lr(optimizers: Optimizers, lr: float) -> None:
         raise ValueError(f"the position learning rate must be a finite number >= 0, got {lr}")
     for group in optimizers["means"].param_groups:
         group["lr"] = lr
-
-
-def step_optimizers(optimizers: Optimizers) -> None:
-    """Each optimizer's Adam step, then its gradients dropped (zero_grad(set_to_none=True)). On the CPU the
-    parameters of make_optimizers' Adams step together in one launch of adam_cpu's kernel (one per distinct betas
-    and eps), with the result of their own step(); any other optimizer steps itself."""
-    launches: dict[tuple[float, float, float], dict[str, list]] = {}
-    together = [opt for opt in optimizers.values() if _steps_together(opt)]
-    for opt in optimizers.values():
-        if not any(opt is t for t in together):
-            opt.step()
-            opt.zero_grad(set_to_none=True)
-    for opt in together:
-        for group in opt.param_groups:
-            launch = launches.setdefault((*group["betas"], group["eps"]), {
-                "params": [], "exp_avgs": [], "exp_avg_sqs": [], "steps": [], "rates": []})
-            for param in group["params"]:
-                if param.grad is None:  # as torch: no gradient, no step (nor state)
-                    continue
-                state = opt.state[param]
-                if not state:  # torch's lazy initialisation (a fused Adam's counter: a float32 tensor)
-                    state.update(step=torch.zeros((), dtype=torch.float32), exp_avg=torch.zeros_like(param),
-                                 exp_avg_sq=torch.zeros_like(param))
-                for key, value in (("params", param), ("exp_avgs", state["exp_avg"]),
-                                   ("exp_avg_sqs", state["exp_avg_sq"]), ("steps", state["step"]),
-                                   ("rates", group["lr"])):
-                    launch[key].append(value)
-    for (beta1, beta2, eps), tensors in launches.items():
-        adam_cpu.adam_step(**tensors, beta1=beta1, beta2=beta2, eps=eps)
-    for opt in together:
-        for group in opt.param_groups:
-            for param in group["params"]:
-                param.grad = None
-
-
-def training_kernels(device: torch.device) -> list:
-    """The Warp kernels step_optimizers launches on `device` (compute.compile loads them ahead)."""
-    return list(adam_cpu.KERNELS) if device.type == "cpu" and adam_cpu.matches_torch() else []
-
-
-def _steps_together(opt: torch.optim.Optimizer) -> bool:
-    """Whether adam_cpu's kernel gives `opt.step()`'s result: a torch.optim.Adam(fused=True) without the options
-    and hooks the kernel does not take, its parameters (those with a gradient) and their state float32 on the CPU,
-    and torch's CPU kernels those the kernel reproduces."""
-    if type(opt) is not torch.optim.Adam or not adam_cpu.matches_torch():
-        return False
-    hooks = (opt._optimizer_step_pre_hooks, opt._optimizer_step_post_hooks,
-             torch_optimizer._global_optimizer_pre_hooks, torch_optimizer._global_optimizer_post_hooks)
-    if any(hooks) or getattr(opt, "grad_scale", None) is not None or getattr(opt, "found_inf", None) is not None:
-        return False
-    for group in opt.param_groups:
-        if (not group.get("fused") or group["amsgrad"] or group["weight_decay"] or group["maximize"]
-                or group.get("decoupled_weight_decay") or group["capturable"] or group["differentiable"]
-                or isinstance(group["lr"], torch.Tensor)):
-            return False
-        if not all(adam_cpu.applies(p, opt.state.get(p, {})) for p in group["params"] if p.grad is not None):
-            return False
-    return True
 
 
 # ------------------------------------------------------------------------------------------------- row surgery

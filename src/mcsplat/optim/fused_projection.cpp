@@ -1,0 +1,63 @@
+    // One chunk of {{LANES}} Gaussians: the projection's backward into gradient rows kept on the stack, then Adam
+    // over the chunk's rows of each parameter (means, log_scales, quats, opacity_logits, sh0, shN: PARAM_KEYS).
+    float scratch_means[3 * {{LANES}}], scratch_quats[4 * {{LANES}}], scratch_scales[3 * {{LANES}}];
+    float scratch_dc[3 * {{LANES}}], scratch_rest[{{REST_MAX}} * {{LANES}}];
+    const int chunk_first = {{LANES}} * chunk;
+{{BACKWARD}}
+    const int rows = n - chunk_first < {{LANES}} ? n - chunk_first : {{LANES}};
+    if (rows <= 0) return;
+
+    // Per parameter: its tensor, exp_avg, exp_avg_sq and the gradient other terms gave it (0: none), as addresses;
+    // -lr / (1 - beta1^step) and sqrt(1 - beta2^step) as float32 (the host reads the step counters).
+    const long long* table = (const long long*)tensors.data;
+    const float* constants = (const float*)step_constants.data;
+    const float* scales_ = (const float*)scales.data;
+    const float* fresh[6] = {scratch_means, scratch_scales, scratch_quats, nullptr, scratch_dc, scratch_rest};
+    const int widths[6] = {3, 3, 4, 1, 3, rest_stride};
+    const float weight = (float)(1.0 - beta1);
+    const bool small_weight = __builtin_fabsf(weight) < 0.5f;
+    const float coefficient = small_weight ? weight : weight - 1.0f;
+    const float decay2 = (float)beta2, weight2 = (float)(1.0 - beta2), epsilon = (float)eps;
+    float g[{{REST_MAX}} * {{LANES}}];  // one parameter's gradient rows of the chunk
+    for (int t = 0; t < 6; ++t) {
+        // torch's fused CPU Adam, element for element (optim/fused_projection.py): no contraction but the fmas
+        // written out, the other form of v in torch's scalar loop over a tensor's last n % 8 elements.
+        #pragma clang fp contract(off)
+        float* __restrict param = (float*)table[4 * t];
+        float* __restrict exp_avg = (float*)table[4 * t + 1];
+        float* __restrict exp_avg_sq = (float*)table[4 * t + 2];
+        const float* __restrict earlier = (const float*)table[4 * t + 3];
+        const float* __restrict own = fresh[t];
+        const float minus_step_size = constants[2 * t], bias2_sqrt = constants[2 * t + 1];
+        const long long width = widths[t], total = (long long)n * width;
+        const long long begin = (long long)chunk_first * width, count = (long long)rows * width;
+        // The gradient as autograd sums it: the projection's (through exp for the log-scales), plus the others'.
+        if (own == nullptr) {
+            for (long long j = 0; j < count; ++j) g[j] = earlier[begin + j];  // the opacities' always has one
+        } else if (t == 1) {
+            for (long long j = 0; j < count; ++j) g[j] = own[j] * scales_[begin + j];
+        } else {
+            for (long long j = 0; j < count; ++j) g[j] = own[j];
+        }
+        if (own != nullptr && earlier != nullptr)
+            for (long long j = 0; j < count; ++j) g[j] = g[j] + earlier[begin + j];
+        float* __restrict p_ = param + begin;
+        float* __restrict m_ = exp_avg + begin;
+        float* __restrict v_ = exp_avg_sq + begin;
+        const long long vectors_end = total - total % {{TORCH_SCALAR_TAIL}};
+        const long long split = vectors_end - begin < count ? (vectors_end > begin ? vectors_end - begin : 0) : count;
+        for (long long j = 0; j < split; ++j) {  // where torch's vector loops run
+            const float m = __builtin_fmaf(coefficient, g[j] - m_[j], small_weight ? m_[j] : g[j]);
+            const float v = __builtin_fmaf(weight2 * g[j], g[j], v_[j] * decay2);
+            m_[j] = m;
+            v_[j] = v;
+            p_[j] = p_[j] + (minus_step_size * m) / (__builtin_sqrtf(v) / bias2_sqrt + epsilon);
+        }
+        for (long long j = split; j < count; ++j) {  // torch's scalar loop
+            const float m = __builtin_fmaf(coefficient, g[j] - m_[j], small_weight ? m_[j] : g[j]);
+            const float v = __builtin_fmaf(v_[j], decay2, (weight2 * g[j]) * g[j]);
+            m_[j] = m;
+            v_[j] = v;
+            p_[j] = p_[j] + (minus_step_size * m) / (__builtin_sqrtf(v) / bias2_sqrt + epsilon);
+        }
+    }

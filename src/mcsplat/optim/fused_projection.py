@@ -1,0 +1,172 @@
+"""The Gaussians' update in one pass on the CPU: the projection's backward applies Adam.
+
+The plain step walks every Gaussian's parameters three times after the compositing: the projection's backward reads
+them and writes their gradients, autograd hands those on, then Adam reads parameters, gradients and moments and writes
+them back. Here one SIMD kernel (fused_projection.cpp) takes 16 Gaussians at a time: the projection's backward
+(render/project/cpu_simd_backward.cpp, the same C++) writes their gradient rows to the stack, and Adam updates their
+rows of all six parameters at once, while they are in the cache; the gradients never reach memory. The render leaves
+the projection's share of the gradients to this update (render/project/deferred.py); what other terms gave the
+parameters (the regularizers, --surface) is in their `.grad` and joins here, and the opacities' gradient, which
+the compositing gives, is read from theirs.
+
+The result is the plain step's to the bit (tests/training/test_fused_projection.py): the backward is the same C++
+built with the same options, the gradients sum as autograd sums them (the projection's share through exp for the
+log-scales, then the other terms'), and the Adam arithmetic is adam_cpu's, which is torch's fused CPU Adam's. Adam's
+state stays in the torch.optim.Adam objects (checkpoints, row surgery and resume as before); the host counts the
+step counters up and turns them into each parameter's two step constants, as adam_cpu's kernel does per launch.
+
+The update applies where the plain step would run adam_cpu's kernel on exactly the model's six optimizers; anywhere
+else (another optimizer, a projection that did not defer) it finishes the deferred gradients into `.grad` and steps
+as usual.
+"""
+
+from __future__ import annotations
+
+import math
+from contextlib import AbstractContextManager, nullcontext
+from typing import Mapping
+
+import numpy as np
+import torch
+import warp as wp
+
+from .. import adam_cpu
+from ..compute.cpp_snippets import read_snippet
+from ..compute.cpu_target import kernel_flags
+from ..compute.runtime import ensure_warp, flat_view, numpy_view, run_ranges
+from ..compute.simd_lanes import LANES
+from ..gaussians import PARAM_KEYS, GaussianModel
+from ..render.project import cpu_simd, deferred
+from .stepping import step_optimizers, together_in_one_launch
+
+REST_MAX = 45  # floats in a Gaussian's rest SH row at degree 3, the highest the model stores
+
+_SOURCE = read_snippet(__package__, "fused_projection.cpp", {
+    "LANES": LANES, "REST_MAX": REST_MAX, "TORCH_SCALAR_TAIL": adam_cpu.TORCH_SCALAR_TAIL,
+    "BACKWARD": cpu_simd.backward_source(
+        {"means": "scratch_means", "quats": "scratch_quats", "scales": "scratch_scales", "dc": "scratch_dc",
+         "rest": "scratch_rest"}, out_first="chunk_first")})
+
+# The projection backward's options (cpu_simd.py: contraction within a statement), so that its gradients are the plain
+# kernel's to the bit; the Adam part turns contraction off itself.
+wp.set_module_options({"cpu_compiler_flags": kernel_flags("-mprefer-vector-width=512 -ffp-contract=fast")})
+
+_floats = wp.array(dtype=wp.float32)
+
+
+@wp.func_native(_SOURCE)
+def _update_chunk(chunk: int, n: int, camera: _floats, width: int, height: int, sh_degree: int, antialiased: int,
+                  means: _floats, quats: _floats, scales: _floats, sh_dc: _floats, sh_rest: _floats, dc_stride: int,
+                  rest_stride: int, rest_shift: int, rest_count: int, colors: _floats, grad_means2d: _floats,
+                  grad_conics: _floats, grad_depths: _floats, grad_colors: _floats, grad_compensations: _floats,
+                  view_grad: int, out_view: _floats, tensors: wp.array(dtype=wp.int64), step_constants: _floats,
+                  beta1: wp.float64, beta2: wp.float64, eps: wp.float64): ...
+
+
+@wp.kernel
+def projection_backward_adam(first_chunk: int, n: int, camera: _floats, width: int, height: int, sh_degree: int,
+                             antialiased: int, means: _floats, quats: _floats, scales: _floats, sh_dc: _floats,
+                             sh_rest: _floats, dc_stride: int, rest_stride: int, rest_shift: int, rest_count: int,
+                             colors: _floats, grad_means2d: _floats, grad_conics: _floats, grad_depths: _floats,
+                             grad_colors: _floats, grad_compensations: _floats, view_grad: int, out_view: _floats,
+                             tensors: wp.array(dtype=wp.int64), step_constants: _floats, beta1: wp.float64,
+                             beta2: wp.float64, eps: wp.float64):
+    """One thread per chunk of LANES Gaussians; each thread writes only its own Gaussians' rows."""
+    _update_chunk(first_chunk + wp.tid(), n, camera, width, height, sh_degree, antialiased, means, quats, scales,
+                  sh_dc, sh_rest, dc_stride, rest_stride, rest_shift, rest_count, colors, grad_means2d, grad_conics,
+                  grad_depths, grad_colors, grad_compensations, view_grad, out_view, tensors, step_constants, beta1,
+                  beta2, eps)
+
+
+KERNELS = [projection_backward_adam]
+
+
+def _step_constants(steps: list[torch.Tensor], rates: list[float], beta1: float, beta2: float) -> np.ndarray:
+    """Per parameter -lr / (1 - beta1^step) and sqrt(1 - beta2^step), each rounded to float32 from double as
+    adam_cpu's kernel rounds them."""
+    constants = []
+    for step, rate in zip(steps, rates):
+        count = float(step.numpy())
+        bias1, bias2 = 1.0 - math.pow(beta1, count), 1.0 - math.pow(beta2, count)
+        constants += [-(rate / bias1), math.sqrt(bias2)]
+    return np.array(constants, dtype=np.float32)
+
+
+def update(pending: deferred.DeferredBackward, params: list[torch.Tensor], states: list[dict], rates: list[float],
+           beta1: float, beta2: float, eps: float) -> None:
+    """One Adam step of the six parameters (PARAM_KEYS' order, `pending`'s the model's) with the projection's
+    gradients from `pending` plus each `.grad`; `states` are their Adam states (made here when empty, as torch does
+    on a first step), `rates` their learning rates. The `.grad`s are dropped."""
+    ensure_warp()
+    shapes = [tuple(p.shape[1:]) for p in params]
+    assert shapes[:5] == [(3,), (3,), (4,), (), (1, 3)] and shapes[5][1:] == (3,) and 3 * shapes[5][0] <= REST_MAX, (
+        f"the fused update takes the six parameters in PARAM_KEYS' order {PARAM_KEYS}, got shapes {shapes}")
+    for param, state in zip(params, states):
+        if not state:
+            state.update(step=torch.zeros((), dtype=torch.float32), exp_avg=torch.zeros_like(param),
+                         exp_avg_sq=torch.zeros_like(param))
+    steps = [state["step"] for state in states]
+    torch._foreach_add_(steps, 1)  # as torch's Adam does, before its step reads them
+    table = np.array([t.data_ptr() if t is not None else 0 for param, state in zip(params, states)
+                      for t in (param, state["exp_avg"], state["exp_avg_sq"], param.grad)], dtype=np.int64)
+    n = pending.means.shape[0]
+    dc_stride, rest_stride, rest_shift, rest_count = cpu_simd._sh_layout(pending.sh_dc, pending.sh_rest, False)
+    no_view = pending.camera  # the backward's view gradient is off; any float array stands for its output
+    run_ranges(projection_backward_adam, -(-n // LANES), pending.means.device, [
+        n, flat_view(pending.camera), pending.width, pending.height, pending.sh_degree, int(pending.antialiased),
+        *(flat_view(t) for t in (pending.means, pending.quats, pending.scales, pending.sh_dc, pending.sh_rest)),
+        dc_stride, rest_stride, rest_shift, rest_count, flat_view(pending.colors),
+        *(flat_view(t) for t in pending.upstream), 0, flat_view(no_view), numpy_view(table),
+        numpy_view(_step_constants(steps, rates, beta1, beta2)), float(beta1), float(beta2), float(eps)],
+        min_per_thread=4096 // LANES)
+    for param in params:
+        param.grad = None
+
+
+def finish_gradients(pending: deferred.DeferredBackward, model: GaussianModel) -> None:
+    """Add the deferred projection gradients to the model's `.grad`s, as autograd would have (where the fused update
+    does not apply)."""
+    grads, _ = cpu_simd.project_backward(
+        pending.means, pending.quats, pending.scales, pending.sh_dc, pending.sh_rest, False, pending.camera,
+        pending.width, pending.height, pending.sh_degree, pending.antialiased, pending.colors, pending.upstream, False)
+    g_means, g_quats, g_scales, g_dc, g_rest = grads
+    for key, grad in (("means", g_means), ("quats", g_quats), ("log_scales", g_scales * pending.scales),
+                      ("sh0", g_dc), ("shN", g_rest)):
+        param = model.params[key]
+        param.grad = grad if param.grad is None else param.grad + grad
+
+
+class FusedProjectionAdam:
+    """The Gaussians' update of a training step as one pass (see the module's docstring): `rendering(model)` around
+    the render, `step(optimizers)` in place of optim.step_optimizers."""
+
+    def __init__(self) -> None:
+        self._model: GaussianModel | None = None
+        self._deferral: deferred.Deferral | None = None
+
+    def rendering(self, model: GaussianModel) -> AbstractContextManager:
+        params = model.params
+        if any(params[key].dtype != torch.float32 or params[key].device.type != "cpu" for key in PARAM_KEYS):
+            self._model, self._deferral = None, None
+            return nullcontext()
+        self._model = model
+        self._deferral = deferred.Deferral(params["means"], params["quats"], params["log_scales"], params["sh0"],
+                                           params["shN"])
+        return deferred.deferring(self._deferral)
+
+    def step(self, optimizers: Mapping[str, torch.optim.Optimizer]) -> None:
+        model, deferral = self._model, self._deferral
+        self._model = self._deferral = None
+        pending = deferral.pending if deferral is not None else None
+        if pending is None:
+            step_optimizers(optimizers)
+            return
+        launch = together_in_one_launch(optimizers, model)
+        if launch is None:
+            finish_gradients(pending, model)
+            step_optimizers(optimizers)
+            return
+        rest = {key: opt for key, opt in optimizers.items() if key not in PARAM_KEYS}
+        if rest:
+            step_optimizers(rest)
+        update(pending, **launch)

@@ -1,0 +1,130 @@
+"""The fused update (optim/fused_projection.py: the projection's backward applies Adam, one pass over the Gaussians)
+gives the plain update's result to the bit: the plain one lets autograd finish the projection's gradients and steps
+torch's fused Adam (through adam_cpu, itself torch's to the bit: test_adam_cpu.py), whose gradients the float64 checks
+of test_project_simd.py hold. Over steps with regularizers on the scales and opacities, every SH degree, changing
+learning rates and row surgery between the steps; where it cannot apply (a camera being refined, a second render, an
+optimizer the kernel does not take) it finishes the gradients and steps as the plain update does."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from mcsplat import adam_cpu, render
+from mcsplat.gaussians import PARAM_KEYS, GaussianModel
+from mcsplat.optim import (OptimConfig, PlainUpdate, append_rows, make_optimizers, remove_rows, set_means_lr,
+                           update_for, zero_moments)
+from mcsplat.optim import fused_projection
+from mcsplat.optim.fused_projection import FusedProjectionAdam
+from mcsplat.render import set_cpu_threads
+
+from tests.render.test_render import make_camera
+from tests.training.test_adam_cpu import assert_identical
+
+pytestmark = pytest.mark.skipif(not adam_cpu.matches_torch(), reason="torch's CPU kernels here are not those the "
+                                "CPU's Adam reproduces (the fused update is not chosen)")
+
+
+def scene(n: int, seed: int) -> GaussianModel:
+    """Gaussians in front of, around and behind the camera; n odd leaves every tensor a remainder past 16 and 8."""
+    g = torch.Generator().manual_seed(seed)
+    model = GaussianModel.empty(n, sh_degree=3)
+    with torch.no_grad():
+        model.params["means"].copy_((torch.rand(n, 3, generator=g) - 0.5) * 4.0)
+        model.params["log_scales"].copy_(-4.0 + 3.0 * torch.rand(n, 3, generator=g))
+        model.params["quats"].copy_(torch.randn(n, 4, generator=g))
+        model.params["opacity_logits"].copy_(torch.randn(n, generator=g))
+        model.params["sh0"].copy_(torch.randn(n, 1, 3, generator=g))
+        model.params["shN"].copy_(0.3 * torch.randn(n, 15, 3, generator=g))
+    return model
+
+
+def twins(n: int, seed: int):
+    models = scene(n, seed), scene(n, seed)
+    return [(model, make_optimizers(model, OptimConfig(), scene_radius=2.0)) for model in models]
+
+
+def train_step(model, optimizers, update, camera, sh_degree: int, seed: int, renders: int = 1) -> None:
+    """A render (or several, summed) with a random linear loss of its colours and depth, MCMC's two regularizers."""
+    g = torch.Generator().manual_seed(seed)
+    loss = 0.01 * model.opacities.mean() + 0.01 * model.scales.mean()
+    with update.rendering(model):
+        for _ in range(renders):
+            result = render.render(model, camera, (0.1, 0.2, 0.3), sh_degree)
+            loss = loss + (result.rgb * torch.randn(result.rgb.shape, generator=g)).sum()
+            loss = loss + 0.1 * (result.depth * torch.randn(result.depth.shape, generator=g)).sum()
+    loss.backward()
+    update.step(optimizers)
+
+
+def counted_fused_updates(monkeypatch) -> list[int]:
+    calls: list[int] = []
+    fused = fused_projection.update
+    monkeypatch.setattr(fused_projection, "update", lambda *a, **k: (calls.append(1), fused(*a, **k)))
+    return calls
+
+
+def test_the_fused_update_is_the_plain_update_to_the_bit_through_steps_and_row_surgery(monkeypatch):
+    calls = counted_fused_updates(monkeypatch)
+    (plain, plain_opt), (fused, fused_opt) = twins(4001, seed=3)
+    camera = make_camera(width=70, height=50, distance=3.0)
+    updates = PlainUpdate(), FusedProjectionAdam()
+    set_cpu_threads(2, split_small_work=True)
+    try:
+        for step in range(8):
+            for (model, optimizers), update in zip(((plain, plain_opt), (fused, fused_opt)), updates):
+                set_means_lr(optimizers, 1e-3 * 0.8 ** step)
+                train_step(model, optimizers, update, camera, sh_degree=min(step // 2, 3), seed=step)
+                if step == 2:  # growth, relocation's moment reset, pruning: the state moves with the rows
+                    g = torch.Generator().manual_seed(7)
+                    append_rows(model, optimizers, {key: torch.randn((37, *model.params[key].shape[1:]),
+                                                                     generator=g) for key in PARAM_KEYS})
+                    zero_moments(optimizers, torch.arange(0, 4000, 3))
+                if step == 5:
+                    remove_rows(model, optimizers, torch.arange(model.num_gaussians) % 5 == 1)
+            assert_identical(plain, fused, plain_opt, fused_opt)
+    finally:
+        set_cpu_threads(None)
+    assert len(calls) == 8  # the fused kernel took every step
+
+
+def test_where_it_cannot_fuse_it_steps_as_the_plain_update(monkeypatch):
+    calls = counted_fused_updates(monkeypatch)
+    camera = make_camera(width=40, height=30, distance=3.0)
+    # A second render in one step: the first defers, the second backs up as usual. Three gradients of a parameter
+    # sum in another order than autograd's: the same to float32 rounding.
+    (plain, plain_opt), (fused, fused_opt) = twins(301, seed=5)
+    train_step(plain, plain_opt, PlainUpdate(), camera, 3, seed=0, renders=2)
+    train_step(fused, fused_opt, FusedProjectionAdam(), camera, 3, seed=0, renders=2)
+    for key in PARAM_KEYS:
+        a, b = plain.params[key], fused.params[key]
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-7)  # Adam's first step: the learning rate times the sign
+        for name in ("exp_avg", "exp_avg_sq"):
+            torch.testing.assert_close(plain_opt[key].state[a][name], fused_opt[key].state[b][name], rtol=1e-5,
+                                       atol=1e-12)
+    assert len(calls) == 1
+    # Optimizers the kernel does not take (torch's for-loop Adam): the deferred gradients are finished into .grad.
+    (plain, _), (fused, _) = twins(301, seed=6)
+    plain_opt, fused_opt = ({key: torch.optim.Adam([m.params[key]], lr=1e-3, foreach=False) for key in PARAM_KEYS}
+                            for m in (plain, fused))
+    for step in range(3):
+        train_step(plain, plain_opt, PlainUpdate(), camera, 3, seed=step)
+        train_step(fused, fused_opt, FusedProjectionAdam(), camera, 3, seed=step)
+    assert_identical(plain, fused, plain_opt, fused_opt)
+    assert len(calls) == 1
+    # A camera being refined needs the view's gradient within autograd's pass: nothing is deferred.
+    (plain, plain_opt), (fused, fused_opt) = twins(301, seed=8)
+    views = []
+    for model, optimizers, update in ((plain, plain_opt, PlainUpdate()), (fused, fused_opt, FusedProjectionAdam())):
+        moving = make_camera(width=40, height=30, distance=3.0)
+        moving.world_to_camera.requires_grad_()
+        train_step(model, optimizers, update, moving, 3, seed=0)
+        views.append(moving.world_to_camera.grad)
+    assert_identical(plain, fused, plain_opt, fused_opt)
+    assert torch.equal(views[0], views[1]) and len(calls) == 1
+
+
+def test_the_fused_update_is_chosen_for_one_process_on_the_cpu():
+    assert isinstance(update_for(torch.device("cpu")), FusedProjectionAdam)
+    assert isinstance(update_for(torch.device("cpu"), processes=2), PlainUpdate)
+    assert isinstance(update_for(torch.device("cuda")), PlainUpdate)
