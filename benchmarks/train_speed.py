@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/train_speed.py                                  # 10k/100k/300k x 1 and 2 threads
     .venv/bin/python benchmarks/train_speed.py --sizes 100000 --threads 2 --repeats 5
     .venv/bin/python benchmarks/train_speed.py --device cuda                    # skips cleanly without CUDA
+    .venv/bin/python benchmarks/train_speed.py --sizes 100000 --threads 2 --updates auto plain   # fused Adam or not
 
 A step is the trainer's own (mcsplat.step.Step): render a lego 400x400 training view, 0.8 L1 + 0.2 D-SSIM +
 the MCMC regularizers, backward, one Adam step per parameter, strategy.step_post_optimizer (SGLD noise; relocation
@@ -17,7 +18,8 @@ three stages are the kernel path's, wrapped with timers:
     backward_loss        from loss.backward() until the gradient of the image is complete (SSIM/L1 backward)
     backward_composite   CompositeFunction.backward (the hand-written Warp backward kernels)
     backward_projection  the rest of the backward: projection, SH and activations (torch autograd)
-    optimizer            the six Adam steps and zero_grad
+    optimizer            the six Adam steps and zero_grad (with the fused update, optim/fused_projection.py, the
+                         projection's backward too: "backward_projection" keeps autograd's activation backwards)
     strategy             step_post_backward + step_post_optimizer (noise), plus one refine step / 100 (amortised)
     other                the rest (learning-rate update, image to float, render()'s glue, the train PSNR,
                          instrumentation)
