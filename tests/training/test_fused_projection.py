@@ -3,7 +3,8 @@ gives the plain update's result to the bit: the plain one lets autograd finish t
 torch's fused Adam (through adam_cpu, itself torch's to the bit: test_adam_cpu.py), whose gradients the float64 checks
 of test_project_simd.py hold. Over steps with regularizers on the scales and opacities, every SH degree, changing
 learning rates and row surgery between the steps; where it cannot apply (a camera being refined, a second render, an
-optimizer the kernel does not take) it finishes the gradients and steps as the plain update does."""
+optimizer the kernel does not take) it finishes the gradients and steps as the plain update does; where more terms
+than one add to the projection's parameters (a normal map, a second render), the same to float32 rounding."""
 
 from __future__ import annotations
 
@@ -44,15 +45,19 @@ def twins(n: int, seed: int):
     return [(model, make_optimizers(model, OptimConfig(), scene_radius=2.0)) for model in models]
 
 
-def train_step(model, optimizers, update, camera, sh_degree: int, seed: int, renders: int = 1) -> None:
-    """A render (or several, summed) with a random linear loss of its colours and depth, MCMC's two regularizers."""
+def train_step(model, optimizers, update, camera, sh_degree: int, seed: int, renders: int = 1,
+               normals: bool = False) -> None:
+    """A render (or several, summed) with a random linear loss of its colours and depth (and its normal map, which
+    reads the scales and rotations in torch: --surface's), MCMC's two regularizers."""
     g = torch.Generator().manual_seed(seed)
     loss = 0.01 * model.opacities.mean() + 0.01 * model.scales.mean()
     with update.rendering(model):
         for _ in range(renders):
-            result = render.render(model, camera, (0.1, 0.2, 0.3), sh_degree)
+            result = render.render(model, camera, (0.1, 0.2, 0.3), sh_degree, outputs=("normals",) if normals else ())
             loss = loss + (result.rgb * torch.randn(result.rgb.shape, generator=g)).sum()
             loss = loss + 0.1 * (result.depth * torch.randn(result.depth.shape, generator=g)).sum()
+            if normals:
+                loss = loss + (result.normal * torch.randn(result.normal.shape, generator=g)).sum()
     loss.backward()
     update.step(optimizers)
 
@@ -91,18 +96,19 @@ def test_the_fused_update_is_the_plain_update_to_the_bit_through_steps_and_row_s
 def test_where_it_cannot_fuse_it_steps_as_the_plain_update(monkeypatch):
     calls = counted_fused_updates(monkeypatch)
     camera = make_camera(width=40, height=30, distance=3.0)
-    # A second render in one step: the first defers, the second backs up as usual. Three gradients of a parameter
-    # sum in another order than autograd's: the same to float32 rounding.
-    (plain, plain_opt), (fused, fused_opt) = twins(301, seed=5)
-    train_step(plain, plain_opt, PlainUpdate(), camera, 3, seed=0, renders=2)
-    train_step(fused, fused_opt, FusedProjectionAdam(), camera, 3, seed=0, renders=2)
-    for key in PARAM_KEYS:
-        a, b = plain.params[key], fused.params[key]
-        torch.testing.assert_close(a, b, rtol=0, atol=1e-7)  # Adam's first step: the learning rate times the sign
-        for name in ("exp_avg", "exp_avg_sq"):
-            torch.testing.assert_close(plain_opt[key].state[a][name], fused_opt[key].state[b][name], rtol=1e-5,
-                                       atol=1e-12)
-    assert len(calls) == 1
+    # A second render in one step (the first defers, the second backs up as usual), or a normal map in the loss:
+    # three gradients of a parameter sum in another order than autograd's, the same to float32 rounding.
+    for case in ({"renders": 2}, {"normals": True}):
+        (plain, plain_opt), (fused, fused_opt) = twins(301, seed=5)
+        train_step(plain, plain_opt, PlainUpdate(), camera, 3, seed=0, **case)
+        train_step(fused, fused_opt, FusedProjectionAdam(), camera, 3, seed=0, **case)
+        for key in PARAM_KEYS:
+            a, b = plain.params[key], fused.params[key]
+            torch.testing.assert_close(a, b, rtol=0, atol=1e-7)  # Adam's first step: the learning rate times the sign
+            for name in ("exp_avg", "exp_avg_sq"):
+                torch.testing.assert_close(plain_opt[key].state[a][name], fused_opt[key].state[b][name], rtol=1e-5,
+                                           atol=1e-12)
+    assert len(calls) == 2
     # Optimizers the kernel does not take (torch's for-loop Adam): the deferred gradients are finished into .grad.
     (plain, _), (fused, _) = twins(301, seed=6)
     plain_opt, fused_opt = ({key: torch.optim.Adam([m.params[key]], lr=1e-3, foreach=False) for key in PARAM_KEYS}
@@ -111,7 +117,7 @@ def test_where_it_cannot_fuse_it_steps_as_the_plain_update(monkeypatch):
         train_step(plain, plain_opt, PlainUpdate(), camera, 3, seed=step)
         train_step(fused, fused_opt, FusedProjectionAdam(), camera, 3, seed=step)
     assert_identical(plain, fused, plain_opt, fused_opt)
-    assert len(calls) == 1
+    assert len(calls) == 2
     # A camera being refined needs the view's gradient within autograd's pass: nothing is deferred.
     (plain, plain_opt), (fused, fused_opt) = twins(301, seed=8)
     views = []
@@ -121,7 +127,7 @@ def test_where_it_cannot_fuse_it_steps_as_the_plain_update(monkeypatch):
         train_step(model, optimizers, update, moving, 3, seed=0)
         views.append(moving.world_to_camera.grad)
     assert_identical(plain, fused, plain_opt, fused_opt)
-    assert torch.equal(views[0], views[1]) and len(calls) == 1
+    assert torch.equal(views[0], views[1]) and len(calls) == 2
 
 
 def test_the_fused_update_is_chosen_for_one_process_on_the_cpu():

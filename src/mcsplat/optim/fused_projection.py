@@ -9,9 +9,11 @@ the projection's share of the gradients to this update (render/project/deferred.
 parameters (the regularizers, --surface) is in their `.grad` and joins here, and the opacities' gradient, which
 the compositing gives, is read from theirs.
 
-The result is the plain step's to the bit (tests/training/test_fused_projection.py): the backward is the same C++
-built with the same options, the gradients sum as autograd sums them (the projection's share through exp for the
-log-scales, then the other terms'), and the Adam arithmetic is adam_cpu's, which is torch's fused CPU Adam's. Adam's
+The result is the plain step's to the bit where at most one other term adds to a parameter the projection reads (the
+regularizers; tests/training/test_fused_projection.py): the backward is the same C++ built with the same options, the
+gradients sum as autograd sums two (the projection's share through exp for the log-scales, then the other term's),
+and the Adam arithmetic is adam_cpu's, which is torch's fused CPU Adam's. Where more terms add up (--surface's render
+outputs read the scales too) the order of the sum differs: the same to float32 rounding. Adam's
 state stays in the torch.optim.Adam objects (checkpoints, row surgery and resume as before); the host counts the
 step counters up and turns them into each parameter's two step constants, as adam_cpu's kernel does per launch.
 
@@ -47,8 +49,8 @@ _SOURCE = read_snippet(__package__, "fused_projection.cpp", {
         {"means": "scratch_means", "quats": "scratch_quats", "scales": "scratch_scales", "dc": "scratch_dc",
          "rest": "scratch_rest"}, out_first="chunk_first")})
 
-# The projection backward's options (cpu_simd.py: contraction within a statement), so that its gradients are the plain
-# kernel's to the bit; the Adam part turns contraction off itself.
+# The projection backward's options (cpu_simd.py), so that its gradients are the plain kernel's to the bit; the Adam
+# part turns contraction off itself.
 wp.set_module_options({"cpu_compiler_flags": kernel_flags("-mprefer-vector-width=512 -ffp-contract=fast")})
 
 _floats = wp.array(dtype=wp.float32)
@@ -98,9 +100,9 @@ def update(pending: deferred.DeferredBackward, params: list[torch.Tensor], state
     gradients from `pending` plus each `.grad`; `states` are their Adam states (made here when empty, as torch does
     on a first step), `rates` their learning rates. The `.grad`s are dropped."""
     ensure_warp()
-    shapes = [tuple(p.shape[1:]) for p in params]
-    assert shapes[:5] == [(3,), (3,), (4,), (), (1, 3)] and shapes[5][1:] == (3,) and 3 * shapes[5][0] <= REST_MAX, (
-        f"the fused update takes the six parameters in PARAM_KEYS' order {PARAM_KEYS}, got shapes {shapes}")
+    if not takes(pending, params):  # the kernel writes the rows of `pending`'s Gaussians into `params`
+        raise ValueError(f"the fused update takes the deferred projection's own six parameters in PARAM_KEYS' order "
+                         f"{PARAM_KEYS}, got shapes {[tuple(p.shape) for p in params]}")
     for param, state in zip(params, states):
         if not state:
             state.update(step=torch.zeros((), dtype=torch.float32), exp_avg=torch.zeros_like(param),
@@ -121,6 +123,17 @@ def update(pending: deferred.DeferredBackward, params: list[torch.Tensor], state
         min_per_thread=4096 // LANES)
     for param in params:
         param.grad = None
+
+
+def takes(pending: deferred.DeferredBackward, params: list[torch.Tensor]) -> bool:
+    """Whether `params` (PARAM_KEYS' order) are the tensors `pending`'s projection read, in the shapes the kernel
+    walks (the rest SH row within its scratch row)."""
+    n = pending.means.shape[0]
+    shapes = [tuple(p.shape) for p in params]
+    return (pending.means is params[0] and pending.quats is params[2] and pending.sh_dc is params[4]
+            and pending.sh_rest is params[5] and tuple(pending.scales.shape) == (n, 3)
+            and shapes[:5] == [(n, 3), (n, 3), (n, 4), (n,), (n, 1, 3)] and len(shapes[5]) == 3
+            and shapes[5][0] == n and shapes[5][2] == 3 and 3 * shapes[5][1] <= REST_MAX)
 
 
 def finish_gradients(pending: deferred.DeferredBackward, model: GaussianModel) -> None:
@@ -162,7 +175,7 @@ class FusedProjectionAdam:
             step_optimizers(optimizers)
             return
         launch = together_in_one_launch(optimizers, model)
-        if launch is None:
+        if launch is None or not takes(pending, launch["params"]):
             finish_gradients(pending, model)
             step_optimizers(optimizers)
             return

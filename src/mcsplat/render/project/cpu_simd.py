@@ -102,9 +102,9 @@ def backward_source(outputs: dict[str, str] | None = None, out_first: str = "0")
 _BACKWARD_BODY = backward_source()
 
 
-# 512-bit vectors where the CPU has them, fused multiply-add within a statement only (`on`, decided by the compiler's
-# front end): the fused update's copy of the backward (optim/fused_projection.py) then rounds as this one, where
-# `fast` would fuse across statements differently in another kernel.
+# Same options as the compositing kernels (render/composite/cpu_simd.py): 512-bit vectors where the CPU has them, fused
+# multiply-add (`fast`, also across statements: the backward body is a lambda so that the fused update's kernel,
+# built with the same options, fuses its copy alike; tests/training/test_fused_projection.py checks the bits).
 wp.set_module_options({"cpu_compiler_flags": kernel_flags("-mprefer-vector-width=512 -ffp-contract=fast")})
 
 _int_array = wp.array(dtype=wp.int32)
