@@ -20,6 +20,9 @@ background from the start, with nvcc and ninja) or the gsplat arms are skipped, 
               tile kernels, the tile backward without its skip of unused pairs, and the scalar kernels before them
     profile   step_profile.py on lego 400 at 300k: the GPU's busy time per step against the wall time, and what
               takes the device's and the host's time
+    update    train_speed.py on lego 400 at 300k, the plain update against the fused one (the projection's backward
+              applying Adam in one Warp kernel, optim/fused_projection_warp.py), each in a fresh process: whether
+              the fused update should be CUDA's default too
     lego      mcsplat against gsplat 1.5.3 (gpu_vs_gsplat.py) on lego 400, cap 300k, 150k random points
     capture   the same on a capture at full resolution, cap 1M, 500k random points
     collapse  the same from the capture's SfM points, 14,000 steps (the cap is reached before the end), with the
@@ -57,18 +60,21 @@ import tyro
 import _common as C
 
 REPO = Path(__file__).resolve().parents[1]
-Phase = Literal["tests", "parity", "kernels", "profile", "lego", "capture", "collapse", "train", "agreement"]
+Phase = Literal["tests", "parity", "kernels", "profile", "update", "lego", "capture", "collapse", "train",
+                "agreement"]
 PHASES: tuple[Phase, ...] = typing.get_args(Phase)
 # Share of the whole time each phase may take (what one phase leaves is free for the next), and the least it needs.
-SHARES = {"tests": 0.1, "parity": 0.2, "kernels": 0.05, "profile": 0.05, "lego": 0.12, "capture": 0.18,
-          "collapse": 0.3, "train": 0.25, "agreement": 0.05}
-LEAST_SECONDS = {"tests": 30, "parity": 60, "kernels": 20, "profile": 20, "lego": 60, "capture": 90, "collapse": 90,
+SHARES = {"tests": 0.1, "parity": 0.2, "kernels": 0.05, "profile": 0.05, "update": 0.1, "lego": 0.12,
+          "capture": 0.18, "collapse": 0.3, "train": 0.25, "agreement": 0.05}
+LEAST_SECONDS = {"tests": 30, "parity": 60, "kernels": 20, "profile": 20, "update": 40, "lego": 60, "capture": 90,
+                 "collapse": 90,
                  "train": 40, "agreement": 20}
 # The training PSNR the parity phase reports at these steps (the log has it every 100 steps).
 PARITY_STEPS = (100, 500, 1000, 2500, 5000, 10000, 15000, 20000, 25000, 30000)
 # The lego and capture phases are the end-to-end training runs on the GPU (their test PSNR beside gsplat's).
 TEST_FILES = ["tests/render/test_composite_tiles.py", "tests/render/test_render.py",
-              "tests/render/test_warp_kernels.py", "tests/training/test_ssim_warp.py"]
+              "tests/render/test_warp_kernels.py", "tests/training/test_ssim_warp.py",
+              "tests/training/test_fused_projection.py"]
 
 
 @dataclass(frozen=True)
@@ -172,6 +178,18 @@ def phase_profile(args, seconds: float, log: Path) -> dict:
                             seconds)
     records = [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
     return {"exit_code": code, "seconds": round(took, 1), **(records[-1] if records else {})}
+
+
+def phase_update(args, seconds: float, log: Path, out: Path) -> dict:
+    sizes = ["--device", "cpu", "--sizes", "1000", "--threads", "1", "--repeats", "1", "--plain", "2", "--warmup", "1",
+             "--refines", "0"] if args.dry_run else \
+        ["--device", "cuda", "--sizes", "300000", "--repeats", "20", "--plain", "20"]
+    command = [sys.executable, "benchmarks/train_speed.py", "--scene", str(args.lego), *sizes, "--updates", "plain",
+               "fused", "--out", str(out / "update")]
+    code, took = run_logged(command, log, seconds)
+    records = [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
+    return {"exit_code": code, "seconds": round(took, 1),
+            "step_ms": {f"{r['update']} #{k}": r["step_ms"] for k, r in enumerate(records)}}
 
 
 def gsplat_available() -> bool:
@@ -345,6 +363,8 @@ def run_phase(name: str, args, build: GsplatBuild | None, seconds: float, log: P
         return phase_kernels(args, seconds, log)
     if name == "profile":
         return phase_profile(args, seconds, log)
+    if name == "update":
+        return phase_update(args, seconds, log, log.parent)
     if name == "lego":
         steps, timed = (20, 10) if args.dry_run else (args.lego_steps, 1000)
         cap = 3000 if args.dry_run else 300_000
@@ -388,6 +408,9 @@ def write_page(out: Path, records: list[dict]) -> str:
         elif r["phase"] == "profile":
             result = ", ".join(f"{k} {r[k]}" for k in ("gaussians", "wall_ms_per_step", "gpu_busy_ms_per_step",
                                                         "host_op_ms_per_step", "kernel_launches_per_step") if k in r)
+            result += f" (exit {r['exit_code']})"
+        elif r["phase"] == "update":
+            result = ", ".join(f"{name} {ms} ms" for name, ms in r.get("step_ms", {}).items())
             result += f" (exit {r['exit_code']})"
         elif r["phase"] in ("lego", "capture", "collapse"):
             arms = "; ".join(f"{a['arm']} {a['median_step_ms']:.2f} ms, {a['peak_gpu_mb']:.0f} MB, {a['psnr']:.2f} dB"

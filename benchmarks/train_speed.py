@@ -57,6 +57,7 @@ from mcsplat.config import TrainConfig
 from mcsplat.data import View
 from mcsplat.gaussians import GaussianModel
 from mcsplat.optim import PlainUpdate, make_optimizers, means_lr_at, update_for
+from mcsplat.optim.fused_projection import FusedProjectionAdam
 from mcsplat.render import RenderResult
 from mcsplat.render.composite.function import CompositeFunction
 from mcsplat.render.paths import TORCH_BASELINE_PATH, RenderPath, current_render_path, use_render_path
@@ -114,9 +115,10 @@ class Options:
     builds: tuple[str, ...] = ("native",)
     """CPU kernel builds to time, each in its own processes: native (this host's), or an LLVM CPU name (znver3: AVX2
     without AVX-512), optionally :LANES (4, 8, 16), e.g. znver3:8."""
-    updates: tuple[Literal["auto", "plain"], ...] = ("auto",)
+    updates: tuple[Literal["auto", "plain", "fused"], ...] = ("auto",)
     """The step's parameter update, each in its own processes: auto (the trainer's: on the CPU the projection's
-    backward fused with Adam, optim/fused_projection.py) or plain (autograd finishes every gradient, then Adam)."""
+    backward fused with Adam, optim/fused_projection.py; plain on CUDA until measured), plain (autograd finishes every
+    gradient, then Adam) or fused (on CUDA too: the Warp kernel)."""
     rounds: int = 1
     """Times each configuration runs, the builds taking turns (medians over rounds: results.md shows each run)."""
     out: str | None = None
@@ -195,7 +197,7 @@ class Bench:
         else:
             strat = ADCStrategy(ADCConfig(cap_max=n), scene.radius, generator)
         views = [View(camera, image, f"view{i}") for i, (camera, image) in enumerate(zip(cameras, images))]
-        chosen = update_for(device) if update == "auto" else PlainUpdate()
+        chosen = {"auto": update_for(device), "plain": PlainUpdate(), "fused": FusedProjectionAdam()}[update]
         return cls(model, optimizers, strat, views, tuple(scene.background), scene.radius, device, config, chosen)
 
     def camera(self, i: int) -> Camera:

@@ -15,9 +15,10 @@ from mcsplat import adam_cpu, render
 from mcsplat.gaussians import PARAM_KEYS, GaussianModel
 from mcsplat.optim import (OptimConfig, PlainUpdate, append_rows, make_optimizers, remove_rows, set_means_lr,
                            update_for, zero_moments)
-from mcsplat.optim import fused_projection
+from mcsplat.optim import fused_projection, fused_projection_warp
 from mcsplat.optim.fused_projection import FusedProjectionAdam
 from mcsplat.render import set_cpu_threads
+from mcsplat.render.composite.function import set_cpu_kernels
 
 from tests.render.test_render import make_camera
 from tests.training.test_adam_cpu import assert_identical
@@ -54,12 +55,16 @@ def train_step(model, optimizers, update, camera, sh_degree: int, seed: int, ren
     with update.rendering(model):
         for _ in range(renders):
             result = render.render(model, camera, (0.1, 0.2, 0.3), sh_degree, outputs=("normals",) if normals else ())
-            loss = loss + (result.rgb * torch.randn(result.rgb.shape, generator=g)).sum()
-            loss = loss + 0.1 * (result.depth * torch.randn(result.depth.shape, generator=g)).sum()
+            loss = loss + (result.rgb * weights_like(result.rgb, g)).sum()
+            loss = loss + 0.1 * (result.depth * weights_like(result.depth, g)).sum()
             if normals:
-                loss = loss + (result.normal * torch.randn(result.normal.shape, generator=g)).sum()
+                loss = loss + (result.normal * weights_like(result.normal, g)).sum()
     loss.backward()
     update.step(optimizers)
+
+
+def weights_like(tensor: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    return torch.randn(tensor.shape, generator=generator).to(tensor.device)
 
 
 def counted_fused_updates(monkeypatch) -> list[int]:
@@ -134,3 +139,48 @@ def test_the_fused_update_is_chosen_for_one_process_on_the_cpu():
     assert isinstance(update_for(torch.device("cpu")), FusedProjectionAdam)
     assert isinstance(update_for(torch.device("cpu"), processes=2), PlainUpdate)
     assert isinstance(update_for(torch.device("cuda")), PlainUpdate)
+
+
+def test_the_warp_kernels_fused_update_is_the_plain_update_to_float32_rounding(monkeypatch, device):
+    """The projection's Warp kernels (CUDA's; on the CPU the scalar kernels): the fused Warp kernel, its gradient rows
+    kept across steps and made again as the model grows and shrinks."""
+    calls: list[int] = []
+    fused = fused_projection_warp.update
+    monkeypatch.setattr(fused_projection_warp, "update", lambda *a, **k: (calls.append(1), fused(*a, **k)))
+    models = scene(1001, 4).to(device), scene(1001, 4).to(device)
+    (plain, plain_opt), (fused_model, fused_opt) = [(m, make_optimizers(m, OptimConfig(), scene_radius=2.0))
+                                                    for m in models]
+    camera = make_camera(width=70, height=50, distance=3.0).to(device)
+    updates = PlainUpdate(), FusedProjectionAdam()
+    set_cpu_kernels("scalar")
+    try:
+        for step in range(5):
+            for (model, optimizers), update in zip(((plain, plain_opt), (fused_model, fused_opt)), updates):
+                train_step(model, optimizers, update, camera, sh_degree=min(step, 3), seed=step)
+                if step == 1:
+                    g = torch.Generator().manual_seed(9)
+                    append_rows(model, optimizers, {key: torch.randn((21, *model.params[key].shape[1:]),
+                                                                     generator=g).to(device) for key in PARAM_KEYS})
+                if step == 3:
+                    remove_rows(model, optimizers, torch.arange(model.num_gaussians, device=device) % 4 == 1)
+    finally:
+        set_cpu_kernels("simd")
+    assert len(calls) == 5
+    for key in PARAM_KEYS:
+        a, b = plain.params[key], fused_model.params[key]
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+        for name in ("exp_avg", "exp_avg_sq"):  # near zero, a moment is a difference of rounded terms
+            ours, torchs = fused_opt[key].state[b][name], plain_opt[key].state[a][name]
+            torch.testing.assert_close(ours, torchs, rtol=1e-4, atol=1e-5 * float(torchs.abs().max()))
+
+
+def test_the_fused_warp_kernel_compiles_for_hopper_gpus_without_one(tmp_path):
+    """Warp's NVRTC builds the fused update's kernel for sm_90 (H100 / H200) on a machine with no GPU."""
+    import warp as wp
+
+    from mcsplat.compute.runtime import ensure_warp
+
+    ensure_warp()
+    module = fused_projection_warp.fused_kernel(wp.float32).module
+    (binary,) = wp.compile_aot_module(module, arch=90, module_dir=tmp_path, use_ptx=False)
+    assert binary.suffix == ".cubin" and binary.stat().st_size > 10_000

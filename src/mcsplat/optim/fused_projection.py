@@ -39,6 +39,8 @@ from ..compute.runtime import ensure_warp, flat_view, numpy_view, run_ranges
 from ..compute.simd_lanes import LANES
 from ..gaussians import PARAM_KEYS, GaussianModel
 from ..render.project import cpu_simd, deferred
+from ..render.project.warp_kernel import gradients_of
+from . import fused_projection_warp
 from .stepping import step_optimizers, together_in_one_launch
 
 REST_MAX = 45  # floats in a Gaussian's rest SH row at degree 3, the highest the model stores
@@ -139,10 +141,7 @@ def takes(pending: deferred.DeferredBackward, params: list[torch.Tensor]) -> boo
 def finish_gradients(pending: deferred.DeferredBackward, model: GaussianModel) -> None:
     """Add the deferred projection gradients to the model's `.grad`s, as autograd would have (where the fused update
     does not apply)."""
-    grads, _ = cpu_simd.project_backward(
-        pending.means, pending.quats, pending.scales, pending.sh_dc, pending.sh_rest, False, pending.camera,
-        pending.width, pending.height, pending.sh_degree, pending.antialiased, pending.colors, pending.upstream, False)
-    g_means, g_quats, g_scales, g_dc, g_rest = grads
+    g_means, g_quats, g_scales, g_dc, g_rest = gradients_of(pending)
     for key, grad in (("means", g_means), ("quats", g_quats), ("log_scales", g_scales * pending.scales),
                       ("sh0", g_dc), ("shN", g_rest)):
         param = model.params[key]
@@ -156,10 +155,11 @@ class FusedProjectionAdam:
     def __init__(self) -> None:
         self._model: GaussianModel | None = None
         self._deferral: deferred.Deferral | None = None
+        self._rows = fused_projection_warp.GradientRows()  # the Warp kernel's, kept from step to step
 
     def rendering(self, model: GaussianModel) -> AbstractContextManager:
         params = model.params
-        if any(params[key].dtype != torch.float32 or params[key].device.type != "cpu" for key in PARAM_KEYS):
+        if any(params[key].dtype != torch.float32 for key in PARAM_KEYS):
             self._model, self._deferral = None, None
             return nullcontext()
         self._model = model
@@ -174,7 +174,7 @@ class FusedProjectionAdam:
         if pending is None:
             step_optimizers(optimizers)
             return
-        launch = together_in_one_launch(optimizers, model)
+        launch = together_in_one_launch(optimizers, model, cpu=pending.simd)
         if launch is None or not takes(pending, launch["params"]):
             finish_gradients(pending, model)
             step_optimizers(optimizers)
@@ -182,4 +182,7 @@ class FusedProjectionAdam:
         rest = {key: opt for key, opt in optimizers.items() if key not in PARAM_KEYS}
         if rest:
             step_optimizers(rest)
-        update(pending, **launch)
+        if pending.simd:
+            update(pending, **launch)
+        else:
+            fused_projection_warp.update(pending, self._rows, **launch)

@@ -47,43 +47,57 @@ def step_optimizers(optimizers: Optimizers) -> None:
                 param.grad = None
 
 
-def _steps_together(opt: torch.optim.Optimizer) -> bool:
-    """Whether adam_cpu's kernel gives `opt.step()`'s result: a torch.optim.Adam(fused=True) without the options
-    and hooks the kernel does not take, its parameters (those with a gradient) and their state float32 on the CPU,
-    and torch's CPU kernels those the kernel reproduces."""
-    if type(opt) is not torch.optim.Adam or not adam_cpu.matches_torch():
+def _plain_adam(opt: torch.optim.Optimizer) -> bool:
+    """A torch.optim.Adam(fused=True) without hooks or the options a hand-written Adam step does not take."""
+    if type(opt) is not torch.optim.Adam:
         return False
     hooks = (opt._optimizer_step_pre_hooks, opt._optimizer_step_post_hooks,
              torch_optimizer._global_optimizer_pre_hooks, torch_optimizer._global_optimizer_post_hooks)
     if any(hooks) or getattr(opt, "grad_scale", None) is not None or getattr(opt, "found_inf", None) is not None:
         return False
-    for group in opt.param_groups:
-        if (not group.get("fused") or group["amsgrad"] or group["weight_decay"] or group["maximize"]
-                or group.get("decoupled_weight_decay") or group["capturable"] or group["differentiable"]
-                or isinstance(group["lr"], torch.Tensor)):
-            return False
-        if not all(adam_cpu.applies(p, opt.state.get(p, {})) for p in group["params"] if p.grad is not None):
-            return False
-    return True
+    return not any(not group.get("fused") or group["amsgrad"] or group["weight_decay"] or group["maximize"]
+                   or group.get("decoupled_weight_decay") or group["capturable"] or group["differentiable"]
+                   or isinstance(group["lr"], torch.Tensor) for group in opt.param_groups)
 
 
-def together_in_one_launch(optimizers: Optimizers, model: GaussianModel) -> dict | None:
-    """The model's six parameters as one launch of adam_cpu's arithmetic would take them (params, states, rates,
-    beta1, beta2, eps), where step_optimizers would give them that launch: each key's optimizer steps together and
-    holds that parameter alone, with the same betas and eps; their Adam state, and any `.grad` they hold, float32 and
-    contiguous on the CPU in the parameter's shape. The opacities need their gradient (torch steps no parameter
-    without one; the projection's five get theirs from the fused pass). None otherwise."""
+def _steps_together(opt: torch.optim.Optimizer) -> bool:
+    """Whether adam_cpu's kernel gives `opt.step()`'s result: a plain Adam (above), its parameters (those with a
+    gradient) and their state float32 on the CPU, and torch's CPU kernels those the kernel reproduces."""
+    if not adam_cpu.matches_torch() or not _plain_adam(opt):
+        return False
+    return all(adam_cpu.applies(p, opt.state.get(p, {}))
+               for group in opt.param_groups for p in group["params"] if p.grad is not None)
+
+
+def _state_fits(param: torch.Tensor, state: dict) -> bool:
+    """The parameter's `.grad` (if any) and Adam state in its dtype, shape and device, contiguous; the step counter a
+    float32 number there (torch's fused Adam's)."""
+    tensors = [param] + ([param.grad] if param.grad is not None else []) + [
+        state[k] for k in ("exp_avg", "exp_avg_sq") if k in state]
+    step = state.get("step")
+    return (all(t.dtype == param.dtype and t.device == param.device and t.is_contiguous() and not t.is_sparse
+                and t.shape == param.shape for t in tensors)
+            and (step is None or (step.dtype == torch.float32 and step.device == param.device and step.dim() == 0)))
+
+
+def together_in_one_launch(optimizers: Optimizers, model: GaussianModel, cpu: bool = True) -> dict | None:
+    """The model's six parameters as one fused launch takes them (params, states, rates, beta1, beta2, eps): each
+    key's optimizer a plain Adam (`cpu`: one step_optimizers gives adam_cpu's launch) holding that parameter alone,
+    with the same betas and eps; their Adam state, and any `.grad` they hold, in the parameter's dtype, shape and
+    device (`cpu`: float32 on the CPU). The opacities need their gradient (torch steps no parameter without one; the
+    projection's five get theirs from the fused pass). None otherwise."""
     if any(key not in optimizers for key in PARAM_KEYS) or model.params["opacity_logits"].grad is None:
         return None
     launch: dict = {"params": [], "states": [], "rates": []}
     settings = set()
     for key in PARAM_KEYS:
         opt, param = optimizers[key], model.params[key]
-        if not _steps_together(opt) or len(opt.param_groups) != 1 or len(opt.param_groups[0]["params"]) != 1:
+        if (not (_steps_together(opt) if cpu else _plain_adam(opt)) or len(opt.param_groups) != 1
+                or len(opt.param_groups[0]["params"]) != 1):
             return None
         group = opt.param_groups[0]
         state = opt.state.get(param, {})
-        if group["params"][0] is not param or not adam_cpu.applies(param, state):
+        if group["params"][0] is not param or not (adam_cpu.applies if cpu else _state_fits)(param, state):
             return None
         settings.add((*group["betas"], group["eps"]))
         launch["params"].append(param)

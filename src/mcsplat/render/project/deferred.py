@@ -1,7 +1,7 @@
 """The projection's parameter gradients left to the optimizer step, for an update that finishes them and applies
 Adam in the same pass over the Gaussians (optim/fused_projection.py).
 
-Within `deferring(deferral)`, a render on the CPU's SIMD kernels whose projection reads `deferral`'s parameters (the
+Within `deferring(deferral)`, a render whose projection reads `deferral`'s parameters (the
 model's positions, rotations, DC and rest SH bands as stored, and its scales as exp of its log-scales) keeps what
 its backward receives (the gradients of the 2D means, conics, depths, colours and compensations) in
 `deferral.pending` and hands autograd no gradient for those parameters: their `.grad` holds only what the other
@@ -22,20 +22,29 @@ import torch
 
 @dataclass
 class DeferredBackward:
-    """The SIMD backward's inputs (render/project/cpu_simd.project_backward's arguments), kept for the update."""
+    """The projection backward's inputs, kept for the update: the SIMD kernel's on the CPU (`simd`), else the Warp
+    kernel's (CUDA; the CPU's scalar kernels)."""
 
     means: torch.Tensor
     quats: torch.Tensor
     scales: torch.Tensor  # exp(log_scales), as the projection read them
     sh_dc: torch.Tensor
     sh_rest: torch.Tensor
-    camera: torch.Tensor  # packed, cpu_simd.CAMERA_LAYOUT
-    width: int
-    height: int
+    camera_args: tuple  # warp_kernel._camera_arguments
+    camera: torch.Tensor | None  # packed as cpu_simd.CAMERA_LAYOUT (the SIMD kernel's)
     sh_degree: int
     antialiased: bool
-    colors: torch.Tensor  # the forward's
+    colors: torch.Tensor | None  # the forward's (the SIMD backward reads them for the clamp)
     upstream: list[torch.Tensor]  # gradients of means2d, conics, depths, colours, compensations
+    simd: bool
+
+    @property
+    def width(self) -> int:
+        return self.camera_args[7]
+
+    @property
+    def height(self) -> int:
+        return self.camera_args[8]
 
 
 class Deferral:

@@ -200,9 +200,9 @@ def projection_kernels(dtype):
         else:
             alpha_extent[i] = vec2(zero, zero)
 
-    @wp.kernel(module="unique")
-    def project_backward(
-        offset: int, rotation: mat33, translation: vec3, camera_center: vec3,
+    @wp.func
+    def backward_of_gaussian(
+        i: int, rotation: mat33, translation: vec3, camera_center: vec3,
         fx: dtype, fy: dtype, cx: dtype, cy: dtype, width: int, height: int, near: dtype, far: dtype,
         eps2d: dtype, sh_degree: int, antialiased: int,
         means: wp.array(dtype=vec3), quats: wp.array(dtype=vec4), scales: wp.array(dtype=vec3),
@@ -215,8 +215,9 @@ def projection_kernels(dtype):
     ):
         """Recomputes the forward and applies the chain rule by hand, step by step in reverse. With `view_grad`,
         also this Gaussian's share of the gradient of the world-to-camera rotation W (row-major, out_view[i, 0:9])
-        and translation t (out_view[i, 9:12]), which the caller sums (pose refinement)."""
-        i = offset + wp.tid()
+        and translation t (out_view[i, 9:12]), which the caller sums (pose refinement). Gaussian i's rows of the
+        outputs are written where some gradient reaches it, and its SH rows up to `sh_degree` only: the caller
+        zeroes them first."""
         g_mean2d = grad_means2d[i]
         g_conic = grad_conics[i]
         g_depth = grad_depths[i]
@@ -388,6 +389,27 @@ def projection_kernels(dtype):
                     out_view[i, 3 * r + col] = g_w[r, col]
                 out_view[i, 9 + r] = g_t[r]
 
+    @wp.kernel(module="unique")
+    def project_backward(
+        offset: int, rotation: mat33, translation: vec3, camera_center: vec3,
+        fx: dtype, fy: dtype, cx: dtype, cy: dtype, width: int, height: int, near: dtype, far: dtype,
+        eps2d: dtype, sh_degree: int, antialiased: int,
+        means: wp.array(dtype=vec3), quats: wp.array(dtype=vec4), scales: wp.array(dtype=vec3),
+        sh_dc: wp.array2d(dtype=vec3), sh_rest: wp.array2d(dtype=vec3), rest_shift: int,
+        grad_means2d: wp.array(dtype=vec2), grad_conics: wp.array(dtype=vec3), grad_depths: wp.array(dtype=dtype),
+        grad_colors: wp.array(dtype=vec3), grad_compensations: wp.array(dtype=dtype),
+        out_means: wp.array(dtype=vec3), out_quats: wp.array(dtype=vec4), out_scales: wp.array(dtype=vec3),
+        out_dc: wp.array2d(dtype=vec3), out_rest: wp.array2d(dtype=vec3),
+        view_grad: int, out_view: wp.array2d(dtype=dtype),
+    ):
+        """backward_of_gaussian for Gaussians offset + tid (the outputs zeroed by the caller)."""
+        backward_of_gaussian(
+            offset + wp.tid(), rotation, translation, camera_center, fx, fy, cx, cy, width, height, near, far, eps2d,
+            sh_degree, antialiased, means, quats, scales, sh_dc, sh_rest, rest_shift, grad_means2d, grad_conics,
+            grad_depths, grad_colors, grad_compensations, out_means, out_quats, out_scales, out_dc, out_rest,
+            view_grad, out_view)
+
+    project_backward.of_gaussian = backward_of_gaussian  # the fused update's kernel calls it (optim/fused_projection)
     return project, project_backward
 
 
@@ -430,7 +452,7 @@ class _ProjectFunction(torch.autograd.Function):
         ctx.save_for_backward(means, quats, scales, sh_dc, sh_rest, colors if ctx.simd else None)
         ctx.camera_args, ctx.sh_degree, ctx.antialiased = camera_args, sh_degree, antialiased
         ctx.view_like = None if world_to_camera is None else world_to_camera.detach()
-        ctx.deferral = deferral if ctx.simd else None
+        ctx.deferral = deferral
         ctx.mark_non_differentiable(radii, tile_min, tile_max, alpha_extent)
         return means2d, conics, depths, colors, compensations, radii, tile_min, tile_max, alpha_extent
 
@@ -443,8 +465,8 @@ class _ProjectFunction(torch.autograd.Function):
         view_grad = ctx.needs_input_grad[10]
         if ctx.deferral is not None:  # the update finishes these gradients (deferred.py)
             ctx.deferral.pending = deferred.DeferredBackward(
-                means, quats, scales, sh_dc, sh_rest, ctx.packed_camera, *ctx.camera_args[7:9], ctx.sh_degree,
-                ctx.antialiased, colors, upstream)
+                means, quats, scales, sh_dc, sh_rest, ctx.camera_args, ctx.packed_camera, ctx.sh_degree,
+                ctx.antialiased, colors, upstream, ctx.simd)
             ctx.deferral = None
             return (None,) * 12
         if ctx.simd:
@@ -466,6 +488,20 @@ class _ProjectFunction(torch.autograd.Function):
         return (*grads[:4], grad_rest, None, None, None, None, None, grad_view, None)
 
 
+def gradients_of(pending: deferred.DeferredBackward) -> list[torch.Tensor]:
+    """The parameter gradients a deferred backward owes (means, quats, scales, sh_dc, sh_rest), from the kernels its
+    forward ran."""
+    if pending.simd:
+        grads, _ = simd.project_backward(pending.means, pending.quats, pending.scales, pending.sh_dc, pending.sh_rest,
+                                         False, pending.camera, pending.width, pending.height, pending.sh_degree,
+                                         pending.antialiased, pending.colors, pending.upstream, False)
+    else:
+        grads, _ = _scalar_backward(pending.means, pending.quats, pending.scales, pending.sh_dc, pending.sh_rest,
+                                    False, pending.camera_args, pending.sh_degree, pending.antialiased,
+                                    pending.upstream, False)
+    return grads
+
+
 def _scalar_forward(means, quats, scales, opacities, sh_dc, sh_rest, together: bool, camera_args: tuple,
                     sh_degree: int, opacity_aware_radius: bool, antialiased: bool) -> list[torch.Tensor]:
     """The forward outputs from the Warp kernel (one thread per Gaussian): CUDA, float64, or the CPU's second
@@ -479,7 +515,7 @@ def _scalar_forward(means, quats, scales, opacities, sh_dc, sh_rest, together: b
     means2d, conics, depths, colors, compensations, radii, tile_min, tile_max, alpha_extent = outputs
     forward_kernel, _ = projection_kernels(scalar)
     run_ranges(forward_kernel, n, device, [
-        *_warp_camera(camera_args, scalar), sh_degree, int(opacity_aware_radius), int(antialiased),
+        *warp_camera_arguments(camera_args, scalar), sh_degree, int(opacity_aware_radius), int(antialiased),
         _vector_view(means, 3, scalar), _vector_view(quats, 4, scalar), _vector_view(scales, 3, scalar),
         _scalar_view(opacities), _vector_view(sh_dc, 3, scalar), _vector_view(sh_rest, 3, scalar),
         int(together), _vector_view(means2d, 2, scalar), _vector_view(conics, 3, scalar),
@@ -496,7 +532,7 @@ def _scalar_backward(means, quats, scales, sh_dc, sh_rest, together: bool, camer
     grads = [torch.zeros_like(t) for t in (means, quats, scales, sh_dc)]
     grads.append(grads[3] if together else torch.zeros_like(sh_rest))
     _, backward_kernel = projection_kernels(scalar)
-    warp_camera = _warp_camera(camera_args, scalar)
+    warp_camera = warp_camera_arguments(camera_args, scalar)
     warp_camera = warp_camera[:9] + warp_camera[11:]  # the backward has no use for the tile counts
     per_gaussian_view = torch.zeros((n if view_grad else 1, 12), dtype=means.dtype, device=means.device)
     run_ranges(backward_kernel, n, means.device, [
@@ -519,7 +555,7 @@ def _camera_arguments(camera: Camera, near: float, far: float, eps2d: float) -> 
             -(-camera.width // TILE_SIZE), -(-camera.height // TILE_SIZE), float(near), float(far), float(eps2d))
 
 
-def _warp_camera(camera_args: tuple, scalar) -> tuple:
+def warp_camera_arguments(camera_args: tuple, scalar) -> tuple:
     """The camera's numbers as the Warp kernels' arguments, in scalar type `scalar`."""
     rotation, translation, center, fx, fy, cx, cy, width, height, tiles_x, tiles_y, near, far, eps2d = camera_args
     mat33 = wp.types.matrix((3, 3), scalar)
@@ -550,8 +586,7 @@ def project_and_shade(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
     camera_args = _camera_arguments(camera, near, far, eps2d)
     view = camera.world_to_camera if camera.world_to_camera.requires_grad else None  # pose refinement
     deferral = deferred.current()
-    if deferral is not None and (view is not None or kernels_for(means) != "simd"
-                                 or not deferral.accepts(means, quats, scales, sh, sh_rest)):
+    if deferral is not None and (view is not None or not deferral.accepts(means, quats, scales, sh, sh_rest)):
         deferral = None
     if deferral is not None:
         deferral.taken = True
