@@ -175,12 +175,13 @@ def test_the_warp_kernels_fused_update_is_the_plain_update_to_float32_rounding(m
 
 
 def test_the_fused_warp_kernel_compiles_for_hopper_gpus_without_one(tmp_path):
-    """Warp's NVRTC builds the fused update's kernel for sm_90 (H100 / H200) on a machine with no GPU."""
+    """Warp's NVRTC compiles the fused update's kernel for sm_90 (H100 / H200) on a machine with no GPU (to PTX: half
+    the time of a cubin, and the CUDA source is what could fail here)."""
     import warp as wp
 
     from mcsplat.compute.runtime import ensure_warp
 
     ensure_warp()
     module = fused_projection_warp.fused_kernel(wp.float32).module
-    (binary,) = wp.compile_aot_module(module, arch=90, module_dir=tmp_path, use_ptx=False)
-    assert binary.suffix == ".cubin" and binary.stat().st_size > 10_000
+    (ptx,) = wp.compile_aot_module(module, arch=90, module_dir=tmp_path, use_ptx=True)
+    assert ptx.suffix == ".ptx" and "project_backward_adam" in ptx.read_text()
