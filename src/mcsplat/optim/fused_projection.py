@@ -19,7 +19,8 @@ step counters up and turns them into each parameter's two step constants, as ada
 
 The update applies where the plain step would run adam_cpu's kernel on exactly the model's six optimizers; anywhere
 else (another optimizer, a projection that did not defer) it finishes the deferred gradients into `.grad` and steps
-as usual.
+as usual. A projection that ran the Warp kernels (CUDA; the CPU's scalar kernels) gets the same update from
+fused_projection_warp.py's kernel, to float32 rounding.
 """
 
 from __future__ import annotations
