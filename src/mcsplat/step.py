@@ -26,7 +26,7 @@ from .data import View
 from .errors import MCSplatError
 from .gaussians import GaussianModel
 from .loss_terms import LossTerm, StepContext, render_outputs, standard_terms, total_loss
-from .metrics import psnr
+from .metrics import StepValues, psnr_on_device
 from .optim import ParameterUpdate, PlainUpdate, means_lr_at, set_means_lr
 from .per_image import PerImageModule
 from .planning import Plan
@@ -38,16 +38,55 @@ from .strategy.noise import noise_lr_at
 
 @dataclass
 class StepResult:
-    loss: float
-    train_psnr: float
+    values: StepValues  # the loss and train PSNR, read when asked
     refine: RefineReport  # what the strategy did after the optimizer step
 
+    @property
+    def loss(self) -> float:
+        return self.values.loss
 
-Reduce = Callable[[GaussianModel, list[float]], list[float]]
+    @property
+    def train_psnr(self) -> float:
+        return self.values.train_psnr
 
 
-def _alone(model: GaussianModel, values: list[float]) -> list[float]:
+Reduce = Callable[[GaussianModel, torch.Tensor], torch.Tensor]
+
+
+def _alone(model: GaussianModel, values: torch.Tensor) -> torch.Tensor:
     return values
+
+
+class FiniteLoss:
+    """The losses of the steps since the last check, a row each in a buffer on the step's device, so that no step
+    waits to read its loss; `check()` reads them (the trainer does every few steps and before a checkpoint; a step
+    checks by itself when the buffer is full)."""
+
+    ROWS = 64
+
+    def __init__(self) -> None:
+        self._rows: torch.Tensor | None = None  # [ROWS, k]: each step's reduced values, the loss first
+        self._steps: list[int] = []  # the step of each row written since the last check
+
+    def add(self, step: int, values: torch.Tensor) -> None:
+        if self._rows is None or self._rows.device != values.device or self._rows.shape[1:] != values.shape:
+            self.check()
+            self._rows = torch.empty((self.ROWS, *values.shape), dtype=values.dtype, device=values.device)
+        elif len(self._steps) == self.ROWS:
+            self.check()
+        self._rows[len(self._steps)].copy_(values)
+        self._steps.append(step)
+
+    def check(self) -> None:
+        if not self._steps:
+            return
+        losses = self._rows[:len(self._steps), 0].tolist()
+        steps, self._steps = self._steps, []
+        for step, loss in zip(steps, losses):
+            if not math.isfinite(loss):
+                raise MCSplatError(f"step {step}: the loss became {loss}; lower the learning rates or the loss "
+                                   f"terms' weights (--surface-*, --appearance-*, --*depth*), or check the input "
+                                   f"images")
 
 
 class StepPhases(Protocol):
@@ -73,7 +112,10 @@ class Step:
     given, is told where each step is; `update` takes the optimizers' step around the render and after the backward
     (optim/update.py: the plain one, or on the CPU the projection's backward fused with Adam). The model's
     parameters and Adam's state change as the run goes (row surgery replaces them in place in `model.params` and the
-    optimizers), never the objects themselves."""
+    optimizers), never the objects themselves.
+
+    A step reads nothing back from the device (a GPU's queue never waits for the host): the loss and PSNR stay there
+    until a consumer reads them, and whether the loss stayed finite is read by `check_finite()`."""
 
     model: GaussianModel
     optimizers: dict[str, torch.optim.Optimizer]
@@ -87,6 +129,7 @@ class Step:
     loss_terms: Sequence[LossTerm] | None = None
     phases: StepPhases | None = None
     update: ParameterUpdate = field(default_factory=PlainUpdate)
+    finite: FiniteLoss = field(default_factory=FiniteLoss, init=False)
 
     def on(self, model: GaussianModel, optimizers: dict, strategy: Strategy) -> Step:
         """The same step on another model, alone and without the run's modules and terms (--budget times throwaway
@@ -110,7 +153,7 @@ class Step:
         if terms is None:
             terms = standard_terms(self.config.ssim_weight, strategy, modules)
         lap("other")
-        with self.update.rendering(model):
+        with self.update.rendering(model), render.pairs_sized_ahead():
             result = render.render(model, camera, self.background, plan.sh_degree_at(step),
                                    outputs=render_outputs(terms, step, plan.steps))
         lap("render")
@@ -126,10 +169,8 @@ class Step:
         lap("backward")
         strategy.step_post_backward(step, model, result, camera.width, camera.height)
         lap("strategy")
-        loss_value, train_psnr = self.reduce(model, [loss.item(), psnr(rgb.detach(), target)])
-        if not math.isfinite(loss_value):  # checked after the reduce, so that every process stops at the same step
-            raise MCSplatError(f"step {step}: the loss became {loss_value}; lower the learning rates or the loss "
-                               f"terms' weights (--surface-*, --appearance-*, --*depth*), or check the input images")
+        values = self.reduce(model, torch.stack([loss.detach(), psnr_on_device(rgb, target)]))
+        self.finite.add(step, values)  # after the reduce, so that every process stops at the same step
         lap("reduce")
         self.update.step(optimizers)  # and the gradients dropped
         for module in modules:
@@ -141,7 +182,11 @@ class Step:
                                               noise_lr_at(self.config.mcmc.noise_schedule, step + 1, plan.steps,
                                                           plan.optim, self.scene_radius))
         lap("strategy")
-        return StepResult(loss=loss_value, train_psnr=train_psnr, refine=refine)
+        return StepResult(StepValues(values), refine)
+
+    def check_finite(self) -> None:
+        """Stop the run (MCSplatError) if a loss since the first step was not a finite number."""
+        self.finite.check()
 
 
 def step_kernels(device: torch.device, appearance: str = "none") -> list:

@@ -9,6 +9,8 @@ import contextlib
 import signal
 from typing import Iterator
 
+import torch
+
 from .distributed import Team
 from .run.events import Control
 from .gaussians import GaussianModel
@@ -91,13 +93,18 @@ class AgreedRequests:
         self.control, self.team = control, team
         self._stop = self._checkpoint = False  # the votes of the last step's reduce
 
-    def reduce(self, model: GaussianModel, values: list[float]) -> list[float]:
-        """The step's reduce (step.Step): the values averaged, the requests voted."""
+    def reduce(self, model: GaussianModel, values: torch.Tensor) -> torch.Tensor:
+        """The step's reduce (step.Step): the values averaged, the requests voted. Alone, nothing to do: the values
+        stay on the device unread."""
+        if self.team.world_size == 1:
+            return values
         control = self.control
-        *averaged, stop, checkpoint = self.team.reduce_step(
-            model, values + [float(control.stop_requested), float(control.checkpoint_requested)])
+        votes = torch.tensor([float(control.stop_requested), float(control.checkpoint_requested)],
+                             dtype=values.dtype, device=values.device)
+        averaged = self.team.reduce_step(model, torch.cat([values, votes]))
+        stop, checkpoint = averaged[-2:].tolist()  # the processes wait for each other in the all-reduce anyway
         self._stop, self._checkpoint = stop > 0, checkpoint > 0
-        return averaged
+        return averaged[:-2]
 
     def stop(self) -> bool:
         return self.control.stop_requested if self.team.world_size == 1 else self._stop

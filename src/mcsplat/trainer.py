@@ -32,6 +32,7 @@ from .strategy.base import asks_the_scene, changed
 from .visibility import count_invisible
 
 PREFETCH_VIEWS = 2  # images decoded in the background ahead of their step (a no-op when all are in memory)
+CHECK_LOSS_EVERY = 10  # steps between two reads of whether the loss stayed finite (and before a checkpoint)
 
 
 class TrainingRun:
@@ -73,6 +74,7 @@ class TrainingRun:
     def save_checkpoint(self) -> None:
         """Rank 0 writes the checkpoint; every process calls this at the same steps, for the strategy's state
         differs between them (ADC's statistics of each process's own views) and rank 0 keeps them all."""
+        self.one_step.check_finite()  # never a checkpoint of a model a loss that was not finite has stepped
         self._saved_at = self.state.step
         strategies = self.team.gather_on_main(self.state.strategy.state_dict())
         if not self.team.is_main:
@@ -127,6 +129,10 @@ class TrainingRun:
                     self.scene.train[index].prefetch()                                   # are not all in memory
                 count, scale = state.model.num_gaussians, plan.resolution_at(state.step)
                 done = self.one_step(state.step, view, plan, view_index)
+                if self.planner.budget_seconds is not None:  # a plan on the clock times the device's work,
+                    done.values.read()                       # not how long queueing it took
+                if (state.step + 1) % CHECK_LOSS_EVERY == 0:
+                    self.one_step.check_finite()
                 if changed(done.refine):
                     emit(RefineDone(step=state.step, report=done.refine))
                 state.step += 1
@@ -143,7 +149,7 @@ class TrainingRun:
             self.planner.after_step(seconds, count, scale, step=step, wall_seconds=state.wall_seconds,
                                     gaussians_now=state.model.num_gaussians)
             plan, emitted = self.plan, time.perf_counter()
-            emit(StepDone(step=step, total_steps=plan.steps, loss=done.loss, train_psnr=done.train_psnr,
+            emit(StepDone(step=step, total_steps=plan.steps, values=done.values,
                           num_gaussians=state.model.num_gaussians, sh_degree=plan.sh_degree_at(step - 1),
                           train_seconds=state.train_seconds, refine=done.refine, resolution=scale))
             state.wall_seconds += time.perf_counter() - emitted

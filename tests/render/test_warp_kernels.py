@@ -85,7 +85,7 @@ def test_binning_kernels_match_torch_binning(dtype, masks, kernels, device):
     extra = dict(means2d=p.means2d, alpha_extent=p.alpha_extent) if masks else {}
     set_cpu_kernels(kernels)
     try:
-        bins = bin_gaussians(p.tile_min, p.tile_max, p.depths, p.radii, 8, 6, **extra)
+        bins = bin_gaussians(p.tile_min, p.tile_max, p.depths, p.radii, 8, 6, **extra).listed()
     finally:
         set_cpu_kernels("simd")
     expected = torch_bin_gaussians(p.tile_min, p.tile_max, p.depths, p.radii, 8, 6, **extra)

@@ -51,7 +51,7 @@ def fake_result(pixel_grads: torch.Tensor, radii: torch.Tensor) -> RenderResult:
     means2d.grad = pixel_grads.clone()
     return RenderResult(rgb=torch.zeros(1, 1, 3), alpha=torch.zeros(1, 1), depth=torch.zeros(1, 1),
                         means2d=means2d, radii=radii.to(torch.int32), depths=torch.ones(n),
-                        contributed=radii > 0, num_pairs=0)
+                        contributed=radii > 0)
 
 
 def feed_two_views(strategy: ADCStrategy, model: GaussianModel, step: int = 10) -> None:

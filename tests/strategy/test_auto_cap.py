@@ -11,6 +11,7 @@ import torch
 
 from mcsplat.config import TrainConfig, from_jsonable, to_jsonable
 from mcsplat.errors import MCSplatError
+from mcsplat.metrics import StepValues
 from mcsplat.optim import OptimConfig, make_optimizers
 from mcsplat.strategy.auto_cap import growth_demand, pixel_ceiling
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCReport, MCMCStrategy
@@ -149,7 +150,7 @@ def test_the_log_keeps_the_last_demand_and_sums_the_counts(tmp_path):
         refine = step % 10 == 0
         report = MCMCReport(num_gaussians=1000, relocated=2 if refine else 0, added=3 if refine else 0,
                             demand=100 + step if refine else None)
-        log.on_step_done(StepDone(step=step, total_steps=1000, loss=0.1, train_psnr=20.0, num_gaussians=1000,
+        log.on_step_done(StepDone(step=step, total_steps=1000, values=StepValues.of(0.1, 20.0), num_gaussians=1000,
                                   sh_degree=0, train_seconds=1.0, refine=report))
     record = json.loads((tmp_path / "log.jsonl").read_text())
     assert (record["relocated"], record["added"], record["demand"]) == (20, 30, 100 + LOG_EVERY)

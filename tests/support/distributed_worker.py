@@ -101,7 +101,7 @@ def reduce_once(rank: int, world_size: int, init_file: str, results: str) -> Non
         for key, p in model.params.items():
             if key != "quats":  # one parameter without a gradient: it counts as zeros
                 p.grad = torch.arange(p.numel(), dtype=p.dtype).reshape(p.shape) * (rank + 1)
-        values = team.reduce_step(model, [10.0 * (rank + 1), 1.0 if rank == 1 else 0.0])
+        values = team.reduce_step(model, torch.tensor([10.0 * (rank + 1), 1.0 if rank == 1 else 0.0])).tolist()
         grads = {key: p.grad.reshape(-1).tolist() for key, p in model.params.items()}
         (Path(results) / f"rank{rank}.json").write_text(json.dumps({"values": values, "grads": grads,
                                                                    "listening": listening_addresses()}))

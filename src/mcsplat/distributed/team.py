@@ -52,7 +52,7 @@ class SingleProcess:
     def share_parameters(self, model: GaussianModel) -> None:
         pass
 
-    def reduce_step(self, model: GaussianModel, values: list[float]) -> list[float]:
+    def reduce_step(self, model: GaussianModel, values: torch.Tensor) -> torch.Tensor:
         return values
 
     def check_identical(self, model: GaussianModel, step: int) -> None:
@@ -146,16 +146,16 @@ class ProcessGroup:
                 self._dist.broadcast(moved, src=0)
                 data.copy_(moved)
 
-    def reduce_step(self, model: GaussianModel, values: list[float]) -> list[float]:
-        """Average every parameter's gradient over the processes with one all-reduce; `values` (the step's loss,
-        PSNR, ...) ride at the end of the same buffer and come back averaged. The gradients become views of the
-        buffer (no copy back)."""
+    def reduce_step(self, model: GaussianModel, values: torch.Tensor) -> torch.Tensor:
+        """Average every parameter's gradient over the processes with one all-reduce; `values` ([k]: the step's
+        loss, PSNR, ...) ride at the end of the same buffer and come back averaged, in their own dtype and device.
+        The gradients become views of the buffer (no copy back)."""
         params = [model.params[key] for key in PARAM_KEYS]
         for p in params:
             if p.grad is None:
                 p.grad = torch.zeros_like(p)
         grads = [p.grad.reshape(-1).to(self._tensors) for p in params]
-        tail = torch.tensor(values, dtype=grads[0].dtype, device=self._tensors)
+        tail = values.detach().to(dtype=grads[0].dtype, device=self._tensors)
         size = sum(g.numel() for g in grads) + tail.numel()
         if self._flat is None or self._flat.numel() != size or self._flat.dtype != tail.dtype:
             self._flat = torch.empty(size, dtype=tail.dtype, device=self._tensors)  # kept: fresh pages cost
@@ -163,7 +163,7 @@ class ProcessGroup:
         with self._talking("the gradient all-reduce"):
             self._dist.all_reduce(flat)
             flat.mul_(1.0 / self.world_size)
-            averaged = flat[-tail.numel():].tolist()  # on CUDA the wait for the others happens here
+            averaged = flat[-tail.numel():].to(dtype=values.dtype, device=values.device, copy=True)
         offset = 0
         for p in params:
             count = p.numel()

@@ -20,13 +20,14 @@ import torch
 from ..camera import Camera
 from ..compute.runtime import cpu_threads, ensure_warp, set_cpu_threads
 from ..geometry.sh import degree_from_bases
+from .bin.pair_room import sized_ahead as pairs_sized_ahead
 from .bin.warp_kernels import TileBins
 from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
 from .outputs.passes import PassInputs, passes_for
 from .paths import RenderPath, current_render_path
 
 __all__ = ["render", "RenderResult", "Splats", "GaussiansLike", "set_cpu_threads", "cpu_threads", "ensure_warp",
-           "training_kernels"]
+           "training_kernels", "pairs_sized_ahead"]
 
 
 class GaussiansLike(Protocol):
@@ -63,7 +64,6 @@ class RenderResult:
     radii: torch.Tensor        # [N] int32 pixel radius, 0 where culled
     depths: torch.Tensor       # [N] camera-space z of each Gaussian
     contributed: torch.Tensor  # [N] bool: the Gaussian was composited into at least one pixel
-    num_pairs: int             # (tile, Gaussian) intersections
     # The outputs given only when asked (render(outputs={...}); outputs/passes.py), else None:
     # [H, W] "median_depth": the depth along the pixel's ray where the Gaussian at which the accumulated alpha first
     # reaches 0.5 (the last one composited where it never does) is densest; 0 where none is composited. No gradient.
@@ -77,6 +77,12 @@ class RenderResult:
     # [H, W] "distortion": 2DGS's depth distortion, sum over the pixel's pairs of Gaussians of w_i w_j (1/z_i -
     # 1/z_j)^2 (units^-2), with gradients. A compositing pass of its own.
     distortion: torch.Tensor | None = None
+    bins: TileBins | None = None  # the per-tile lists the render composited
+
+    @property
+    def num_pairs(self) -> int:
+        """(tile, Gaussian) intersections; read from the device when the lists sit in a room (a training step's)."""
+        return 0 if self.bins is None else self.bins.num_pairs
 
     @property
     def visible(self) -> torch.Tensor:
@@ -135,7 +141,7 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
                         median_ids[0] if with_median else None)
     given = {field: value for output_pass in passes for field, value in output_pass.run(inputs, asked).items()}
     return RenderResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=projection.radii,
-                        depths=projection.depths, contributed=contributed, num_pairs=bins.num_pairs, **given)
+                        depths=projection.depths, contributed=contributed, bins=bins, **given)
 
 
 def _sh_arrays(gaussians: GaussiansLike) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -178,7 +184,8 @@ def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -
         return [project_simd.project_simd, project_simd.project_backward_simd, cpu_loops.count_pairs_cpu,
                 cpu_loops.slot_offsets_cpu, cpu_loops.write_pairs_cpu, cpu_loops.split_pairs_cpu,
                 composite_simd.composite_forward_simd, composite_simd.composite_backward_simd]
-    found = [*project_warp.projection_kernels(scalar), bin_warp._count_pairs, bin_warp._write_pairs]
+    found = [*project_warp.projection_kernels(scalar), bin_warp._count_pairs, bin_warp._write_pairs,
+             bin_warp._tile_ranges]
     if choice == "tile":
         return found + [warp_tiles.forward_kernel(scalar), warp_tiles.backward_kernel(scalar)]
     return found + list(composite_scalar.composite_kernels(scalar))

@@ -178,7 +178,8 @@ class ADCStrategy:
         self._ensure_stats(model)
         visible = self.gradients.add(render_result, model.num_gaussians, width, height)
         radii = render_result.radii
-        self.max_radii[visible] = torch.maximum(self.max_radii[visible], radii[visible].to(self.max_radii.dtype))
+        grown = torch.maximum(self.max_radii, radii.to(self.max_radii.dtype))
+        self.max_radii.copy_(torch.where(visible, grown, self.max_radii))  # dense: no count of the visible ones
 
     @torch.no_grad()
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Optimizers,

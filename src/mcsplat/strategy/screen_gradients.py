@@ -17,7 +17,8 @@ __all__ = ["ndc_gradient_norms", "ScreenGradients"]
 
 def ndc_gradient_norms(render_result: Any, num_gaussians: int, width: int, height: int
                        ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(visible [N] bool, the NDC gradient norm of each visible Gaussian) of one render after its backward."""
+    """(visible [N] bool, [N] the NDC gradient norm of each Gaussian, 0 where not visible) of one render after its
+    backward; dense, so that nothing waits to count the visible ones."""
     grad = render_result.means2d.grad
     if grad is None:
         raise RuntimeError("the screen-space gradient statistic needs render_result.means2d.grad: call it after "
@@ -26,7 +27,8 @@ def ndc_gradient_norms(render_result: Any, num_gaussians: int, width: int, heigh
         raise ValueError(f"the render has {grad.shape[0]} Gaussians but the model {num_gaussians}")
     visible = render_result.radii > 0
     ndc_scale = torch.tensor([0.5 * width, 0.5 * height], dtype=grad.dtype, device=grad.device)
-    return visible, torch.linalg.vector_norm(grad[visible] * ndc_scale, dim=-1)
+    norms = torch.linalg.vector_norm(grad * ndc_scale, dim=-1)
+    return visible, torch.where(visible, norms, torch.zeros_like(norms))
 
 
 class ScreenGradients:
@@ -46,8 +48,8 @@ class ScreenGradients:
         visible, norms = ndc_gradient_norms(render_result, num_gaussians, width, height)
         if self.total is None or self.total.shape[0] != num_gaussians:
             self.reset(num_gaussians, visible.device)
-        self.total[visible] += norms.to(self.total.dtype)
-        self.views[visible] += 1
+        self.total += norms.to(self.total.dtype)
+        self.views += visible
         return visible
 
     def to(self, device: torch.device) -> None:

@@ -8,11 +8,13 @@ The Gaussians are sorted by depth first (a radix sort of N keys; equal depths by
 of a Gaussian are the tiles of its rectangle that its alpha span reaches, a rectangle of tiles too, so a first kernel
 counts them without walking them; a prefix sum in depth order gives every Gaussian its slots, and a second kernel
 writes its pairs there front to back, keyed by their tile. A stable radix sort of the tile keys (one pass of 16 bits
-up to 65,536 tiles) then groups the pairs by tile, each tile front to back. One sort of the pairs by (tile, depth)
-gives the same lists but needs three 16-bit passes over pairs that outnumber the Gaussians ten to one, and walking
-every tile of the rectangle twice cost as much again (both shapes timed on the cup's trained model:
-docs/measurements-log.md, "The coarse phase's length chosen by --budget, and binning by depth then tile, 2026-11-26
-(later)").
+up to 65,536 tiles) then groups the pairs by tile, each tile front to back, and a last kernel finds each tile's run.
+In a training step the lists sit at the front of a room sized ahead (pair_room.py), its empty slots keyed past the
+last tile so that they sort last: the step's launches then have sizes known before it, and nothing is read. One sort
+of the pairs by (tile, depth) gives the same lists but needs three 16-bit passes over pairs that outnumber the
+Gaussians ten to one, and walking every tile of the rectangle twice cost as much again (both shapes timed on the
+cup's trained model: docs/measurements-log.md, "The coarse phase's length chosen by --budget, and binning by depth
+then tile, 2026-11-26 (later)").
 
 CUDA runs these Warp kernels and Warp's CUB radix sort; this shape has been checked on the CPU only (the tests compare
 the lists with the torch binning's) until a GPU run is recorded in benchmarks/README.md ("GPU"). The CPU runs the
@@ -31,7 +33,7 @@ import warp as wp
 
 from ...compute.runtime import cpu_threads, ensure_warp, flat_view, run_ranges, warp_view
 from ..constants import ALL_BLOCKS, BLOCK_SIZE, TILE_SIZE
-from . import cpu_loops
+from . import cpu_loops, pair_room
 from ..kernel_choice import cpu_kernels
 
 
@@ -42,10 +44,23 @@ class TileBins:
     pair_masks: torch.Tensor    # [P] int32: bit (by * 4 + bx) set when the Gaussian may reach 4x4 block (bx, by)
     tiles_x: int
     tiles_y: int
+    # int64 [1] on the device, when the lists sit at the front of a room of fixed size (pair_room.py): the pairs
+    # counted; P is then the room, and the slots past the count belong to no tile.
+    count: torch.Tensor | None = None
 
     @property
     def num_pairs(self) -> int:
-        return int(self.gaussian_ids.shape[0])
+        """The pairs listed (read from the device when the lists sit in a room)."""
+        if self.count is None:
+            return int(self.gaussian_ids.shape[0])
+        return min(int(self.count.reshape(())), int(self.gaussian_ids.shape[0]))
+
+    def listed(self) -> TileBins:
+        """The same lists with no room past them (what the torch binning gives; reads the count)."""
+        if self.count is None:
+            return self
+        used = self.num_pairs
+        return TileBins(self.gaussian_ids[:used], self.tile_ranges, self.pair_masks[:used], self.tiles_x, self.tiles_y)
 
 
 _PIXEL_LIMIT = 1.0e9  # pixel bounds are clamped here before the conversion to int (far-off splats)
@@ -114,9 +129,10 @@ def _count_pairs(offset: int, tile_min: wp.array2d(dtype=wp.int32), tile_max: wp
 @wp.kernel
 def _write_pairs(offset: int, tile_min: wp.array2d(dtype=wp.int32), tile_max: wp.array2d(dtype=wp.int32),
                  means2d: wp.array2d(dtype=float), alpha_extent: wp.array2d(dtype=float), use_masks: int,
-                 tiles_x: int, offsets: wp.array(dtype=wp.int32), tiles: wp.array(dtype=wp.int32),
+                 tiles_x: int, capacity: wp.int64, offsets: wp.array(dtype=wp.int64), tiles: wp.array(dtype=wp.int32),
                  pairs: wp.array(dtype=wp.int64)):
-    """Each pair as its tile (the sort key) and its Gaussian with its block mask in the high 32 bits (the value)."""
+    """Each pair as its tile (the sort key) and its Gaussian with its block mask in the high 32 bits (the value); the
+    pairs past the room's `capacity` slots are dropped (the farthest Gaussians': slots go front to back)."""
     i = offset + wp.tid()
     x0, x1, y0, y1, first_x, last_x, first_y, last_y = _pair_tiles(tile_min, tile_max, means2d, alpha_extent, i,
                                                                    use_masks)
@@ -126,9 +142,24 @@ def _write_pairs(offset: int, tile_min: wp.array2d(dtype=wp.int32), tile_max: wp
             mask = int(ALL_BLOCKS)
             if use_masks != 0:
                 mask = _block_mask(first_x, last_x, first_y, last_y, tx, ty)
-            tiles[slot] = ty * tiles_x + tx
-            pairs[slot] = (wp.int64(mask) << wp.int64(32)) | wp.int64(i)
-            slot += 1
+            if slot < capacity:
+                tiles[slot] = ty * tiles_x + tx
+                pairs[slot] = (wp.int64(mask) << wp.int64(32)) | wp.int64(i)
+            slot += wp.int64(1)
+
+
+@wp.kernel
+def _tile_ranges(offset: int, tiles: wp.array(dtype=wp.int32), num_tiles: int, ranges: wp.array2d(dtype=wp.int32)):
+    """[start, end) of each tile's run in the sorted tile keys (the room's empty slots, keyed num_tiles, sort last;
+    `ranges` starts at zero, so a tile without pairs gets [0, 0))."""
+    k = offset + wp.tid()
+    tile = tiles[k]
+    if tile >= num_tiles:
+        return
+    if k == 0 or tiles[k - 1] != tile:
+        ranges[tile, 0] = k
+    if k == tiles.shape[0] - 1 or tiles[k + 1] != tile:
+        ranges[tile, 1] = k + 1
 
 
 def _depth_order(depths: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
@@ -159,7 +190,6 @@ def bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.
     """
     ensure_warp()
     device = depths.device
-    n = depths.shape[0]
     use_masks = means2d is not None and alpha_extent is not None
     if use_masks:
         spans = [means2d.float().contiguous(), alpha_extent.float().contiguous()]  # read by the kernels only
@@ -168,25 +198,39 @@ def bin_gaussians(tile_min: torch.Tensor, tile_max: torch.Tensor, depths: torch.
     rectangles = [t.contiguous() for t in (tile_min, tile_max)] + spans
     if device.type == "cpu" and cpu_kernels() == "simd":
         return _bin_on_cpu(rectangles, int(use_masks), depths, radii, tiles_x, tiles_y)
-    rectangles = [warp_view(t) for t in rectangles] + [int(use_masks)]
+    return _bin_in_room([warp_view(t) for t in rectangles] + [int(use_masks)], depths, radii, tiles_x, tiles_y)
+
+
+def _bin_in_room(rectangles: list, depths: torch.Tensor, radii: torch.Tensor, tiles_x: int,
+                 tiles_y: int) -> TileBins:
+    """bin_gaussians with the Warp kernels. In a training step (pair_room.sized_ahead) the lists go into the room of
+    this image size: nothing is read back but the first count at a size, and every launch has a size known before
+    the render; elsewhere the count is read and the lists are exactly as long."""
+    device, n, num_tiles = depths.device, depths.shape[0], tiles_x * tiles_y
     counts = torch.zeros(n, dtype=torch.int32, device=device)
     run_ranges(_count_pairs, n, device, rectangles + [warp_view(counts)])
     order = _depth_order(depths, radii > 0).long() if n else torch.zeros(0, dtype=torch.int64, device=device)
     counts_front_to_back = counts[order]
     ends = torch.cumsum(counts_front_to_back, 0, dtype=torch.int64)  # each Gaussian's slots, front to back
-    total = int(ends[-1]) if n else 0
-    tiles, pairs = _pair_room(total, device)
-    if total:
-        offsets = torch.empty(n, dtype=torch.int32, device=device)
-        offsets[order] = (ends - counts_front_to_back).to(torch.int32)
-        run_ranges(_write_pairs, n, device, rectangles + [tiles_x, warp_view(offsets), warp_view(tiles),
+    total = ends[-1:] if n else torch.zeros(1, dtype=torch.int64, device=device)
+    room = pair_room.room(device, tiles_x, tiles_y, total) if pair_room.is_sized_ahead() else None
+    capacity = room.size() if room is not None else int(total)  # outside a training step: read, every pair listed
+    tiles, pairs = _pair_room(capacity, device)
+    tiles[:capacity].fill_(num_tiles)  # a slot no pair reaches sorts after every tile
+    if n:
+        offsets = torch.empty(n, dtype=torch.int64, device=device)
+        offsets[order] = ends - counts_front_to_back
+        run_ranges(_write_pairs, n, device, rectangles + [tiles_x, capacity, warp_view(offsets), warp_view(tiles),
                                                           warp_view(pairs)])
-        _sort_by_tile(tiles, pairs, total, tiles_x * tiles_y)
-    tiles, pairs = tiles[:total], pairs[:total]
-    per_tile = torch.bincount(tiles, minlength=tiles_x * tiles_y)
-    tile_ends = torch.cumsum(per_tile, 0)
-    tile_ranges = torch.stack([tile_ends - per_tile, tile_ends], dim=-1).to(torch.int32)
-    return TileBins((pairs & 0xFFFFFFFF).to(torch.int32), tile_ranges, (pairs >> 32).to(torch.int32), tiles_x, tiles_y)
+    if room is not None:
+        room.counted(total)
+    if capacity:
+        _sort_by_tile(tiles, pairs, capacity, num_tiles + 1)
+    tiles, pairs = tiles[:capacity], pairs[:capacity]
+    tile_ranges = torch.zeros(num_tiles, 2, dtype=torch.int32, device=device)
+    run_ranges(_tile_ranges, capacity, device, [warp_view(tiles), num_tiles, warp_view(tile_ranges)])
+    return TileBins((pairs & 0xFFFFFFFF).to(torch.int32), tile_ranges, (pairs >> 32).to(torch.int32), tiles_x, tiles_y,
+                    count=total)
 
 
 def _pair_room(total: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -196,7 +240,7 @@ def _pair_room(total: int, device: torch.device) -> tuple[torch.Tensor, torch.Te
 
 
 def _sort_by_tile(tiles: torch.Tensor, pairs: torch.Tensor, total: int, num_tiles: int) -> None:
-    """A stable radix sort of the first `total` pairs by tile key, on as many bits as the tile numbers need."""
+    """A stable radix sort of the first `total` pairs by tile key, on as many bits as keys below `num_tiles` need."""
     wp.utils.radix_sort_pairs(wp.from_torch(tiles), wp.from_torch(pairs), total,
                               end_bit=max(1, (num_tiles - 1).bit_length()))
 

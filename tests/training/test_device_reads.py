@@ -1,0 +1,96 @@
+"""A training step reads nothing back from the device, so that a GPU's queue never waits for the host and the step
+can be captured as a CUDA graph. Checked on the CPU through a device that refuses reads (tests/support/
+device_reads.py), with the Warp kernels CUDA runs (set_cpu_kernels("scalar")): the loss and PSNR stay on the device
+until read, whether the loss stayed finite is read every few steps, the pair lists go into a room sized ahead
+(render/bin/pair_room.py), the strategy's per-step statistics are dense."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from mcsplat import render
+from mcsplat.config import TrainConfig
+from mcsplat.data import load_scene
+from mcsplat.errors import MCSplatError
+from mcsplat.gaussians import GaussianModel
+from mcsplat.optim import PlainUpdate, make_optimizers
+from mcsplat.optim.fused_projection import FusedProjectionAdam
+from mcsplat.planning import Plan
+from mcsplat.planning.strategy_choice import make_strategy
+from mcsplat.render.bin import pair_room
+from mcsplat.render.composite.function import set_cpu_kernels
+from mcsplat.run.scene import background_of
+from mcsplat.step import Step
+
+from tests.support.device_reads import DeviceRead, RefuseReads
+
+CPU = torch.device("cpu")
+
+
+@pytest.fixture
+def warp_kernels():
+    """The Warp kernels CUDA runs, on the CPU, and rooms made afresh."""
+    pair_room.forget_rooms()
+    set_cpu_kernels("scalar")
+    yield
+    set_cpu_kernels("simd")
+    pair_room.forget_rooms()
+
+
+def run_step(scene, strategy="mcmc", update=None):
+    config = TrainConfig(data=scene.root, steps=1000, strategy=strategy)
+    plan = Plan.literal(config)
+    model = GaussianModel.random_init(scene.radius, blender=True, num_points=2000,
+                                      generator=torch.Generator().manual_seed(0))
+    step = Step(model, make_optimizers(model, plan.optim, scene.radius),
+                make_strategy(config, plan, scene.radius, torch.Generator().manual_seed(0)), config, scene.radius,
+                background_of(config, scene), CPU, update=update or PlainUpdate())
+    return step, plan
+
+
+@pytest.mark.parametrize("strategy, update", [("mcmc", PlainUpdate), ("adc", PlainUpdate),
+                                              ("mcmc", FusedProjectionAdam)])
+def test_a_training_step_reads_nothing_back(mini_demo, warp_kernels, strategy, update):
+    """With the plain update (torch's Adam steps the parameters) and with the Warp kernel's fused update."""
+    scene = load_scene(mini_demo, downscale=4)
+    step, plan = run_step(scene, strategy, update())
+    views = scene.train[:3]
+    for index, view in enumerate(views):  # each view's camera numbers are read once, from host memory; the room made
+        step(index, view, plan, index)
+    (room,) = pair_room._rooms.values()
+    results = []
+    with RefuseReads(host=[room.host_copy()]) as reads:
+        for index in range(3, 9):
+            results.append(step(index, views[index % 3], plan, index % 3))
+    assert reads.host_reads == 6  # each render the room's copy of the last count, which a GPU has sent by then
+    losses = [result.loss for result in results]  # read now, after the steps
+    assert all(0 < loss < 1 for loss in losses) and all(result.train_psnr > 5 for result in results)
+    step.check_finite()
+    assert room.overflows == 0
+
+
+def test_the_refusing_device_catches_what_a_step_used_to_read(mini_demo, warp_kernels):
+    """The check can fail: a render outside a training step reads its pair count, as every render did."""
+    scene = load_scene(mini_demo, downscale=4)
+    step, plan = run_step(scene)
+    camera = scene.train[0].camera_at(1.0)
+    camera.pose_numbers, camera.focal_and_centre  # read once from host memory, as a step's camera is
+    with RefuseReads(), pytest.raises(DeviceRead, match="__int__"):
+        render.render(step.model, camera, (0.0, 0.0, 0.0), 0)
+    with RefuseReads(), pytest.raises(DeviceRead, match="item"):
+        torch.ones(3).sum().item()
+
+
+def test_a_loss_that_stopped_being_finite_is_named_at_its_step_when_read(mini_demo, warp_kernels, monkeypatch):
+    from mcsplat import step as step_module
+
+    scene = load_scene(mini_demo, downscale=4)
+    one_step, plan = run_step(scene)
+    real = step_module.total_loss
+    monkeypatch.setattr(step_module, "total_loss", lambda terms, context: real(terms, context) * (
+        float("nan") if context.step == 12 else 1.0))
+    for index in range(10, 15):
+        one_step(index, scene.train[0], plan)
+    with pytest.raises(MCSplatError, match="step 12: the loss became nan"):
+        one_step.check_finite()
