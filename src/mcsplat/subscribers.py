@@ -1,4 +1,5 @@
-"""The run's standard consumers (see run/events.py): progress bar, console messages, log.jsonl and periodic checkpoints.
+"""The run's standard consumers (see run/events.py): progress bar, console messages, log.jsonl, periodic checkpoints
+and a --surface run's mesh.
 
 Each is small and knows only the events it listens to; train.train() subscribes them to every run.
 """
@@ -14,6 +15,7 @@ from tqdm import tqdm
 
 from .data.attachments import masks
 from .run.events import CheckpointWritten, EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
+from .errors import MCSplatError
 from .io.disk import writing_into
 from .metrics import LPIPS_HINT
 from .run.folder import RunDir
@@ -177,3 +179,28 @@ class Checkpointer(Subscriber):
             self.run.save_checkpoint()
         elif self.minutes and time.monotonic() - self.last_save >= 60.0 * self.minutes:
             self.run.control.request_checkpoint()
+
+
+class MeshWriter(Subscriber):
+    """RUN/mesh.ply when the run finishes (a --surface run's, before the report, which pictures it): the training
+    views fused as `mcsplat export RUN --format mesh` fuses them, with its defaults. The run's results are saved by
+    then, so a mesh that cannot be made warns and leaves the command to make it."""
+
+    def __init__(self, quiet: bool):
+        self.quiet = quiet
+
+    def on_run_finished(self, event: RunFinished) -> None:
+        from .mesh import MeshOptions, extract, write_mesh
+
+        run = event.run
+        path = RunDir(run.run_dir).mesh_file
+        started = time.perf_counter()
+        try:
+            mesh = extract(run.model, run.scene.train, MeshOptions(), sh_degree=event.metrics["sh_degree"],
+                           progress=not self.quiet)
+            write_mesh(path, mesh)
+        except (MCSplatError, OSError, MemoryError) as error:
+            tqdm.write(f"warning: {path.name} not written ({error}); make it with `mcsplat export {run.run_dir} "
+                       f"--format mesh`")
+            return
+        tqdm.write(f"wrote {path} ({len(mesh.faces):,} faces, {time.perf_counter() - started:.0f} s)")

@@ -124,6 +124,10 @@ class SurfaceOptions:
     surface_distortion: float = 0.0
     """Weight of 2DGS's depth distortion (a pixel's Gaussians pulled together in inverse depth, in scene radii),
     from a tenth of the run on; 0: off. Costs one more compositing pass a step while it is on."""
+    surface_mesh: bool = True
+    """At the end of a --surface run, fuse its mesh into RUN/mesh.ply (as `mcsplat export RUN --format mesh` does,
+    with that command's defaults), which the run's report then pictures; --no-surface-mesh leaves it to that
+    command."""
 
     def __post_init__(self) -> None:
         refuse_non_finite(self)
@@ -133,7 +137,8 @@ class SurfaceOptions:
                                "--surface-from within [0, 1]")
 
     def unused_options(self) -> tuple[str, ...]:
-        return () if self.surface else ("surface_flatten", "surface_normal", "surface_from", "surface_distortion")
+        return () if self.surface else ("surface_flatten", "surface_normal", "surface_from", "surface_distortion",
+                                        "surface_mesh")
 
     unused_reason = ("the --surface-* options shape the loss terms of --surface, which this run trains without, so "
                      "they would be ignored; add --surface, or leave them out")

@@ -12,17 +12,19 @@ from .errors import MCSplatError
 from .run.events import Control, Listener
 from .run.folder import RunDir
 from .run.start import folders_to_make, remove_if_empty, train_lock
-from .subscribers import Checkpointer, ConsoleLog, LogWriter, ProgressBar
+from .subscribers import Checkpointer, ConsoleLog, LogWriter, MeshWriter, ProgressBar
 from .trainer import TrainingRun
 
 
 def standard_subscribers(config: TrainConfig, run_dir: Path) -> list[Listener]:
-    """The consumers every run has (progress bar, console lines, log.jsonl, periodic checkpoints, the report) and
-    the live viewer when asked for."""
+    """The consumers every run has (progress bar, console lines, log.jsonl, periodic checkpoints, the report), a
+    --surface run's mesh, and the live viewer when asked for."""
     from .report import ReportWriter  # matplotlib: loaded only when training
 
+    surface = config.surface_terms
+    mesh = [MeshWriter(config.quiet)] if surface.surface and surface.surface_mesh else []  # the report pictures it
     subscribers = [ProgressBar(config.quiet), ConsoleLog(config.quiet), LogWriter(RunDir(run_dir).log_file),
-                   Checkpointer(config.save_every, config.save_every_minutes), ReportWriter()]
+                   Checkpointer(config.save_every, config.save_every_minutes), *mesh, ReportWriter()]
     viewer = config.live_viewer
     if viewer.viewer:
         from .viewer import TrainingViewer

@@ -12,6 +12,7 @@ from mcsplat.config import ModelConfig, TrainConfig, config_of
 from mcsplat.gaussians import GaussianModel
 from mcsplat.geometry.rotation import quaternion_to_rotation
 from mcsplat.loss_terms import StepContext, render_outputs
+from mcsplat.mesh import MeshOptions, read_mesh
 from mcsplat.optim import OptimConfig, make_optimizers
 from mcsplat.render import render
 from mcsplat.run.trained import load
@@ -143,7 +144,11 @@ def flatness(run: Path) -> float:
     return float((scales.min(dim=-1).values / scales.max(dim=-1).values).median())
 
 
-def test_a_surface_run_comes_out_flatter(tmp_path):
+def test_a_surface_run_comes_out_flatter(tmp_path, monkeypatch):
+    import mcsplat.mesh
+
+    # The run's mesh on a coarse volume (the default's 2^24 voxels take most of a minute here).
+    monkeypatch.setattr(mcsplat.mesh, "MeshOptions", lambda: MeshOptions(voxel_budget=2**18))
     base = dict(data=REPO / "data" / "lego_demo", steps=60, quiet=True, lpips_net="alex", eval_every=0, save_every=0,
                 save_renders=False, model=ModelConfig(num_init_points=1500), scale_schedule=False,
                 mcmc=MCMCConfig(cap_max=1800, refine_start=20, refine_every=20))
@@ -153,4 +158,20 @@ def test_a_surface_run_comes_out_flatter(tmp_path):
     # quarter, not more (the plain run stays near round: 0.95 here).
     assert flatness(tmp_path / "surface") < 0.9 * flatness(tmp_path / "plain")
     assert math.isfinite(metrics["psnr"])
+    # The --surface run ends with its mesh, which its report pictures; the plain run with neither.
+    assert len(read_mesh(tmp_path / "surface" / "mesh.ply").faces) > 1000
+    assert "The mesh of mesh.ply" in (tmp_path / "surface" / "report.html").read_text()
+    assert not (tmp_path / "plain" / "mesh.ply").exists()
+    assert "The mesh of" not in (tmp_path / "plain" / "report.html").read_text()
     assert surface_terms(100.0, 0.015, 0.5, 1.0)[1].active(30, 60)
+
+
+def test_a_surface_run_makes_its_mesh_unless_told_not_to(tmp_path):
+    from mcsplat.subscribers import MeshWriter
+    from mcsplat.train import standard_subscribers
+
+    def writes_mesh(**options) -> bool:
+        config = config_of(data=REPO / "data" / "lego_demo", quiet=True, **options)
+        return any(isinstance(s, MeshWriter) for s in standard_subscribers(config, tmp_path))
+
+    assert writes_mesh(surface=True) and not writes_mesh(surface=True, surface_mesh=False) and not writes_mesh()
