@@ -38,15 +38,16 @@ import tyro
 import _common as C
 from framework import Arm, Common
 
-ARMS = {"mcmc": [], "mcmc-surface": ["--surface"], "adc": ["--strategy", "adc"],
-        "adc-surface": ["--strategy", "adc", "--surface"],
+SURFACE = ["--surface", "--no-surface-mesh"]  # the depth is scored here, not the mesh a --surface run ends with
+ARMS = {"mcmc": [], "mcmc-surface": SURFACE, "adc": ["--strategy", "adc"],
+        "adc-surface": ["--strategy", "adc", *SURFACE],
         # Not run by default: MCMC without its L1 terms on opacity and scale (is the depth bias theirs?) ...
         "mcmc-no-reg": ["--mcmc.opacity-reg", "0", "--mcmc.scale-reg", "0"],
         # ... and with Mip-Splatting's 2D filter, whose opacity compensation undoes the low-pass widening.
-        "mcmc-antialiased": ["--antialiased"], "mcmc-surface-antialiased": ["--surface", "--antialiased"],
+        "mcmc-antialiased": ["--antialiased"], "mcmc-surface-antialiased": [*SURFACE, "--antialiased"],
         # ... and with 2DGS's depth distortion at two weights.
-        "mcmc-surface-distortion10-antialiased": ["--surface", "--antialiased", "--surface-distortion", "10"],
-        "mcmc-surface-distortion100-antialiased": ["--surface", "--antialiased", "--surface-distortion", "100"]}
+        "mcmc-surface-distortion10-antialiased": [*SURFACE, "--antialiased", "--surface-distortion", "10"],
+        "mcmc-surface-distortion100-antialiased": [*SURFACE, "--antialiased", "--surface-distortion", "100"]}
 DEFAULT_ARMS = ("mcmc", "mcmc-surface", "adc", "adc-surface")
 CAP = 300_000
 WITHIN = 0.02        # units of the scene (lego is about 2.5 units across)
