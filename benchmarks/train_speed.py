@@ -218,13 +218,18 @@ def step_numbers(start: int = 1001):
 
 # ------------------------------------------------------------------------------------------------------- the step
 class StepMarks:
-    """The trainer's StepPhases that only keeps the last render's tile pairs."""
+    """The trainer's StepPhases that only keeps the last render's tile pairs (read after the step: on a GPU, reading
+    them in it would make the step wait where the trainer's does not)."""
 
     def __init__(self) -> None:
-        self.pairs = 0
+        self.bins = None
 
     def rendered(self, result: RenderResult) -> None:
-        self.pairs = result.num_pairs
+        self.bins = result.bins
+
+    @property
+    def pairs(self) -> int:
+        return 0 if self.bins is None else self.bins.num_pairs
 
     def lap(self, phase: str) -> None:
         pass

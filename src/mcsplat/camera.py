@@ -98,13 +98,21 @@ class Camera:
         return made[(width, height)]
 
     def to(self, device: torch.device | str) -> "Camera":
-        """The camera with its tensors on `device`; it remembers the host copy it came from (see `on_host`)."""
+        """The camera with its tensors on `device`; it remembers the host copy it came from (see `on_host`). A
+        camera whose pose is not being learned keeps the copy it made, so that a training step on a view seen before
+        copies nothing to the GPU (a copy from pageable memory waits for the GPU's queue)."""
+        learned = self.world_to_camera.requires_grad or self.K.requires_grad
+        made = self.__dict__.setdefault("_moved", {})
+        key = str(torch.device(device))
+        if not learned and key in made:
+            return made[key]
         moved = Camera(K=self.K.to(device), world_to_camera=self.world_to_camera.to(device),
                        width=self.width, height=self.height)
         object.__setattr__(moved, "_host", self.on_host())
         object.__setattr__(moved, "_focal_and_centre", self.focal_and_centre)
-        if not self.world_to_camera.requires_grad:  # a pose being learned is read where it is used
+        if not learned:  # a pose being learned is read where it is used
             object.__setattr__(moved, "_pose_numbers", self.pose_numbers)
+            made[key] = moved
         return moved
 
     def on_host(self) -> "Camera | None":

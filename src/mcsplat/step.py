@@ -130,6 +130,7 @@ class Step:
     phases: StepPhases | None = None
     update: ParameterUpdate = field(default_factory=PlainUpdate)
     finite: FiniteLoss = field(default_factory=FiniteLoss, init=False)
+    _backgrounds: dict = field(default_factory=dict, init=False, repr=False)  # by dtype, on the device: made once
 
     def on(self, model: GaussianModel, optimizers: dict, strategy: Strategy) -> Step:
         """The same step on another model, alone and without the run's modules and terms (--budget times throwaway
@@ -154,7 +155,7 @@ class Step:
             terms = standard_terms(self.config.ssim_weight, strategy, modules)
         lap("other")
         with self.update.rendering(model), render.pairs_sized_ahead():
-            result = render.render(model, camera, self.background, plan.sh_degree_at(step),
+            result = render.render(model, camera, self._background(model.means.dtype), plan.sh_degree_at(step),
                                    outputs=render_outputs(terms, step, plan.steps))
         lap("render")
         rgb = result.rgb
@@ -183,6 +184,12 @@ class Step:
                                                           plan.optim, self.scene_radius))
         lap("strategy")
         return StepResult(StepValues(values), refine)
+
+    def _background(self, dtype: torch.dtype) -> torch.Tensor:
+        """The background as a tensor on the device, made once (a step copies nothing to the GPU but its image)."""
+        if dtype not in self._backgrounds:
+            self._backgrounds[dtype] = torch.as_tensor(self.background, dtype=dtype, device=self.device).reshape(3)
+        return self._backgrounds[dtype]
 
     def check_finite(self) -> None:
         """Stop the run (MCSplatError) if a loss since the first step was not a finite number."""

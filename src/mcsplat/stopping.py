@@ -101,8 +101,8 @@ class AgreedRequests:
         control = self.control
         votes = torch.tensor([float(control.stop_requested), float(control.checkpoint_requested)],
                              dtype=values.dtype, device=values.device)
-        averaged = self.team.reduce_step(model, torch.cat([values, votes]))
-        stop, checkpoint = averaged[-2:].tolist()  # the processes wait for each other in the all-reduce anyway
+        averaged = self.team.reduce_step(model, torch.cat([values, votes]))  # on the host: the votes are read
+        stop, checkpoint = averaged[-2:].tolist()
         self._stop, self._checkpoint = stop > 0, checkpoint > 0
         return averaged[:-2]
 

@@ -15,7 +15,6 @@ from tqdm import tqdm
 
 from .data.attachments import masks
 from .run.events import CheckpointWritten, EvalDone, KernelsCompiling, RunFinished, RunStarted, StepDone, Subscriber
-from .errors import MCSplatError
 from .io.disk import writing_into
 from .metrics import LPIPS_HINT
 from .run.folder import RunDir
@@ -194,13 +193,16 @@ class MeshWriter(Subscriber):
 
         run = event.run
         path = RunDir(run.run_dir).mesh_file
+        command = f"`mcsplat export {run.run_dir} --format mesh`"
+        if run.world_size > 1:  # the other processes would wait for it at the run's last barrier
+            tqdm.write(f"{path.name} is not made at the end of a run of several processes: make it with {command}")
+            return
         started = time.perf_counter()
         try:
             mesh = extract(run.model, run.scene.train, MeshOptions(), sh_degree=event.metrics["sh_degree"],
                            progress=not self.quiet)
             write_mesh(path, mesh)
-        except (MCSplatError, OSError, MemoryError) as error:
-            tqdm.write(f"warning: {path.name} not written ({error}); make it with `mcsplat export {run.run_dir} "
-                       f"--format mesh`")
+        except Exception as error:  # the run's results are saved: a mesh that fails (out of memory on a GPU, say)
+            tqdm.write(f"warning: {path.name} not written ({error}); make it with {command}")  # must not fail it
             return
         tqdm.write(f"wrote {path} ({len(mesh.faces):,} faces, {time.perf_counter() - started:.0f} s)")

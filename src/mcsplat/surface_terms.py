@@ -39,11 +39,12 @@ class Flatten:
         self.weight, self.scene_radius = weight, scene_radius
 
     def __call__(self, ctx: StepContext) -> torch.Tensor | None:
-        seen = ctx.result.visible
-        if self.weight == 0 or not bool(seen.any()):
+        if self.weight == 0:
             return None
-        smallest = ctx.model.scales[seen].min(dim=-1).values
-        return self.weight * smallest.mean() / self.scene_radius
+        seen = ctx.result.visible.to(ctx.model.means.dtype)  # dense: nothing waits to count the seen ones
+        smallest = ctx.model.scales.min(dim=-1).values
+        mean = (smallest * seen).sum() / seen.sum().clamp_min(1.0)  # 0 where the view sees none
+        return self.weight * mean / self.scene_radius
 
 
 def edge_weight(image: torch.Tensor) -> torch.Tensor:
@@ -140,8 +141,8 @@ class SurfaceOptions:
         return () if self.surface else ("surface_flatten", "surface_normal", "surface_from", "surface_distortion",
                                         "surface_mesh")
 
-    unused_reason = ("the --surface-* options shape the loss terms of --surface, which this run trains without, so "
-                     "they would be ignored; add --surface, or leave them out")
+    unused_reason = ("the --surface-* options shape the loss terms of --surface and the mesh it ends with, which "
+                     "this run trains without, so they would be ignored; add --surface, or leave them out")
 
     def setup(self, start: FeatureStart) -> FeatureParts:
         if not self.surface:

@@ -23,6 +23,7 @@ from .gaussians import GaussianModel
 from .io.lock import FolderLock
 from .optim import update_for
 from .planning import Plan, run_record
+from .render import forget_pair_rooms
 from .run.metrics import RunFacts, metrics
 from .run.setup import set_up
 from .run.state import feature_facts
@@ -97,6 +98,7 @@ class TrainingRun:
             emit(RunStarted(run=self, start_step=self.state.step, init_note=self.init_note))
             self.team.first_on_each_machine(lambda: self._compile_kernels(emit))
             self.planner.begin(self.state, self.scene, self.one_step)
+            forget_pair_rooms()  # rooms for this model's pair lists, not --budget's probes' or an earlier run's
             with StopSignals(self.control) as signals:
                 self._steps(emit)
                 return self._finish(emit, signals)
@@ -131,7 +133,7 @@ class TrainingRun:
                 done = self.one_step(state.step, view, plan, view_index)
                 if self.planner.budget_seconds is not None:  # a plan on the clock times the device's work,
                     done.values.read()                       # not how long queueing it took
-                if (state.step + 1) % CHECK_LOSS_EVERY == 0:
+                if (state.step + 1) % CHECK_LOSS_EVERY == 0 or state.step + 1 >= plan.steps:  # the last one logs
                     self.one_step.check_finite()
                 if changed(done.refine):
                     emit(RefineDone(step=state.step, report=done.refine))
@@ -141,6 +143,7 @@ class TrainingRun:
                 step = state.step
                 team.check_identical(state.model, step)
                 if config.eval_every and self.scene.test and step % config.eval_every == 0 and step < plan.steps:
+                    self.one_step.check_finite()  # no scores of a model a loss that was not finite has stepped
                     result = self._evaluate(plan.sh_degree_at(step - 1))
                     emit(EvalDone(step=step, psnr=result.psnr, ssim=result.ssim,
                                   num_gaussians=state.model.num_gaussians))

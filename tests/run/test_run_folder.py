@@ -410,8 +410,8 @@ def test_surface_options_without_surface_are_refused(tmp_path, mini_demo, capsys
     assert main(["train", str(mini_demo), "--out", str(run), "--surface-flatten", "50", "--surface-from", "0.5"]
                 + cheap) == 2
     assert capsys.readouterr().err == "mcsplat: error: --surface-flatten 50.0, --surface-from 0.5: the --surface-* " \
-        "options shape the loss terms of --surface, which this run trains without, so they would be ignored; add " \
-        "--surface, or leave them out\n"
+        "options shape the loss terms of --surface and the mesh it ends with, which this run trains without, so " \
+        "they would be ignored; add --surface, or leave them out\n"
     assert not run.exists()
 
 

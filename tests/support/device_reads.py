@@ -6,6 +6,11 @@ What counts as a read: item, tolist, numpy, bool / int / float / index of a tens
 output size depends on values (indexing with a boolean mask, masked_select, bincount, unique, repeat_interleave
 without its output size). Tensors the code keeps on the host on purpose (a copy queued a step before, which on a GPU
 lives in pinned memory) are named in `host`, and reading them is allowed and counted.
+
+Copies the other way wait too: a copy from pageable host memory to a GPU waits for the queue. So Python numbers made
+into a tensor on a device (torch.tensor / as_tensor of them with a device) are refused as well. A `.to(device)` of a
+host tensor waits the same way, but on the CPU it cannot be told from one of a tensor already on the device (a no-op
+there); the tests check the step's own uploads (its camera, its image) where they are made.
 """
 
 from __future__ import annotations
@@ -27,6 +32,11 @@ _READS = {torch.Tensor.item, torch.Tensor.tolist, torch.Tensor.numpy, torch.Tens
           torch.Tensor.unique, torch.unique_consecutive, torch.Tensor.unique_consecutive}
 _SIZED_BY_VALUES = {torch.repeat_interleave, torch.Tensor.repeat_interleave}  # unless output_size is given
 _INDEXING = {torch.Tensor.__getitem__, torch.Tensor.__setitem__}
+_FROM_PYTHON = {torch.tensor, torch.as_tensor}
+
+
+def _waits_to_upload(func, args, kwargs) -> bool:
+    return func in _FROM_PYTHON and "device" in kwargs and not isinstance(args[0], torch.Tensor)
 
 
 def _boolean_index(index) -> bool:
@@ -44,6 +54,9 @@ class RefuseReads(TorchFunctionMode):
         kwargs = kwargs or {}
         reads = (func in _READS or (func in _SIZED_BY_VALUES and "output_size" not in kwargs)
                  or (func in _INDEXING and len(args) > 1 and _boolean_index(args[1])))
+        if _waits_to_upload(func, args, kwargs):
+            where = "".join(traceback.format_stack(limit=6)[:-1])
+            raise DeviceRead(f"{getattr(func, '__name__', func)} copies to a device and waits:\n{where}")
         if reads:
             if args and isinstance(args[0], torch.Tensor) and id(args[0]) in self._host:
                 self.host_reads += 1

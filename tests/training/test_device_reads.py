@@ -1,8 +1,9 @@
-"""A training step reads nothing back from the device, so that a GPU's queue never waits for the host and the step
-can be captured as a CUDA graph. Checked on the CPU through a device that refuses reads (tests/support/
-device_reads.py), with the Warp kernels CUDA runs (set_cpu_kernels("scalar")): the loss and PSNR stay on the device
-until read, whether the loss stayed finite is read every few steps, the pair lists go into a room sized ahead
-(render/bin/pair_room.py), the strategy's per-step statistics are dense."""
+"""A training step reads nothing back from the device and copies nothing to it in a way that waits, so that a GPU's
+queue never waits for the host and the step can be captured as a CUDA graph. Checked on the CPU through a device that
+refuses reads (tests/support/device_reads.py), with the Warp kernels CUDA runs (set_cpu_kernels("scalar")): the loss
+and PSNR stay on the device until read, whether the loss stayed finite is read every few steps, the pair lists go
+into a room sized ahead (render/bin/pair_room.py), the strategy's per-step statistics are dense, a view's camera and
+the background are moved to the device once, the image without waiting."""
 
 from __future__ import annotations
 
@@ -10,10 +11,11 @@ import pytest
 import torch
 
 from mcsplat import render
-from mcsplat.config import TrainConfig
+from mcsplat.config import config_of
 from mcsplat.data import load_scene
 from mcsplat.errors import MCSplatError
 from mcsplat.gaussians import GaussianModel
+from mcsplat.loss_terms import standard_terms
 from mcsplat.optim import PlainUpdate, make_optimizers
 from mcsplat.optim.fused_projection import FusedProjectionAdam
 from mcsplat.planning import Plan
@@ -22,6 +24,7 @@ from mcsplat.render.bin import pair_room
 from mcsplat.render.composite.function import set_cpu_kernels
 from mcsplat.run.scene import background_of
 from mcsplat.step import Step
+from mcsplat.surface_terms import surface_terms
 
 from tests.support.device_reads import DeviceRead, RefuseReads
 
@@ -38,23 +41,28 @@ def warp_kernels():
     pair_room.forget_rooms()
 
 
-def run_step(scene, strategy="mcmc", update=None):
-    config = TrainConfig(data=scene.root, steps=1000, strategy=strategy)
+def run_step(scene, strategy="mcmc", update=None, surface=False):
+    config = config_of(data=scene.root, steps=1000, strategy=strategy, surface=surface, surface_from=0.0)
     plan = Plan.literal(config)
     model = GaussianModel.random_init(scene.radius, blender=True, num_points=2000,
                                       generator=torch.Generator().manual_seed(0))
-    step = Step(model, make_optimizers(model, plan.optim, scene.radius),
-                make_strategy(config, plan, scene.radius, torch.Generator().manual_seed(0)), config, scene.radius,
-                background_of(config, scene), CPU, update=update or PlainUpdate())
+    strategy = make_strategy(config, plan, scene.radius, torch.Generator().manual_seed(0))
+    terms = None  # the standard ones
+    if surface:  # and --surface's, the normal term on from the first step
+        terms = standard_terms(config.ssim_weight, strategy, ()) + surface_terms(100.0, 0.015, 0.0, scene.radius)
+    step = Step(model, make_optimizers(model, plan.optim, scene.radius), strategy, config, scene.radius,
+                background_of(config, scene), CPU, update=update or PlainUpdate(), loss_terms=terms)
     return step, plan
 
 
-@pytest.mark.parametrize("strategy, update", [("mcmc", PlainUpdate), ("adc", PlainUpdate),
-                                              ("mcmc", FusedProjectionAdam)])
-def test_a_training_step_reads_nothing_back(mini_demo, warp_kernels, strategy, update):
-    """With the plain update (torch's Adam steps the parameters) and with the Warp kernel's fused update."""
+@pytest.mark.parametrize("strategy, update, surface", [("mcmc", PlainUpdate, False), ("adc", PlainUpdate, False),
+                                                       ("mcmc", FusedProjectionAdam, False),
+                                                       ("mcmc", PlainUpdate, True)])
+def test_a_training_step_reads_nothing_back(mini_demo, warp_kernels, strategy, update, surface):
+    """With the plain update (torch's Adam steps the parameters), with the Warp kernel's fused update, and with
+    --surface's terms (its normal map and planar depth a second compositing pass)."""
     scene = load_scene(mini_demo, downscale=4)
-    step, plan = run_step(scene, strategy, update())
+    step, plan = run_step(scene, strategy, update(), surface)
     views = scene.train[:3]
     for index, view in enumerate(views):  # each view's camera numbers are read once, from host memory; the room made
         step(index, view, plan, index)
@@ -71,15 +79,21 @@ def test_a_training_step_reads_nothing_back(mini_demo, warp_kernels, strategy, u
 
 
 def test_the_refusing_device_catches_what_a_step_used_to_read(mini_demo, warp_kernels):
-    """The check can fail: a render outside a training step reads its pair count, as every render did."""
+    """The check can fail: a render outside a training step reads its pair count, as every render did; Python
+    numbers made into a tensor on a device are an upload that waits."""
     scene = load_scene(mini_demo, downscale=4)
     step, plan = run_step(scene)
     camera = scene.train[0].camera_at(1.0)
     camera.pose_numbers, camera.focal_and_centre  # read once from host memory, as a step's camera is
     with RefuseReads(), pytest.raises(DeviceRead, match="__int__"):
-        render.render(step.model, camera, (0.0, 0.0, 0.0), 0)
+        render.render(step.model, camera, torch.zeros(3), 0)
     with RefuseReads(), pytest.raises(DeviceRead, match="item"):
         torch.ones(3).sum().item()
+    with RefuseReads(), pytest.raises(DeviceRead, match="copies to a device"):
+        torch.tensor([0.5, 0.5], device=CPU)
+    host = scene.train[6].camera_at(1.0)
+    moved = host.to(CPU)
+    assert moved is not host and host.to(CPU) is moved  # a view's camera is moved once, then kept
 
 
 def test_a_loss_that_stopped_being_finite_is_named_at_its_step_when_read(mini_demo, warp_kernels, monkeypatch):

@@ -40,8 +40,12 @@ def block_config(plan: BlockPlan, folder: BlocksFolder, index: int, **process: A
     block = plan.block(index)
     run = RunDir(folder.block_run(index))
     resume = run.checkpoint_file.is_file()
+    # A block's run makes no mesh of its part as it ends (--surface): `mcsplat export MERGED --format mesh` makes the
+    # whole scene's.
+    surface = dataclasses.replace(plan.training.surface_terms, surface_mesh=False)
     return dataclasses.replace(plan.training, out=run.path, cap_max=block.cap, block=folder.block_spec(index),
-                               resume=resume, overwrite=run.holds_run() and not resume, named=None, **process)
+                               resume=resume, overwrite=run.holds_run() and not resume, named=None,
+                               surface_terms=surface, **process)
 
 
 def check_block(plan: BlockPlan, folder: BlocksFolder, index: int) -> None:

@@ -148,7 +148,7 @@ class ProcessGroup:
 
     def reduce_step(self, model: GaussianModel, values: torch.Tensor) -> torch.Tensor:
         """Average every parameter's gradient over the processes with one all-reduce; `values` ([k]: the step's
-        loss, PSNR, ...) ride at the end of the same buffer and come back averaged, in their own dtype and device.
+        loss, PSNR, ...) ride at the end of the same buffer and come back averaged, in their own dtype, on the host.
         The gradients become views of the buffer (no copy back)."""
         params = [model.params[key] for key in PARAM_KEYS]
         for p in params:
@@ -163,7 +163,8 @@ class ProcessGroup:
         with self._talking("the gradient all-reduce"):
             self._dist.all_reduce(flat)
             flat.mul_(1.0 / self.world_size)
-            averaged = flat[-tail.numel():].to(dtype=values.dtype, device=values.device, copy=True)
+            # On the host: on CUDA the wait for the others happens here, where a failure gets its one-line error.
+            averaged = flat[-tail.numel():].to(dtype=values.dtype, device="cpu", copy=True)
         offset = 0
         for p in params:
             count = p.numel()

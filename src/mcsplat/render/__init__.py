@@ -20,14 +20,14 @@ import torch
 from ..camera import Camera
 from ..compute.runtime import cpu_threads, ensure_warp, set_cpu_threads
 from ..geometry.sh import degree_from_bases
-from .bin.pair_room import sized_ahead as pairs_sized_ahead
+from .bin.pair_room import forget_rooms as forget_pair_rooms, sized_ahead as pairs_sized_ahead
 from .bin.warp_kernels import TileBins
 from .constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
 from .outputs.passes import PassInputs, passes_for
 from .paths import RenderPath, current_render_path
 
 __all__ = ["render", "RenderResult", "Splats", "GaussiansLike", "set_cpu_threads", "cpu_threads", "ensure_warp",
-           "training_kernels", "pairs_sized_ahead"]
+           "training_kernels", "pairs_sized_ahead", "forget_pair_rooms"]
 
 
 class GaussiansLike(Protocol):

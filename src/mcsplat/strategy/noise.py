@@ -52,7 +52,8 @@ def _gate(model: GaussianModel, gated: bool) -> torch.Tensor:
 
 
 def _normal(shape: tuple[int, ...], generator: torch.Generator, like: torch.Tensor) -> torch.Tensor:
-    return torch.randn(shape, generator=generator, device=generator.device, dtype=like.dtype).to(like.device)
+    drawn = torch.randn(shape, generator=generator, device=generator.device, dtype=like.dtype)
+    return drawn if drawn.device == like.device else drawn.to(like.device)
 
 
 @torch.no_grad()

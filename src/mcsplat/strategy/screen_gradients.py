@@ -26,8 +26,8 @@ def ndc_gradient_norms(render_result: Any, num_gaussians: int, width: int, heigh
     if grad.shape[0] != num_gaussians:
         raise ValueError(f"the render has {grad.shape[0]} Gaussians but the model {num_gaussians}")
     visible = render_result.radii > 0
-    ndc_scale = torch.tensor([0.5 * width, 0.5 * height], dtype=grad.dtype, device=grad.device)
-    norms = torch.linalg.vector_norm(grad * ndc_scale, dim=-1)
+    ndc = torch.stack([grad[:, 0] * (0.5 * width), grad[:, 1] * (0.5 * height)], dim=-1)  # no tensor to upload
+    norms = torch.linalg.vector_norm(ndc, dim=-1)
     return visible, torch.where(visible, norms, torch.zeros_like(norms))
 
 

@@ -6,13 +6,15 @@ back makes the host wait for every kernel queued before, at every render, and a 
 read in it cannot be captured as a CUDA graph. So inside `sized_ahead()` (the training step's render) the lists get
 a room of a fixed size, per image size:
 
-- the first render at a size reads its count (once) and takes a quarter more room than that (HEADROOM);
-- every render queues a copy of its count to the host (pinned memory on CUDA, with an event), and the next render at
+- the first render at a size reads its count (once);
+- every render queues a copy of its count to the host (pinned memory on CUDA, with an event), and a later render at
   that size reads the copy only when the event says it has arrived, so it never waits;
-- when a count came near the room (GROW_AT) or past it, the room grows to the headroom over that count, and when it
-  fell under a third of the room, the room shrinks to it (the radix sort walks the whole room);
+- the room holds a quarter more (HEADROOM) than the most pairs per Gaussian among the last 64 counts that arrived,
+  times the Gaussians of the render at hand: it grows with the model before a render needs it, and shrinks only when
+  none of those counts needed a third of it (the radix sort walks the whole room);
 - a render whose pairs do not fit writes the front ones: slots are given front to back, so what is dropped are the
-  farthest Gaussians' pairs, from that step's render only (the room counts such renders in `overflows`).
+  farthest Gaussians' pairs, from the renders before the count arrives (the room counts them in `overflows`, and the
+  first one warns).
 
 Every other render (evaluation, the viewer, exports) reads its count and lists every pair, as before.
 
@@ -25,59 +27,73 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import math
+import warnings
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Iterator
 
 import torch
 
-HEADROOM = 1.25  # room for a quarter more pairs than the count it was sized from
-GROW_AT = 0.9  # a count above this share of the room grows it before one overflows
-SHRINK_BELOW = 1 / 3  # a count below this share of the room shrinks it
+HEADROOM = 1.25  # room for a quarter more pairs than the most a Gaussian has brought lately, times the Gaussians
+WINDOW = 64  # the counts the room follows: the most pairs per Gaussian among the last this many that arrived
+SHRINK_BELOW = 1 / 3  # the room shrinks when what it follows needs less than this share of it
+MIN_ROOM = 4096  # pairs: a room is never smaller (an empty first render does not leave one of size 0)
 ROOMS_KEPT = 8  # image sizes whose rooms are kept (coarse to fine moves through many sizes; the newest are kept)
 
 
 @dataclass
 class PairRoom:
-    """The room of one image size on one device: `capacity` pairs, and the copy of the last count on its way."""
+    """The room of one image size on one device: `capacity` pairs, sized from the pairs per Gaussian of its last
+    WINDOW counts (so that it follows the model's growth before a render needs it), and the copy of the last count
+    on its way to the host."""
 
     capacity: int
     device: torch.device
-    overflows: int = 0  # renders whose pairs did not all fit (seen one render late)
+    overflows: int = 0  # renders whose pairs did not all fit (seen one render late or more)
+    _ratios: deque = field(default_factory=lambda: deque(maxlen=WINDOW), repr=False)  # pairs per Gaussian
     _copy: torch.Tensor = field(init=False, repr=False)  # int64 [1] on the host: the last render's count
+    _on_its_way: tuple[int, int] | None = field(default=None, init=False, repr=False)  # its Gaussians and room
     _arrived: torch.cuda.Event | None = field(default=None, init=False, repr=False)
-    _pending: bool = field(default=False, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self._copy = torch.zeros(1, dtype=torch.int64, pin_memory=self.device.type == "cuda")
 
-    def size(self) -> int:
-        """The room for this render: the last count that has arrived moves it first, when it should."""
-        if self._pending and (self._arrived is None or self._arrived.query()):
-            self._pending = False
-            self._follow(self._copy.item())
+    def size(self, gaussians: int) -> int:
+        """The room for a render of `gaussians`: the last count, once it has arrived, joins those it follows."""
+        if self._on_its_way is not None and (self._arrived is None or self._arrived.query()):
+            (then, room), self._on_its_way = self._on_its_way, None
+            self.follow(self._copy.item(), then, room)
+        if self._ratios:
+            needed = _room_for(max(self._ratios) * gaussians)
+            if needed > self.capacity or needed < SHRINK_BELOW * self.capacity:
+                self.capacity = needed
         return self.capacity
 
-    def counted(self, total: torch.Tensor) -> None:
+    def counted(self, total: torch.Tensor, gaussians: int) -> None:
         """Queue the copy of this render's count (int64 [1] or [] on the device) to the host."""
         self._copy.copy_(total.reshape(1), non_blocking=self.device.type == "cuda")
         if self.device.type == "cuda":
             self._arrived = torch.cuda.Event()
-            self._arrived.record()
-        self._pending = True
+            self._arrived.record(torch.cuda.current_stream(self.device))
+        self._on_its_way = (gaussians, self.capacity)
+
+    def follow(self, count: int, gaussians: int, room: int) -> None:
+        """A render of `gaussians` in a room of `room` counted `count` pairs."""
+        self._ratios.append(count / max(gaussians, 1))
+        if count > room:
+            self.overflows += 1
+            if self.overflows == 1:
+                warnings.warn(f"a training step's render had {count:,} tile pairs, more than the {room:,} its room "
+                              f"held: its farthest pairs were left out of that step; the room has grown",
+                              RuntimeWarning, stacklevel=2)
 
     def host_copy(self) -> torch.Tensor:
         """The host tensor the counts are copied into (what `size` reads; no device is read there)."""
         return self._copy
 
-    def _follow(self, count: int) -> None:
-        if count > self.capacity:
-            self.overflows += 1
-        if count > GROW_AT * self.capacity or count < SHRINK_BELOW * self.capacity:
-            self.capacity = room_for(count)
 
-
-def room_for(count: int) -> int:
-    return max(1, math.ceil(HEADROOM * count))
+def _room_for(pairs: float) -> int:
+    return max(MIN_ROOM, math.ceil(HEADROOM * pairs))
 
 
 _rooms: dict[tuple[torch.device, int, int], PairRoom] = {}
@@ -98,13 +114,15 @@ def is_sized_ahead() -> bool:
     return _sized_ahead.get()
 
 
-def room(device: torch.device, tiles_x: int, tiles_y: int, total: torch.Tensor) -> PairRoom:
-    """The room of this image size (in tiles) on `device`, made on its first render from the count `total`, which
-    is read then (the only read of a count a size's renders make)."""
+def room(device: torch.device, tiles_x: int, tiles_y: int, total: torch.Tensor, gaussians: int) -> PairRoom:
+    """The room of this image size (in tiles) on `device`, made on its first render from the count `total` of its
+    `gaussians`, which is read then (the only read of a count a size's renders make)."""
     key = (device, tiles_x, tiles_y)
     found = _rooms.pop(key, None)
     if found is None:
-        found = PairRoom(room_for(int(total)), device)
+        count = int(total)
+        found = PairRoom(_room_for(count), device)
+        found.follow(count, gaussians, found.capacity)
         if len(_rooms) >= ROOMS_KEPT:
             _rooms.pop(next(iter(_rooms)))
     _rooms[key] = found  # the newest last
@@ -112,5 +130,5 @@ def room(device: torch.device, tiles_x: int, tiles_y: int, total: torch.Tensor) 
 
 
 def forget_rooms() -> None:
-    """Drop every room (tests start from none)."""
+    """Drop every room: a training run starts from none (another run's model, or --budget's probes, need others)."""
     _rooms.clear()

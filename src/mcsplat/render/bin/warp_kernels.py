@@ -150,16 +150,26 @@ def _write_pairs(offset: int, tile_min: wp.array2d(dtype=wp.int32), tile_max: wp
 
 @wp.kernel
 def _tile_ranges(offset: int, tiles: wp.array(dtype=wp.int32), num_tiles: int, ranges: wp.array2d(dtype=wp.int32)):
-    """[start, end) of each tile's run in the sorted tile keys (the room's empty slots, keyed num_tiles, sort last;
-    `ranges` starts at zero, so a tile without pairs gets [0, 0))."""
+    """[start, end) of each tile's run in the sorted tile keys; a tile without pairs gets [k, k), k where its run
+    would start, as the torch binning gives it. The room's empty slots are keyed num_tiles: they sort last."""
     k = offset + wp.tid()
+    last = tiles.shape[0] - 1
     tile = tiles[k]
-    if tile >= num_tiles:
-        return
-    if k == 0 or tiles[k - 1] != tile:
-        ranges[tile, 0] = k
-    if k == tiles.shape[0] - 1 or tiles[k + 1] != tile:
+    before = int(-1)
+    if k > 0:
+        before = tiles[k - 1]
+    if tile != before:  # a run starts here: the tiles between the previous run's and this one have none
+        for empty in range(before + 1, wp.min(tile, num_tiles)):
+            ranges[empty, 0] = k
+            ranges[empty, 1] = k
+        if tile < num_tiles:
+            ranges[tile, 0] = k
+    if tile < num_tiles and (k == last or tiles[k + 1] != tile):
         ranges[tile, 1] = k + 1
+        if k == last:  # a full room: the tiles after the last run have none
+            for empty in range(tile + 1, num_tiles):
+                ranges[empty, 0] = k + 1
+                ranges[empty, 1] = k + 1
 
 
 def _depth_order(depths: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
@@ -213,8 +223,8 @@ def _bin_in_room(rectangles: list, depths: torch.Tensor, radii: torch.Tensor, ti
     counts_front_to_back = counts[order]
     ends = torch.cumsum(counts_front_to_back, 0, dtype=torch.int64)  # each Gaussian's slots, front to back
     total = ends[-1:] if n else torch.zeros(1, dtype=torch.int64, device=device)
-    room = pair_room.room(device, tiles_x, tiles_y, total) if pair_room.is_sized_ahead() else None
-    capacity = room.size() if room is not None else int(total)  # outside a training step: read, every pair listed
+    room = pair_room.room(device, tiles_x, tiles_y, total, n) if pair_room.is_sized_ahead() else None
+    capacity = room.size(n) if room is not None else int(total)  # outside a training step: read, every pair listed
     tiles, pairs = _pair_room(capacity, device)
     tiles[:capacity].fill_(num_tiles)  # a slot no pair reaches sorts after every tile
     if n:
@@ -223,7 +233,7 @@ def _bin_in_room(rectangles: list, depths: torch.Tensor, radii: torch.Tensor, ti
         run_ranges(_write_pairs, n, device, rectangles + [tiles_x, capacity, warp_view(offsets), warp_view(tiles),
                                                           warp_view(pairs)])
     if room is not None:
-        room.counted(total)
+        room.counted(total, n)
     if capacity:
         _sort_by_tile(tiles, pairs, capacity, num_tiles + 1)
     tiles, pairs = tiles[:capacity], pairs[:capacity]
