@@ -202,3 +202,10 @@ def test_a_synthetic_scene_without_points_is_cut_where_its_cameras_stand(mini_de
         assert block.points == len(standing) and block.cap == round(1000 * len(standing) / len(scene.train))
     assert block_scene(scene, BlocksFolder(tmp_path / "blocks").block_spec(0),
                        BlocksFolder(tmp_path / "blocks").block_run(0)).points is None, "random init, as its run"
+
+
+def test_a_block_run_with_surface_makes_no_mesh_of_its_part(shared_data, tmp_path):
+    folder = BlocksFolder(tmp_path / "blocks")
+    plan_blocks(cup_training(shared_data, surface=True), folder.path, count=2)
+    surface = block_config(read_plan(folder.plan_file), folder, 0).surface_terms
+    assert surface.surface and not surface.surface_mesh
