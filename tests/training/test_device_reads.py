@@ -7,6 +7,8 @@ the background are moved to the device once, the image without waiting."""
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import torch
 
@@ -41,37 +43,53 @@ def warp_kernels():
     pair_room.forget_rooms()
 
 
-def run_step(scene, strategy="mcmc", update=None, surface=False):
+def run_step(scene, strategy="mcmc", update=None, surface=False, device=CPU):
     config = config_of(data=scene.root, steps=1000, strategy=strategy, surface=surface, surface_from=0.0)
     plan = Plan.literal(config)
     model = GaussianModel.random_init(scene.radius, blender=True, num_points=2000,
-                                      generator=torch.Generator().manual_seed(0))
-    strategy = make_strategy(config, plan, scene.radius, torch.Generator().manual_seed(0))
+                                      generator=torch.Generator().manual_seed(0)).to(device)
+    strategy = make_strategy(config, plan, scene.radius, torch.Generator(device).manual_seed(0))
     terms = None  # the standard ones
     if surface:  # and --surface's, the normal term on from the first step
         terms = standard_terms(config.ssim_weight, strategy, ()) + surface_terms(100.0, 0.015, 0.0, scene.radius)
     step = Step(model, make_optimizers(model, plan.optim, scene.radius), strategy, config, scene.radius,
-                background_of(config, scene), CPU, update=update or PlainUpdate(), loss_terms=terms)
+                background_of(config, scene), device, update=update or PlainUpdate(), loss_terms=terms)
     return step, plan
+
+
+@contextlib.contextmanager
+def refusing_reads(device: torch.device, host: list[torch.Tensor]):
+    """On the CPU the torch mode of tests/support/device_reads.py; on a GPU the device itself: torch's sync debug
+    mode makes every wait for the GPU an error."""
+    if device.type != "cuda":
+        with RefuseReads(host=host) as reads:
+            yield reads
+        return
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        yield None
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
 
 
 @pytest.mark.parametrize("strategy, update, surface", [("mcmc", PlainUpdate, False), ("adc", PlainUpdate, False),
                                                        ("mcmc", FusedProjectionAdam, False),
                                                        ("mcmc", PlainUpdate, True)])
-def test_a_training_step_reads_nothing_back(mini_demo, warp_kernels, strategy, update, surface):
+def test_a_training_step_reads_nothing_back(mini_demo, warp_kernels, strategy, update, surface, device):
     """With the plain update (torch's Adam steps the parameters), with the Warp kernel's fused update, and with
-    --surface's terms (its normal map and planar depth a second compositing pass)."""
+    --surface's terms (its normal map and planar depth a second compositing pass); on a GPU (pytest --device cuda)
+    under torch's sync debug mode."""
     scene = load_scene(mini_demo, downscale=4)
-    step, plan = run_step(scene, strategy, update(), surface)
+    step, plan = run_step(scene, strategy, update(), surface, device)
     views = scene.train[:3]
     for index, view in enumerate(views):  # each view's camera numbers are read once, from host memory; the room made
         step(index, view, plan, index)
     (room,) = pair_room._rooms.values()
     results = []
-    with RefuseReads(host=[room.host_copy()]) as reads:
+    with refusing_reads(device, host=[room.host_copy()]) as reads:
         for index in range(3, 9):
             results.append(step(index, views[index % 3], plan, index % 3))
-    assert reads.host_reads == 6  # each render the room's copy of the last count, which a GPU has sent by then
+    assert reads is None or reads.host_reads == 6  # each render the room's copy of the last count (sent by then)
     losses = [result.loss for result in results]  # read now, after the steps
     assert all(0 < loss < 1 for loss in losses) and all(result.train_psnr > 5 for result in results)
     step.check_finite()
