@@ -11,8 +11,10 @@ import contextlib
 
 import pytest
 import torch
+import warp as wp
 
 from mcsplat import render
+from mcsplat.compute.runtime import array_t
 from mcsplat.config import config_of
 from mcsplat.data import load_scene
 from mcsplat.errors import MCSplatError
@@ -23,6 +25,7 @@ from mcsplat.optim.fused_projection import FusedProjectionAdam
 from mcsplat.planning import Plan
 from mcsplat.planning.strategy_choice import make_strategy
 from mcsplat.render.bin import pair_room
+from mcsplat.render import set_cpu_threads
 from mcsplat.render.composite.function import set_cpu_kernels
 from mcsplat.run.scene import background_of
 from mcsplat.step import Step
@@ -126,3 +129,39 @@ def test_a_loss_that_stopped_being_finite_is_named_at_its_step_when_read(mini_de
         one_step(index, scene.train[0], plan)
     with pytest.raises(MCSplatError, match="step 12: the loss became nan"):
         one_step.check_finite()
+
+
+def launches_of(step, plan, view, index: int) -> list[tuple]:
+    """The Warp launches of one step: each kernel, its size and its arguments (numbers as they are, arrays by shape)."""
+    made = []
+
+    def recording(kernel, dim, inputs=(), **options):
+        made.append((kernel.key, dim, tuple(("array", tuple(a.shape)[:a.ndim]) if isinstance(a, array_t) else
+                                            ("array", tuple(a.shape)) if isinstance(a, wp.array) else a
+                                            for a in inputs)))
+        return launch(kernel, dim=dim, inputs=inputs, **options)
+
+    launch = wp.launch
+    wp.launch = recording
+    try:
+        step(index, view, plan, 0)
+    finally:
+        wp.launch = launch
+    return made
+
+
+def test_a_step_launches_the_same_kernels_with_the_same_arguments_from_view_to_view(mini_demo, warp_kernels):
+    """What a CUDA graph needs of the step: its kernels, their sizes and their numbers do not change with the view
+    (the camera comes as an array, warp_kernel.packed_camera; the pair lists' room has a size known ahead). Only
+    the arrays' contents differ, and on the CPU their addresses."""
+    scene = load_scene(mini_demo, downscale=4)
+    step, plan = run_step(scene)
+    set_cpu_threads(1)  # the launches in one order (a thread pool's workers would launch their ranges in any)
+    try:
+        for index, view in enumerate(scene.train[:3]):
+            step(index, view, plan, index)
+        first, second = (launches_of(step, plan, scene.train[k], 3 + k) for k in (0, 1))
+    finally:
+        set_cpu_threads(None)
+    assert [launch[0] for launch in first][:2] == ["projection_kernels__locals__project", "_count_pairs"]
+    assert len(first) >= 8 and first == second

@@ -84,6 +84,7 @@ def projection_backward_adam(first_chunk: int, n: int, camera: _floats, width: i
 
 
 KERNELS = [projection_backward_adam]
+_NO_VIEW = torch.zeros(12, dtype=torch.float32)  # never written (the view gradient is off), never the camera's numbers
 
 
 def _step_constants(steps: list[torch.Tensor], rates: list[float], beta1: float, beta2: float) -> np.ndarray:
@@ -116,7 +117,7 @@ def update(pending: deferred.DeferredBackward, params: list[torch.Tensor], state
                       for t in (param, state["exp_avg"], state["exp_avg_sq"], param.grad)], dtype=np.int64)
     n = pending.means.shape[0]
     dc_stride, rest_stride, rest_shift, rest_count = cpu_simd._sh_layout(pending.sh_dc, pending.sh_rest, False)
-    no_view = pending.camera  # the backward's view gradient is off; any float array stands for its output
+    no_view = _NO_VIEW  # the backward's view gradient is off; an array of its own stands for its output
     run_ranges(projection_backward_adam, -(-n // LANES), pending.means.device, [
         n, flat_view(pending.camera), pending.width, pending.height, pending.sh_degree, int(pending.antialiased),
         *(flat_view(t) for t in (pending.means, pending.quats, pending.scales, pending.sh_dc, pending.sh_rest)),

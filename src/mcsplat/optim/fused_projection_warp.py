@@ -18,7 +18,7 @@ import warp as wp
 
 from ..compute.runtime import run_ranges, warp_scalar, warp_view
 from ..render.project import deferred
-from ..render.project.warp_kernel import projection_kernels, warp_camera_arguments
+from ..render.project.warp_kernel import projection_kernels
 
 
 @functools.lru_cache(maxsize=None)
@@ -27,11 +27,11 @@ def fused_kernel(dtype):
     vec2 = wp.types.vector(2, dtype)
     vec3 = wp.types.vector(3, dtype)
     vec4 = wp.types.vector(4, dtype)
-    mat33 = wp.types.matrix((3, 3), dtype)
     flat = wp.array(dtype=dtype)
     steps = wp.array(dtype=wp.float32)  # torch's fused Adam counts in float32
     zero = dtype(0.0)
-    backward_of_gaussian = projection_kernels(dtype)[1].of_gaussian
+    backward = projection_kernels(dtype)[1]
+    backward_of_gaussian, camera_of = backward.of_gaussian, backward.camera_of
 
     @wp.func
     def adam_at(param: flat, exp_avg: flat, exp_avg_sq: flat, j: int, g: dtype, step: steps, rate: wp.float64,
@@ -56,9 +56,7 @@ def fused_kernel(dtype):
 
     @wp.kernel(module="unique")
     def project_backward_adam(
-        offset: int, rotation: mat33, translation: vec3, camera_center: vec3,
-        fx: dtype, fy: dtype, cx: dtype, cy: dtype, width: int, height: int, near: dtype, far: dtype,
-        eps2d: dtype, sh_degree: int, antialiased: int,
+        offset: int, camera: flat, width: int, height: int, sh_degree: int, antialiased: int,
         means: wp.array(dtype=vec3), quats: wp.array(dtype=vec4), scales: wp.array(dtype=vec3),
         sh_dc: wp.array2d(dtype=vec3), sh_rest: wp.array2d(dtype=vec3), rest_count: int,
         grad_means2d: wp.array(dtype=vec2), grad_conics: wp.array(dtype=vec3), grad_depths: wp.array(dtype=dtype),
@@ -76,6 +74,7 @@ def fused_kernel(dtype):
         beta1: wp.float64, beta2: wp.float64, eps: dtype,
     ):
         i = offset + wp.tid()
+        rotation, translation, camera_center, fx, fy, cx, cy, near, far, eps2d = camera_of(camera)
         g_means[i] = vec3(zero, zero, zero)
         g_scales[i] = vec3(zero, zero, zero)
         g_quats[i] = vec4(zero, zero, zero, zero)
@@ -132,8 +131,6 @@ def update(pending: deferred.DeferredBackward, rows: GradientRows, params: list[
     scalar = warp_scalar(pending.means.dtype)
     vec = functools.partial(_vectors, scalar=scalar)
     g_means, g_quats, g_scales, g_dc, g_rest, no_view = rows.for_model(pending.means, pending.sh_rest)
-    camera = warp_camera_arguments(pending.camera_args, scalar)
-    camera = camera[:9] + camera[11:]  # the backward has no use for the tile counts
     per_parameter = []
     for param, state, rate in zip(params, states, rates):
         earlier = param.grad if param.grad is not None else param.new_empty(0)
@@ -141,7 +138,7 @@ def update(pending: deferred.DeferredBackward, rows: GradientRows, params: list[
                                                               state["step"], earlier)] + [wp.float64(rate)]
     upstream = pending.upstream
     run_ranges(fused_kernel(scalar), pending.means.shape[0], pending.means.device, [
-        *camera, pending.sh_degree, int(pending.antialiased),
+        warp_view(pending.camera), pending.width, pending.height, pending.sh_degree, int(pending.antialiased),
         vec(pending.means, 3), vec(pending.quats, 4), vec(pending.scales, 3), vec(pending.sh_dc, 3),
         vec(pending.sh_rest, 3), pending.sh_rest.shape[1],
         vec(upstream[0], 2), vec(upstream[1], 3), warp_view(upstream[2]), vec(upstream[3], 3),

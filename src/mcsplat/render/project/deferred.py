@@ -31,7 +31,7 @@ class DeferredBackward:
     sh_dc: torch.Tensor
     sh_rest: torch.Tensor
     camera_args: tuple  # warp_kernel._camera_arguments
-    camera: torch.Tensor | None  # packed as cpu_simd.CAMERA_LAYOUT (the SIMD kernel's)
+    camera: torch.Tensor  # packed as cpu_simd.CAMERA_LAYOUT, on the device (warp_kernel.packed_camera)
     sh_degree: int
     antialiased: bool
     colors: torch.Tensor | None  # the forward's (the SIMD backward reads them for the clamp)

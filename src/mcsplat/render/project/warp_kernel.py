@@ -13,6 +13,8 @@ request each Gaussian's share of the view matrix's gradient (pose refinement). T
 version, the dense reference renderer and torch's gradcheck in float64. On the CPU, ranges of Gaussians run from the
 rasterizer's thread pool; each thread writes only its own Gaussians, so the result does not depend on timing.
 tests/render/test_project_simd.py holds the SIMD kernels to the float64 truth as closely as this kernel in float32.
+Both read the camera as an array on the device (packed_camera, made once per camera), so that a launch's arguments do
+not change from view to view (what a CUDA graph replays).
 
 (No `from __future__ import annotations` here: Warp reads the kernels' annotations as live objects.)
 """
@@ -51,6 +53,15 @@ def projection_kernels(dtype):
     one = dtype(1.0)
     two = dtype(2.0)
     quat_rotation = rotation_function(dtype)
+
+    @wp.func
+    def camera_of(camera: wp.array(dtype=dtype)):
+        """The packed camera (cpu_simd.CAMERA_LAYOUT's order): rotation, translation, centre, fx, fy, cx, cy, near,
+        far, eps2d. From a device array, so that a launch's arguments do not change with the view."""
+        rotation = mat33(camera[0], camera[1], camera[2], camera[3], camera[4], camera[5], camera[6], camera[7],
+                         camera[8])
+        return (rotation, vec3(camera[9], camera[10], camera[11]), vec3(camera[12], camera[13], camera[14]),
+                camera[15], camera[16], camera[17], camera[18], camera[19], camera[20], camera[21])
 
     @wp.func
     def view_limits(fx: dtype, fy: dtype, cx: dtype, cy: dtype, width: int, height: int):
@@ -123,10 +134,8 @@ def projection_kernels(dtype):
 
     @wp.kernel(module="unique")
     def project(
-        offset: int, rotation: mat33, translation: vec3, camera_center: vec3,
-        fx: dtype, fy: dtype, cx: dtype, cy: dtype, width: int, height: int, tiles_x: int, tiles_y: int,
-        near: dtype, far: dtype,
-        eps2d: dtype, sh_degree: int, opacity_aware_radius: int, antialiased: int,
+        offset: int, camera: wp.array(dtype=dtype), width: int, height: int, tiles_x: int, tiles_y: int,
+        sh_degree: int, opacity_aware_radius: int, antialiased: int,
         means: wp.array(dtype=vec3), quats: wp.array(dtype=vec4), scales: wp.array(dtype=vec3),
         opacities: wp.array(dtype=dtype), sh_dc: wp.array2d(dtype=vec3), sh_rest: wp.array2d(dtype=vec3),
         rest_shift: int,  # sh_rest[i, rest_shift + k - 1] is band coefficient k: 0 for the rest alone, 1 for all
@@ -136,6 +145,7 @@ def projection_kernels(dtype):
         alpha_extent: wp.array(dtype=vec2),
     ):
         i = offset + wp.tid()
+        rotation, translation, camera_center, fx, fy, cx, cy, near, far, eps2d = camera_of(camera)
         mean = means[i]
         p, in_range, z_safe = camera_point(rotation, translation, mean, near, far)
         lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos = view_limits(fx, fy, cx, cy, width, height)
@@ -391,9 +401,7 @@ def projection_kernels(dtype):
 
     @wp.kernel(module="unique")
     def project_backward(
-        offset: int, rotation: mat33, translation: vec3, camera_center: vec3,
-        fx: dtype, fy: dtype, cx: dtype, cy: dtype, width: int, height: int, near: dtype, far: dtype,
-        eps2d: dtype, sh_degree: int, antialiased: int,
+        offset: int, camera: wp.array(dtype=dtype), width: int, height: int, sh_degree: int, antialiased: int,
         means: wp.array(dtype=vec3), quats: wp.array(dtype=vec4), scales: wp.array(dtype=vec3),
         sh_dc: wp.array2d(dtype=vec3), sh_rest: wp.array2d(dtype=vec3), rest_shift: int,
         grad_means2d: wp.array(dtype=vec2), grad_conics: wp.array(dtype=vec3), grad_depths: wp.array(dtype=dtype),
@@ -403,6 +411,7 @@ def projection_kernels(dtype):
         view_grad: int, out_view: wp.array2d(dtype=dtype),
     ):
         """backward_of_gaussian for Gaussians offset + tid (the outputs zeroed by the caller)."""
+        rotation, translation, camera_center, fx, fy, cx, cy, near, far, eps2d = camera_of(camera)
         backward_of_gaussian(
             offset + wp.tid(), rotation, translation, camera_center, fx, fy, cx, cy, width, height, near, far, eps2d,
             sh_degree, antialiased, means, quats, scales, sh_dc, sh_rest, rest_shift, grad_means2d, grad_conics,
@@ -410,6 +419,7 @@ def projection_kernels(dtype):
             view_grad, out_view)
 
     project_backward.of_gaussian = backward_of_gaussian  # the fused update's kernel calls it (optim/fused_projection)
+    project_backward.camera_of = camera_of
     return project, project_backward
 
 
@@ -440,13 +450,13 @@ class _ProjectFunction(torch.autograd.Function):
         means, quats, scales, sh_dc, opacities = (t.contiguous() for t in (means, quats, scales, sh_dc, opacities))
         sh_rest = sh_dc if ctx.together else sh_rest.contiguous()
         ctx.simd = kernels_for(means) == "simd"
-        ctx.packed_camera = _packed_camera(camera_args) if ctx.simd else None
+        ctx.packed_camera = packed_camera(camera_args, means.dtype, means.device)
         if ctx.simd:
             outputs = simd.project(means, quats, scales, opacities, sh_dc, sh_rest, ctx.together, ctx.packed_camera,
                                    *camera_args[7:11], sh_degree, opacity_aware_radius, antialiased)
         else:
             outputs = _scalar_forward(means, quats, scales, opacities, sh_dc, sh_rest, ctx.together, camera_args,
-                                      sh_degree, opacity_aware_radius, antialiased)
+                                      ctx.packed_camera, sh_degree, opacity_aware_radius, antialiased)
         means2d, conics, depths, colors, compensations, radii, tile_min, tile_max, alpha_extent = outputs
         # The SIMD backward reads the forward's colours for the clamp instead of evaluating the SH again.
         ctx.save_for_backward(means, quats, scales, sh_dc, sh_rest, colors if ctx.simd else None)
@@ -475,8 +485,8 @@ class _ProjectFunction(torch.autograd.Function):
                 ctx.sh_degree, ctx.antialiased, colors, upstream, view_grad)
         else:
             grads, per_gaussian_view = _scalar_backward(means, quats, scales, sh_dc, sh_rest, ctx.together,
-                                                        ctx.camera_args, ctx.sh_degree, ctx.antialiased, upstream,
-                                                        view_grad)
+                                                        ctx.packed_camera, *ctx.camera_args[7:9], ctx.sh_degree,
+                                                        ctx.antialiased, upstream, view_grad)
         grad_rest = None if ctx.together else grads[4]
         grad_view = None
         if view_grad:
@@ -497,13 +507,14 @@ def gradients_of(pending: deferred.DeferredBackward) -> list[torch.Tensor]:
                                          pending.antialiased, pending.colors, pending.upstream, False)
     else:
         grads, _ = _scalar_backward(pending.means, pending.quats, pending.scales, pending.sh_dc, pending.sh_rest,
-                                    False, pending.camera_args, pending.sh_degree, pending.antialiased,
-                                    pending.upstream, False)
+                                    False, pending.camera, pending.width, pending.height, pending.sh_degree,
+                                    pending.antialiased, pending.upstream, False)
     return grads
 
 
 def _scalar_forward(means, quats, scales, opacities, sh_dc, sh_rest, together: bool, camera_args: tuple,
-                    sh_degree: int, opacity_aware_radius: bool, antialiased: bool) -> list[torch.Tensor]:
+                    camera: torch.Tensor, sh_degree: int, opacity_aware_radius: bool,
+                    antialiased: bool) -> list[torch.Tensor]:
     """The forward outputs from the Warp kernel (one thread per Gaussian): CUDA, float64, or the CPU's second
     opinion."""
     n, dtype, device = means.shape[0], means.dtype, means.device
@@ -515,7 +526,7 @@ def _scalar_forward(means, quats, scales, opacities, sh_dc, sh_rest, together: b
     means2d, conics, depths, colors, compensations, radii, tile_min, tile_max, alpha_extent = outputs
     forward_kernel, _ = projection_kernels(scalar)
     run_ranges(forward_kernel, n, device, [
-        *warp_camera_arguments(camera_args, scalar), sh_degree, int(opacity_aware_radius), int(antialiased),
+        warp_view(camera), *camera_args[7:11], sh_degree, int(opacity_aware_radius), int(antialiased),
         _vector_view(means, 3, scalar), _vector_view(quats, 4, scalar), _vector_view(scales, 3, scalar),
         _scalar_view(opacities), _vector_view(sh_dc, 3, scalar), _vector_view(sh_rest, 3, scalar),
         int(together), _vector_view(means2d, 2, scalar), _vector_view(conics, 3, scalar),
@@ -524,19 +535,17 @@ def _scalar_forward(means, quats, scales, opacities, sh_dc, sh_rest, together: b
     return outputs
 
 
-def _scalar_backward(means, quats, scales, sh_dc, sh_rest, together: bool, camera_args: tuple, sh_degree: int,
-                     antialiased: bool, upstream: list[torch.Tensor], view_grad: bool):
+def _scalar_backward(means, quats, scales, sh_dc, sh_rest, together: bool, camera: torch.Tensor, width: int,
+                     height: int, sh_degree: int, antialiased: bool, upstream: list[torch.Tensor], view_grad: bool):
     """The Warp backward kernel's gradients: (means, quats, scales, sh_dc, sh_rest) and the per-Gaussian view share
     (None without view_grad), as cpu_simd.project_backward returns them."""
     n, scalar = means.shape[0], warp_scalar(means.dtype)
     grads = [torch.zeros_like(t) for t in (means, quats, scales, sh_dc)]
     grads.append(grads[3] if together else torch.zeros_like(sh_rest))
     _, backward_kernel = projection_kernels(scalar)
-    warp_camera = warp_camera_arguments(camera_args, scalar)
-    warp_camera = warp_camera[:9] + warp_camera[11:]  # the backward has no use for the tile counts
     per_gaussian_view = torch.zeros((n if view_grad else 1, 12), dtype=means.dtype, device=means.device)
     run_ranges(backward_kernel, n, means.device, [
-        *warp_camera, sh_degree, int(antialiased),
+        warp_view(camera), width, height, sh_degree, int(antialiased),
         _vector_view(means, 3, scalar), _vector_view(quats, 4, scalar), _vector_view(scales, 3, scalar),
         _vector_view(sh_dc, 3, scalar), _vector_view(sh_rest, 3, scalar), int(together),
         _vector_view(upstream[0], 2, scalar), _vector_view(upstream[1], 3, scalar), _scalar_view(upstream[2]),
@@ -555,22 +564,25 @@ def _camera_arguments(camera: Camera, near: float, far: float, eps2d: float) -> 
             -(-camera.width // TILE_SIZE), -(-camera.height // TILE_SIZE), float(near), float(far), float(eps2d))
 
 
-def warp_camera_arguments(camera_args: tuple, scalar) -> tuple:
-    """The camera's numbers as the Warp kernels' arguments, in scalar type `scalar`."""
-    rotation, translation, center, fx, fy, cx, cy, width, height, tiles_x, tiles_y, near, far, eps2d = camera_args
-    mat33 = wp.types.matrix((3, 3), scalar)
-    vec3 = wp.types.vector(3, scalar)
-    s = scalar
-    return (mat33(*rotation), vec3(*translation), vec3(*center), s(fx), s(fy), s(cx), s(cy), width, height,
-            tiles_x, tiles_y, s(near), s(far), s(eps2d))
+_PACKED_KEPT = 1024  # cameras whose packed numbers are kept on their device (a capture's views, a few sizes each)
+_packed: dict[tuple, torch.Tensor] = {}
 
 
-def _packed_camera(camera_args: tuple) -> torch.Tensor:
-    """The camera's numbers as the SIMD kernels read them: float32, in cpu_simd.CAMERA_LAYOUT's order."""
-    rotation, translation, center, fx, fy, cx, cy, _width, _height, _tiles_x, _tiles_y, near, far, eps2d = camera_args
-    numbers = [*rotation, *translation, *center, fx, fy, cx, cy, near, far, eps2d]
-    assert len(numbers) == len(CAMERA_LAYOUT)
-    return torch.tensor(numbers, dtype=torch.float32)
+def packed_camera(camera_args: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """The camera's numbers as the kernels read them, in cpu_simd.CAMERA_LAYOUT's order: an array on the device (the
+    Warp kernels' arguments then do not change from view to view) in the kernels' dtype (the SIMD kernel's: float32
+    on the CPU). Made once per camera and kept: a copy to a GPU at every step would wait for its queue."""
+    key = (camera_args, dtype, str(device))
+    found = _packed.get(key)
+    if found is None:
+        rotation, translation, center, fx, fy, cx, cy, _w, _h, _tx, _ty, near, far, eps2d = camera_args
+        numbers = [*rotation, *translation, *center, fx, fy, cx, cy, near, far, eps2d]
+        assert len(numbers) == len(CAMERA_LAYOUT)
+        found = torch.tensor(numbers, dtype=dtype).to(device)
+        if len(_packed) >= _PACKED_KEPT:
+            _packed.pop(next(iter(_packed)))
+        _packed[key] = found
+    return found
 
 
 def project_and_shade(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
