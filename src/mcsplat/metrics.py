@@ -41,7 +41,8 @@ def psnr_on_device(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 class StepValues:
-    """A training step's loss and train PSNR, as a [2] tensor on the step's device, read when a consumer asks.
+    """A training step's loss and train PSNR, as a [2] tensor on the step's device (on the host where several
+    processes averaged them), read when a consumer asks.
 
     Reading a GPU tensor waits for every kernel queued before it; the progress bar and the log read these every 10
     and 100 steps, so the other steps queue their work without waiting. The first read converts both and keeps them."""
@@ -53,10 +54,6 @@ class StepValues:
     @classmethod
     def of(cls, loss: float, train_psnr: float) -> StepValues:
         return cls(torch.tensor([loss, train_psnr], dtype=torch.float64))
-
-    @property
-    def tensor(self) -> torch.Tensor:
-        return self._values
 
     def read(self) -> tuple[float, float]:
         if self._read is None:

@@ -114,8 +114,9 @@ class Step:
     parameters and Adam's state change as the run goes (row surgery replaces them in place in `model.params` and the
     optimizers), never the objects themselves.
 
-    A step reads nothing back from the device (a GPU's queue never waits for the host): the loss and PSNR stay there
-    until a consumer reads them, and whether the loss stayed finite is read by `check_finite()`."""
+    A step reads nothing back from the device (a GPU's queue never waits for the host; docs/method.md says where that
+    holds): the loss and PSNR stay there until a consumer reads them, and whether the loss stayed finite is read by
+    `check_finite()`."""
 
     model: GaussianModel
     optimizers: dict[str, torch.optim.Optimizer]
