@@ -70,6 +70,20 @@ class StepValues:
         return self.read()[1]
 
 
+class WithStepValues:
+    """`loss` and `train_psnr` of a record that carries a step's `values` (step.StepResult, run/events.StepDone)."""
+
+    values: StepValues
+
+    @property
+    def loss(self) -> float:
+        return self.values.loss
+
+    @property
+    def train_psnr(self) -> float:
+        return self.values.train_psnr
+
+
 def ssim_metric(image: torch.Tensor, target: torch.Tensor) -> float:
     return ssim(image.clamp(0, 1), target).item()
 

@@ -26,7 +26,7 @@ from .data import View
 from .errors import MCSplatError
 from .gaussians import GaussianModel
 from .loss_terms import LossTerm, StepContext, render_outputs, standard_terms, total_loss
-from .metrics import StepValues, psnr_on_device
+from .metrics import StepValues, WithStepValues, psnr_on_device
 from .optim import ParameterUpdate, PlainUpdate, means_lr_at, set_means_lr
 from .per_image import PerImageModule
 from .planning import Plan
@@ -37,17 +37,9 @@ from .strategy.noise import noise_lr_at
 
 
 @dataclass
-class StepResult:
+class StepResult(WithStepValues):
     values: StepValues  # the loss and train PSNR, read when asked
     refine: RefineReport  # what the strategy did after the optimizer step
-
-    @property
-    def loss(self) -> float:
-        return self.values.loss
-
-    @property
-    def train_psnr(self) -> float:
-        return self.values.train_psnr
 
 
 Reduce = Callable[[GaussianModel, torch.Tensor], torch.Tensor]

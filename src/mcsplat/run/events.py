@@ -32,7 +32,7 @@ from ..config import TrainConfig
 from ..data import Scene
 from .evaluation import Evaluation
 from ..gaussians import GaussianModel
-from ..metrics import StepValues
+from ..metrics import StepValues, WithStepValues
 from ..planning import Plan
 from ..strategy.base import RefineReport
 
@@ -98,7 +98,7 @@ class EvalDone:
 
 
 @dataclass(frozen=True)
-class StepDone:
+class StepDone(WithStepValues):
     kind: ClassVar[str] = "step_done"
     step: int  # steps done (1 after the first step)
     total_steps: int
@@ -108,14 +108,6 @@ class StepDone:
     train_seconds: float  # training time so far, pauses and consumers not counted
     refine: RefineReport | None = None  # what the strategy did after this step's optimizer step
     resolution: float = 1.0  # the share of the image size the step trained at (coarse to fine)
-
-    @property
-    def loss(self) -> float:
-        return self.values.loss
-
-    @property
-    def train_psnr(self) -> float:
-        return self.values.train_psnr
 
 
 @dataclass(frozen=True)
