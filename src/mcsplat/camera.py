@@ -98,13 +98,17 @@ class Camera:
         return made[(width, height)]
 
     def to(self, device: torch.device | str) -> "Camera":
-        """The camera with its tensors on `device`; it remembers the host copy it came from (see `on_host`). A
-        camera whose pose is not being learned keeps the copy it made, so that a training step on a view seen before
-        copies nothing to the GPU (a copy from pageable memory waits for the GPU's queue)."""
+        """The camera with its tensors on `device`; it remembers the host copy it came from (see `on_host`). Moved to
+        another device, a camera whose pose is not being learned keeps the copy it made, so that a training step on a
+        view seen before copies nothing to the GPU (a copy from pageable memory waits for the GPU's queue); on its own
+        device nothing is copied, and nothing is kept (small objects kept between the large transient buffers of
+        many renders raise the process's peak memory)."""
+        target = torch.device(device)
         learned = self.world_to_camera.requires_grad or self.K.requires_grad
+        keep = not learned and target != self.K.device
         made = self.__dict__.setdefault("_moved", {})
-        key = str(torch.device(device))
-        if not learned and key in made:
+        key = str(target)
+        if keep and key in made:
             return made[key]
         moved = Camera(K=self.K.to(device), world_to_camera=self.world_to_camera.to(device),
                        width=self.width, height=self.height)
@@ -112,6 +116,7 @@ class Camera:
         object.__setattr__(moved, "_focal_and_centre", self.focal_and_centre)
         if not learned:  # a pose being learned is read where it is used
             object.__setattr__(moved, "_pose_numbers", self.pose_numbers)
+        if keep:
             made[key] = moved
         return moved
 

@@ -113,8 +113,9 @@ def test_the_refusing_device_catches_what_a_step_used_to_read(mini_demo, warp_ke
     with RefuseReads(), pytest.raises(DeviceRead, match="copies to a device"):
         torch.tensor([0.5, 0.5], device=CPU)
     host = scene.train[6].camera_at(1.0)
-    moved = host.to(CPU)
-    assert moved is not host and host.to(CPU) is moved  # a view's camera is moved once, then kept
+    moved = host.to("meta")  # another device (no GPU here): a view's camera is moved once, then kept
+    assert moved.K.device.type == "meta" and host.to("meta") is moved
+    assert host.to(CPU) is not host.to(CPU)  # on its own device nothing is copied, nor kept
 
 
 def test_a_loss_that_stopped_being_finite_is_named_at_its_step_when_read(mini_demo, warp_kernels, monkeypatch):

@@ -571,7 +571,9 @@ _packed: dict[tuple, torch.Tensor] = {}
 def packed_camera(camera_args: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
     """The camera's numbers as the kernels read them, in cpu_simd.CAMERA_LAYOUT's order: an array on the device (the
     Warp kernels' arguments then do not change from view to view) in the kernels' dtype (the SIMD kernel's: float32
-    on the CPU). Made once per camera and kept: a copy to a GPU at every step would wait for its queue."""
+    on the CPU). On a GPU made once per camera and kept: a copy there at every step would wait for its queue. On
+    the CPU made at each render (nothing waits there), for small arrays kept between many renders' buffers raise the
+    process's peak memory."""
     key = (camera_args, dtype, str(device))
     found = _packed.get(key)
     if found is None:
@@ -579,9 +581,10 @@ def packed_camera(camera_args: tuple, dtype: torch.dtype, device: torch.device) 
         numbers = [*rotation, *translation, *center, fx, fy, cx, cy, near, far, eps2d]
         assert len(numbers) == len(CAMERA_LAYOUT)
         found = torch.tensor(numbers, dtype=dtype).to(device)
-        if len(_packed) >= _PACKED_KEPT:
-            _packed.pop(next(iter(_packed)))
-        _packed[key] = found
+        if device.type == "cuda":
+            if len(_packed) >= _PACKED_KEPT:
+                _packed.pop(next(iter(_packed)))
+            _packed[key] = found
     return found
 
 
