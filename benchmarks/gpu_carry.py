@@ -70,7 +70,7 @@ export PYTHONPATH=$S:$REPO/src MCSPLAT_LPIPS_WEIGHTS=$REPO/.gpu/c/lpips TORCH_CU
 for i in $(seq 1 45); do grep -q "gsplat built\\|Error" /tmp/gsplat_build.log && grep -q "warp compiled\\|Error" /tmp/warp_compile.log && break; sleep 2; done
 tail -n 2 /tmp/gsplat_build.log /tmp/warp_compile.log
 nvidia-smi --query-gpu=name,driver_version,memory.used --format=csv,noheader
-python3 benchmarks/gpu_session.py --phases ${PHASES:-tests parity update lego capture train} --lego .gpu/c/lego --capture .gpu/c/bird --minutes ${MINUTES:-8} --out $OUT/c --runs /tmp/runs
+python3 benchmarks/gpu_session.py --phases ${PHASES:-tests graph parity update capture train} --lego .gpu/c/lego --capture .gpu/c/bird --minutes ${MINUTES:-8} --out $OUT/c --runs /tmp/runs
 """
 
 

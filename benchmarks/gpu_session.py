@@ -24,6 +24,8 @@ background from the start, with nvcc and ninja) or the gsplat arms are skipped, 
               applying Adam in one Warp kernel, optim/fused_projection_warp.py), each in a fresh process: whether
               the fused update should be CUDA's default too
     lego      mcsplat against gsplat 1.5.3 (gpu_vs_gsplat.py) on lego 400, cap 300k, 150k random points
+    graph     the same with a third arm, mcsplat's step replayed as a CUDA graph (`train --cuda-graph`): its step
+              time against the plain step's and gsplat's, and its test PSNR beside theirs
     capture   the same on a capture at full resolution, cap 1M, 500k random points
     collapse  the same from the capture's SfM points, 14,000 steps (the cap is reached before the end), with the
               share of dead Gaussians every 1,000 steps on each arm: does gsplat's MCMC also end with nearly all
@@ -60,21 +62,20 @@ import tyro
 import _common as C
 
 REPO = Path(__file__).resolve().parents[1]
-Phase = Literal["tests", "parity", "kernels", "profile", "update", "lego", "capture", "collapse", "train",
+Phase = Literal["tests", "parity", "kernels", "profile", "update", "lego", "graph", "capture", "collapse", "train",
                 "agreement"]
 PHASES: tuple[Phase, ...] = typing.get_args(Phase)
 # Share of the whole time each phase may take (what one phase leaves is free for the next), and the least it needs.
-SHARES = {"tests": 0.1, "parity": 0.2, "kernels": 0.05, "profile": 0.05, "update": 0.1, "lego": 0.12,
-          "capture": 0.18, "collapse": 0.3, "train": 0.25, "agreement": 0.05}
-LEAST_SECONDS = {"tests": 30, "parity": 60, "kernels": 20, "profile": 20, "update": 40, "lego": 60, "capture": 90,
-                 "collapse": 90,
-                 "train": 40, "agreement": 20}
+SHARES = {"tests": 0.1, "parity": 0.2, "kernels": 0.05, "profile": 0.1, "update": 0.1, "lego": 0.12,
+          "graph": 0.18, "capture": 0.18, "collapse": 0.3, "train": 0.25, "agreement": 0.05}
+LEAST_SECONDS = {"tests": 30, "parity": 60, "kernels": 20, "profile": 20, "update": 40, "lego": 60, "graph": 90,
+                 "capture": 90, "collapse": 90, "train": 40, "agreement": 20}
 # The training PSNR the parity phase reports at these steps (the log has it every 100 steps).
 PARITY_STEPS = (100, 500, 1000, 2500, 5000, 10000, 15000, 20000, 25000, 30000)
 # The lego and capture phases are the end-to-end training runs on the GPU (their test PSNR beside gsplat's).
 TEST_FILES = ["tests/render/test_composite_tiles.py", "tests/render/test_render.py",
               "tests/render/test_warp_kernels.py", "tests/training/test_ssim_warp.py",
-              "tests/training/test_fused_projection.py"]
+              "tests/training/test_fused_projection.py", "tests/training/test_graphed_step.py"]
 
 
 @dataclass(frozen=True)
@@ -172,12 +173,20 @@ def phase_kernels(args, seconds: float, log: Path) -> dict:
 
 
 def phase_profile(args, seconds: float, log: Path) -> dict:
+    """The plain step's profile, then the step replayed as a CUDA graph (under "graph")."""
     sizes = ["--cap", "4000", "--warm", "20", "--profiled", "5", "--device", "cpu"] if args.dry_run else \
         ["--cap", "300000", "--warm", "400", "--profiled", "30", "--device", "cuda"]
-    code, took = run_logged([sys.executable, "benchmarks/step_profile.py", "--data", str(args.lego), *sizes], log,
-                            seconds)
+    started, codes = time.monotonic(), []
+    for graph in ([], ["--cuda-graph"]):
+        left = seconds - (time.monotonic() - started)
+        codes.append(run_logged([sys.executable, "benchmarks/step_profile.py", "--data", str(args.lego), *sizes,
+                                 *graph], log, left / (1 if graph else 2))[0])
+    code = next((c for c in codes if c), 0)  # the first that failed
     records = [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
-    return {"exit_code": code, "seconds": round(took, 1), **(records[-1] if records else {})}
+    plain = [r for r in records if not r.get("cuda_graph")]
+    graph = [r for r in records if r.get("cuda_graph")]
+    return {"exit_code": code, "seconds": round(time.monotonic() - started, 1), **(plain[-1] if plain else {}),
+            "graph": graph[-1] if graph else None}
 
 
 def phase_update(args, seconds: float, log: Path, out: Path) -> dict:
@@ -225,11 +234,11 @@ class GsplatBuild:
 
 
 def phase_compare(args, build: GsplatBuild | None, seconds: float, log: Path, data: Path, cap: int, init: int,
-                  steps: int, timed: int, init_method: str, *extra: str) -> dict:
+                  steps: int, timed: int, init_method: str, *extra: str, ours: tuple[str, ...] = ("mcsplat",)) -> dict:
     started = time.monotonic()
     built = "not asked" if build is None else build.wait(seconds / 2)
     seconds -= time.monotonic() - started
-    arms = ["mcsplat"] + (["gsplat"] if built == "built" else [])
+    arms = list(ours) + (["gsplat"] if built == "built" else [])
     out = args.runs / log.stem
     command = [sys.executable, "benchmarks/gpu_vs_gsplat.py", "--data", str(data), "--cap", str(cap),
                "--init", str(init), "--init-method", init_method, "--steps", str(steps), "--timed", str(timed),
@@ -239,10 +248,16 @@ def phase_compare(args, build: GsplatBuild | None, seconds: float, log: Path, da
     result = {"exit_code": code, "seconds": round(took, 1), "arms": arms, "records": records,
               "note": None if "gsplat" in arms or args.dry_run else f"gsplat {built}: mcsplat alone"}
     by_arm = {r["arm"]: r for r in records}
-    if len(by_arm) == 2:
-        result["step_ratio"] = round(by_arm["mcsplat"]["median_step_ms"] / by_arm["gsplat"]["median_step_ms"], 3)
-        result["memory_ratio"] = round(by_arm["mcsplat"]["peak_gpu_mb"] / by_arm["gsplat"]["peak_gpu_mb"], 3)
-        result["psnr_difference"] = round(by_arm["mcsplat"]["psnr"] - by_arm["gsplat"]["psnr"], 3)
+    for arm, suffix in (("mcsplat", ""), ("mcsplat-graph", "_graph")):
+        if arm in by_arm and "gsplat" in by_arm:
+            ours, theirs = by_arm[arm], by_arm["gsplat"]
+            result["step_ratio" + suffix] = round(ours["median_step_ms"] / theirs["median_step_ms"], 3)
+            result["memory_ratio" + suffix] = round(ours["peak_gpu_mb"] / theirs["peak_gpu_mb"], 3)
+            result["psnr_difference" + suffix] = round(ours["psnr"] - theirs["psnr"], 3)
+    if "mcsplat" in by_arm and "mcsplat-graph" in by_arm:  # the graph against the plain step, same session
+        plain, graph = by_arm["mcsplat"], by_arm["mcsplat-graph"]
+        result["graph_step_ratio"] = round(graph["median_step_ms"] / plain["median_step_ms"], 3)
+        result["graph_psnr_difference"] = round(graph["psnr"] - plain["psnr"], 3)
     return result
 
 
@@ -369,6 +384,11 @@ def run_phase(name: str, args, build: GsplatBuild | None, seconds: float, log: P
         steps, timed = (20, 10) if args.dry_run else (args.lego_steps, 1000)
         cap = 3000 if args.dry_run else 300_000
         return phase_compare(args, build, seconds, log, args.lego, cap, cap // 2, steps, timed, "auto")
+    if name == "graph":
+        steps, timed = (20, 10) if args.dry_run else (args.lego_steps, 1000)
+        cap = 3000 if args.dry_run else 300_000
+        return phase_compare(args, build, seconds, log, args.lego, cap, cap // 2, steps, timed, "auto",
+                             ours=("mcsplat", "mcsplat-graph"))
     if name == "capture":
         steps, timed = (20, 10) if args.dry_run else (args.capture_steps, 500)
         cap = 3000 if args.dry_run else 1_000_000
@@ -406,19 +426,24 @@ def write_page(out: Path, records: list[dict]) -> str:
                                + ", ".join(f"{path} {error:.1e}" for path, error in x["worst_relative_error"].items())
                                for x in r.get("summaries", [])) + f" (exit {r['exit_code']})"
         elif r["phase"] == "profile":
-            result = ", ".join(f"{k} {r[k]}" for k in ("gaussians", "wall_ms_per_step", "gpu_busy_ms_per_step",
-                                                        "host_op_ms_per_step", "kernel_launches_per_step") if k in r)
+            keys = ("gaussians", "wall_ms_per_step", "gpu_busy_ms_per_step", "host_op_ms_per_step",
+                    "kernel_launches_per_step", "torch_ops_per_step", "warp_launches_per_step")
+            result = ", ".join(f"{k} {r[k]}" for k in keys if k in r)
+            if r.get("graph"):
+                result += "; as a CUDA graph: " + ", ".join(f"{k} {r['graph'][k]}" for k in keys if k in r["graph"])
             result += f" (exit {r['exit_code']})"
         elif r["phase"] == "update":
             result = ", ".join(f"{name} {ms} ms" for name, ms in r.get("step_ms", {}).items())
             result += f" (exit {r['exit_code']})"
-        elif r["phase"] in ("lego", "capture", "collapse"):
+        elif r["phase"] in ("lego", "graph", "capture", "collapse"):
             arms = "; ".join(f"{a['arm']} {a['median_step_ms']:.2f} ms, {a['peak_gpu_mb']:.0f} MB, {a['psnr']:.2f} dB"
                              + (", dead " + " ".join(f"{100 * v:.0f}%" for v in a["dead_share"].values())
                                 if r["phase"] == "collapse" else "")
                              for a in r.get("records", []))
             ratio = f"; step {r['step_ratio']}x, memory {r['memory_ratio']}x, PSNR {r['psnr_difference']:+.2f} dB" \
                 if "step_ratio" in r else ""
+            if "graph_step_ratio" in r:
+                ratio += f"; graph / plain step {r['graph_step_ratio']}x, PSNR {r['graph_psnr_difference']:+.2f} dB"
             result = arms + ratio + (f" ({r['note']})" if r.get("note") else "") + f" (exit {r['exit_code']})"
         else:
             result = ", ".join(f"{k} {r[k]}" for k in ("steps_reached", "num_gaussians", "last_ms_per_step",
@@ -442,7 +467,7 @@ def main() -> None:
     args = dataclasses.replace(args, runs=args.runs or out / "runs")
     clock = Clock(args.minutes)
     # gsplat's build takes 12 cores for a minute or more: only for the phases that compare with it.
-    compares = {"lego", "capture", "collapse"} & set(args.phases)
+    compares = {"lego", "graph", "capture", "collapse"} & set(args.phases)
     build = GsplatBuild(out) if compares and not args.dry_run else None
     info = C.machine("cpu" if args.dry_run else "cuda")
     print(C.machine_line(info), flush=True)

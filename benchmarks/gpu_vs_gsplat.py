@@ -4,6 +4,7 @@
 
 Both arms run the same loop over the same view order, from the same random initialisation (mcsplat's, seed 0):
     mcsplat   mcsplat.step.Step, the trainer's own step (Warp rasterizer, mcsplat's MCMC strategy)
+    mcsplat-graph  the same step replayed as a CUDA graph (mcsplat.graphed_step, `train --cuda-graph`)
     gsplat    gsplat.rasterization (packed=False, classic, eps2d 0.3, as gsplat's simple_trainer) and
               gsplat.strategy.MCMCStrategy, called after the Adam step as simple_trainer does
 Shared by both: one fused torch Adam per parameter with mcsplat's learning rates (the paper's), the position rate's
@@ -33,6 +34,7 @@ import tyro
 import _common as C
 from mcsplat.config import ModelConfig, TrainConfig
 from mcsplat.data import load_scene
+from mcsplat.graphed_step import graphed
 from mcsplat.losses import photometric_loss
 from mcsplat.metrics import psnr, ssim_metric
 from mcsplat.optim import make_optimizers, means_lr_at, set_means_lr, update_for
@@ -70,7 +72,7 @@ class Options:
     """mcsplat against gsplat on one GPU."""
 
     training: Annotated[Training, tyro.conf.OmitArgPrefixes]
-    arms: tuple[Literal["gsplat", "mcsplat"], ...] = ("gsplat", "mcsplat")
+    arms: tuple[Literal["gsplat", "mcsplat", "mcsplat-graph"], ...] = ("gsplat", "mcsplat")
     """The arms to run, in this order."""
     steps: int = 5000
     """Training steps of each arm."""
@@ -124,12 +126,12 @@ class McsplatArm:
         self.model, generator = setup.fresh()
         self.optimizers = make_optimizers(self.model, setup.config.optim, setup.radius)
         self.strategy = make_strategy(setup.config, setup.plan, setup.radius, generator)
-        self.update = update_for(setup.device)  # the trainer's (on the CPU: the projection's backward fused with Adam)
+        update = update_for(setup.device)  # the trainer's (on the CPU: the projection's backward fused with Adam)
+        self.one_step = Step(self.model, self.optimizers, self.strategy, setup.config, setup.radius, setup.background,
+                             setup.device, update=update)  # made once, as the trainer does
 
     def step(self, step: int, view) -> None:
-        s = self.setup
-        Step(self.model, self.optimizers, self.strategy, s.config, s.radius, s.background, s.device,
-             update=self.update)(step, view, s.plan)
+        self.one_step(step, view, self.setup.plan)
 
     def count(self) -> int:
         return self.model.num_gaussians
@@ -140,6 +142,14 @@ class McsplatArm:
     @torch.no_grad()
     def render(self, view, sh_degree: int) -> torch.Tensor:
         return render(self.model, view.camera.to(self.setup.device), self.setup.background, sh_degree).rgb
+
+
+class McsplatGraphArm(McsplatArm):
+    name = "mcsplat-graph"
+
+    def __init__(self, setup: Setup):
+        super().__init__(setup)
+        self.one_step = graphed(self.one_step, True)
 
 
 class GsplatArm:
@@ -251,15 +261,17 @@ def main() -> None:
     for name in args.arms:
         print(f"{name}: {args.steps:,} steps, cap {training.cap:,}, {training.initial_points:,} initial points",
               flush=True)
-        record = run_arm({"gsplat": GsplatArm, "mcsplat": McsplatArm}[name], setup, args.timed, args.dead_every)
+        arm = {"gsplat": GsplatArm, "mcsplat": McsplatArm, "mcsplat-graph": McsplatGraphArm}[name]
+        record = run_arm(arm, setup, args.timed, args.dead_every)
         record.update(info)
         C.emit(record)
         records.append(record)
     by_arm = {r["arm"]: r for r in records}
-    if len(by_arm) == 2:
-        ratio = by_arm["mcsplat"]["median_step_ms"] / by_arm["gsplat"]["median_step_ms"]
-        print(f"step time mcsplat / gsplat: {ratio:.2f}x; PSNR mcsplat - gsplat: "
-              f"{by_arm['mcsplat']['psnr'] - by_arm['gsplat']['psnr']:+.2f} dB")
+    for name in ("mcsplat", "mcsplat-graph"):
+        if name in by_arm and "gsplat" in by_arm:
+            ratio = by_arm[name]["median_step_ms"] / by_arm["gsplat"]["median_step_ms"]
+            print(f"step time {name} / gsplat: {ratio:.2f}x; PSNR {name} - gsplat: "
+                  f"{by_arm[name]['psnr'] - by_arm['gsplat']['psnr']:+.2f} dB")
     C.write_results(out, records, C.markdown_table(records, COLUMNS) + "\n", show=True)
 
 

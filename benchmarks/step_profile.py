@@ -4,6 +4,7 @@
     python benchmarks/step_profile.py --data PATH/lego [--cap 300000] [--warm 300] [--profiled 30]
     .venv/bin/python benchmarks/step_profile.py --device cpu --data PATH/lego --cap 100000 --warm 20 --profiled 5
     .venv/bin/python benchmarks/step_profile.py --device cpu --data PATH/lego --cap 1000 --downscale 6   # fixed cost
+    python benchmarks/step_profile.py --data PATH/lego --cuda-graph     # the step replayed as a CUDA graph
 
 First, with no profiler, --profiled steps are counted: the torch operators dispatched (aten operators, the autograd
 backward's included: what the step asks of the framework), those among them that read a value back to the host
@@ -35,7 +36,7 @@ import tyro
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import _common as C
-from gpu_vs_gsplat import McsplatArm, Setup, Training
+from gpu_vs_gsplat import McsplatArm, McsplatGraphArm, Setup, Training
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,9 @@ class Options:
     """Rows of each table of operators and kernels."""
     downscale: int = 1
     """Load the images at 1/N of their size (a step's fixed cost: lego 400 at --downscale 6 is 66x66)."""
+    cuda_graph: bool = False
+    """The step replayed as a CUDA graph (`train --cuda-graph`): the operators and launches counted are then the
+    host's own around each replay (on the CPU, where there are no graphs, the plain step's)."""
 
 
 # Operators whose result the host must wait for on a GPU: a value read (item, int, float, bool), or an output whose
@@ -126,7 +130,7 @@ def main() -> None:
     args = tyro.cli(Options, description=__doc__)
     steps = args.warm + 2 * args.profiled  # warm, counted, profiled
     setup = Setup(args.training, steps, downscale=args.downscale)
-    arm = McsplatArm(setup)
+    arm = (McsplatGraphArm if args.cuda_graph else McsplatArm)(setup)
     views = setup.views()
     for step in range(args.warm):
         arm.step(step, next(views))
@@ -157,6 +161,7 @@ def main() -> None:
               "gpu_busy_ms_per_step": round(device_time / 1000 / args.profiled, 3),
               "host_op_ms_per_step": round(host_time / 1000 / args.profiled, 3),
               "kernel_launches_per_step": round(launches / args.profiled, 1), "profiled_steps": args.profiled,
+              "cuda_graph": args.cuda_graph,
               **counted,
               **C.machine(args.training.device)}
     print(json.dumps(record), flush=True)

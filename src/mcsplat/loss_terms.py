@@ -48,7 +48,9 @@ class StepContext:
 
 class LossTerm(Protocol):
     # Optionally: render_outputs, the outputs it reads from ctx.result, as a set (frozenset({"normals"})) or as a
-    # method render_outputs(step, steps) giving the set for that step (empty while the term is off).
+    # method render_outputs(step, steps) giving the set for that step (empty while the term is off); and
+    # graph_phase(step, steps), what its work branches on at that step, for a step replayed as a CUDA graph
+    # (graph_phase below; a term that does not say keeps the step out of a graph).
     def __call__(self, ctx: StepContext) -> torch.Tensor | None:
         ...
 
@@ -63,6 +65,20 @@ def render_outputs(terms: Sequence[LossTerm], step: int = 0, steps: int = 0) -> 
     return frozenset(wanted)
 
 
+def graph_phase(terms: Sequence[LossTerm], step: int, steps: int) -> tuple | None:
+    """What the terms' work branches on at `step`, each term's graph_phase(step, steps), for a step replayed as a
+    CUDA graph (graphed_step.py): a graph is replayed only in the phase it was captured in. None when a term does not
+    say (it may read the view's attachments, or weigh itself by the step: a graph would keep its first weight)."""
+    phases = []
+    for term in terms:
+        said = getattr(term, "graph_phase", None)
+        phase = said(step, steps) if said is not None else None
+        if phase is None:
+            return None
+        phases.append(phase)
+    return tuple(phases)
+
+
 class Photometric:
     """(1 - ssim_weight) L1 + ssim_weight D-SSIM over the pixels the view's mask keeps."""
 
@@ -71,6 +87,9 @@ class Photometric:
 
     def __call__(self, ctx: StepContext) -> torch.Tensor:
         return masked_photometric_loss(ctx.rgb, ctx.target, ctx.keep, self.ssim_weight)
+
+    def graph_phase(self, step: int, steps: int) -> tuple:
+        return ()  # the same work at every step
 
 
 class StrategyRegularization:
@@ -81,6 +100,9 @@ class StrategyRegularization:
 
     def __call__(self, ctx: StepContext) -> torch.Tensor:
         return self.strategy.regularization(ctx.model)
+
+    def graph_phase(self, step: int, steps: int) -> tuple:
+        return ()  # fixed weights
 
 
 class ModuleRegularization:

@@ -21,6 +21,7 @@ import torch
 
 from . import losses, optim, render
 from .appearance import training_kernels as appearance_kernels
+from .camera import Camera
 from .config import TrainConfig
 from .data import View
 from .errors import MCSplatError
@@ -36,6 +37,15 @@ from .strategy.base import RefineReport
 from .strategy.noise import noise_lr_at
 
 
+@dataclass(frozen=True)
+class StepInputs:
+    """What a step reads of its view, on the device."""
+
+    camera: Camera  # at the step's resolution, moved by the per-image modules
+    target: torch.Tensor  # [H, W, 3] the photo at the camera's size
+    keep: torch.Tensor | None  # [H, W, 1] the mask's weights; None when the scene has no masks
+
+
 @dataclass
 class StepResult(WithStepValues):
     values: StepValues  # the loss and train PSNR, read when asked
@@ -45,7 +55,8 @@ class StepResult(WithStepValues):
 Reduce = Callable[[GaussianModel, torch.Tensor], torch.Tensor]
 
 
-def _alone(model: GaussianModel, values: torch.Tensor) -> torch.Tensor:
+def alone(model: GaussianModel, values: torch.Tensor) -> torch.Tensor:
+    """The reduce of a process training alone: nothing to do."""
     return values
 
 
@@ -117,7 +128,7 @@ class Step:
     scene_radius: float
     background: tuple[float, float, float] | torch.Tensor
     device: torch.device
-    reduce: Reduce = _alone
+    reduce: Reduce = alone
     modules: Sequence[PerImageModule] = ()
     loss_terms: Sequence[LossTerm] | None = None
     phases: StepPhases | None = None
@@ -128,24 +139,55 @@ class Step:
     def on(self, model: GaussianModel, optimizers: dict, strategy: Strategy) -> Step:
         """The same step on another model, alone and without the run's modules and terms (--budget times throwaway
         copies of the run's model with it, leaving the run's own state as it is)."""
-        return dataclasses.replace(self, model=model, optimizers=optimizers, strategy=strategy, reduce=_alone,
+        return dataclasses.replace(self, model=model, optimizers=optimizers, strategy=strategy, reduce=alone,
                                    modules=(), loss_terms=None, phases=None)
 
     def __call__(self, step: int, view: View, plan: Plan, view_index: int = 0) -> StepResult:
         """Step `step` on training view `view` (index `view_index` of the scene's, for the per-image modules), as
         `plan` has it at this step (learning rates, resolution, SH degree; the strategy follows the plan's
         schedule)."""
-        model, optimizers, strategy, modules = self.model, self.optimizers, self.strategy, self.modules
-        lap = self.phases.lap if self.phases is not None else (lambda phase: None)
-        set_means_lr(optimizers, means_lr_at(step, plan.steps, plan.optim, self.scene_radius))
-        camera = view.camera_at(plan.resolution_at(step)).to(self.device)  # coarse to fine, when configured
-        for module in modules:
+        return self.run(step, view, plan, view_index, self.inputs(step, view, plan, view_index))
+
+    def run(self, step: int, view: View, plan: Plan, view_index: int, inputs: StepInputs) -> StepResult:
+        """The step with its view's inputs at hand (`inputs`)."""
+        self.set_rates(step, plan)
+        values, refine = self.work(step, view, plan, view_index, inputs, self.noise_lr(step, plan))
+        self.finite.add(step, values)  # reduced: every process stops at the same step
+        return StepResult(StepValues(values), refine)
+
+    def set_rates(self, step: int, plan: Plan) -> None:
+        """The position learning rate of `step` (it decays log-linearly over the run)."""
+        set_means_lr(self.optimizers, means_lr_at(step, plan.steps, plan.optim, self.scene_radius))
+
+    def inputs(self, step: int, view: View, plan: Plan, view_index: int) -> StepInputs:
+        """What the step reads of its view: the camera at the step's resolution (coarse to fine, when configured),
+        moved by the modules, and the photo and mask at its size, on the device."""
+        camera = view.camera_at(plan.resolution_at(step)).to(self.device)
+        for module in self.modules:
             camera = module.camera(view_index, camera)
         target = view.image_float(self.device, size=(camera.width, camera.height))
         keep = view.mask_float(self.device, size=(camera.width, camera.height))  # None unless the scene has masks
-        terms = self.loss_terms
-        if terms is None:
-            terms = standard_terms(self.config.ssim_weight, strategy, modules)
+        return StepInputs(camera, target, keep)
+
+    def terms(self) -> Sequence[LossTerm]:
+        """The loss terms the step sums."""
+        if self.loss_terms is not None:
+            return self.loss_terms
+        return standard_terms(self.config.ssim_weight, self.strategy, self.modules)
+
+    def noise_lr(self, step: int, plan: Plan) -> float:
+        """The learning rate the strategy's noise follows: the position learning rate after this step's decay, as
+        gsplat has it (docs/method.md), or the schedule an ablation puts in its place (strategy/noise.py)."""
+        return noise_lr_at(self.config.mcmc.noise_schedule, step + 1, plan.steps, plan.optim, self.scene_radius)
+
+    def work(self, step: int, view: View, plan: Plan, view_index: int, inputs: StepInputs,
+             noise_lr: float | torch.Tensor) -> tuple[torch.Tensor, RefineReport]:
+        """The step's work on the device, from the render to the strategy's noise: ([loss, PSNR] reduced, what the
+        strategy did). A step replayed as a CUDA graph (graphed_step.py) captures it with inputs in fixed places and
+        the noise's rate as a tensor."""
+        model, optimizers, strategy, modules = self.model, self.optimizers, self.strategy, self.modules
+        lap = self.phases.lap if self.phases is not None else (lambda phase: None)
+        camera, target, keep, terms = inputs.camera, inputs.target, inputs.keep, self.terms()
         lap("other")
         with self.update.rendering(model), render.pairs_sized_ahead():
             result = render.render(model, camera, self._background(model.means.dtype), plan.sh_degree_at(step),
@@ -164,19 +206,14 @@ class Step:
         strategy.step_post_backward(step, model, result, camera.width, camera.height)
         lap("strategy")
         values = self.reduce(model, torch.stack([loss.detach(), psnr_on_device(rgb, target)]))
-        self.finite.add(step, values)  # after the reduce, so that every process stops at the same step
         lap("reduce")
         self.update.step(optimizers)  # and the gradients dropped
         for module in modules:
             module.step(step, plan)
         lap("optimizer")
-        # The noise uses the position learning rate after this step's decay, as gsplat does (docs/method.md), or
-        # the schedule an ablation puts in its place (strategy/noise.py).
-        refine = strategy.step_post_optimizer(step, model, optimizers,
-                                              noise_lr_at(self.config.mcmc.noise_schedule, step + 1, plan.steps,
-                                                          plan.optim, self.scene_radius))
+        refine = strategy.step_post_optimizer(step, model, optimizers, noise_lr)
         lap("strategy")
-        return StepResult(StepValues(values), refine)
+        return values, refine
 
     def _background(self, dtype: torch.dtype) -> torch.Tensor:
         """The background as a tensor on the device, made once (a step copies nothing to the GPU but its image)."""

@@ -27,7 +27,8 @@ from .render import forget_pair_rooms
 from .run.metrics import RunFacts, metrics
 from .run.setup import set_up
 from .run.state import feature_facts
-from .step import Step, step_kernels
+from .step import Step, alone, step_kernels
+from .graphed_step import graphed
 from .stopping import AgreedRequests, StopSignals
 from .strategy.base import asks_the_scene, changed
 from .visibility import count_invisible
@@ -53,9 +54,11 @@ class TrainingRun:
         self.planner, self.run_dir, self.control = begun.planner, begun.folder.path, control or Control()
         self.requests = AgreedRequests(self.control, team)  # stop / checkpoint, agreed between the processes
         state = self.state
-        self.one_step = Step(state.model, state.optimizers, state.strategy, self.config, self.scene.radius,
-                             self.background, self.device, reduce=self.requests.reduce, modules=state.modules,
-                             loss_terms=state.loss_terms, update=update_for(self.device, team.world_size))
+        reduce = self.requests.reduce if team.world_size > 1 else alone
+        self.one_step = graphed(Step(state.model, state.optimizers, state.strategy, self.config, self.scene.radius,
+                                     self.background, self.device, reduce=reduce, modules=state.modules,
+                                     loss_terms=state.loss_terms, update=update_for(self.device, team.world_size)),
+                                self.config.cuda_graph)
         self._written_plan = self.plan  # what config.json holds
         self._saved_at = -1  # the step of the last checkpoint written
         self._emit: Listener = lambda event: None

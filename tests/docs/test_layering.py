@@ -20,7 +20,7 @@ LAYERS = [
     ("interface", ("__main__", "cli")),
     ("session", ("blocks", "train", "export")),
     ("consumers", ("viewer", "report")),
-    ("loop", ("trainer", "step", "stopping", "subscribers")),
+    ("loop", ("trainer", "graphed_step", "step", "stopping", "subscribers")),
     ("run", ("run",)),
     ("set-up", ("distributed", "initialization", "partition", "planning", "config", "typed_json")),
     ("method", ("surface_terms", "depth_supervision", "appearance", "pose_refinement", "features",

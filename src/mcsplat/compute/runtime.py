@@ -147,6 +147,17 @@ def warp_stream(device: torch.device) -> wp.Stream:
     return _warp_streams[key]
 
 
+def radix_sort_pairs(keys: torch.Tensor, values: torch.Tensor, count: int, end_bit: int) -> None:
+    """Warp's stable radix sort of the first `count` (key, value) pairs, in place (the tensors hold room for twice as
+    many). On CUDA on torch's current stream, as the launches are: Warp's sort otherwise runs on Warp's own current
+    stream, which a graph captured on torch's stream would not hold."""
+    if keys.device.type != "cuda":
+        wp.utils.radix_sort_pairs(wp.from_torch(keys), wp.from_torch(values), count, end_bit=end_bit)
+        return
+    with wp.ScopedStream(warp_stream(keys.device), sync_enter=False):
+        wp.utils.radix_sort_pairs(wp.from_torch(keys), wp.from_torch(values), count, end_bit=end_bit)
+
+
 def launch_on_cuda(kernel, dim, inputs: list, device: torch.device, block_dim: int | None = None,
                    tiled: bool = False) -> None:
     """One launch on torch's current stream of `device` (so that it runs in order with torch's own kernels)."""

@@ -37,7 +37,8 @@ from ..gaussians import PARAM_KEYS, GaussianModel
 from .stepping import step_optimizers
 from .update import ParameterUpdate, PlainUpdate, training_kernels, update_for
 
-__all__ = ["OptimConfig", "make_optimizers", "means_lr_at", "set_means_lr", "step_optimizers", "training_kernels",
+__all__ = ["OptimConfig", "make_optimizers", "means_lr_at", "set_means_lr", "rates_on_device", "portable_state_dict",
+           "step_optimizers", "training_kernels",
            "ParameterUpdate", "PlainUpdate", "update_for", "append_rows", "copy_rows", "set_rows", "remove_rows",
            "zero_moments"]
 
@@ -113,11 +114,40 @@ def means_lr_at(step: int, max_steps: int, config: OptimConfig, scene_radius: fl
 
 
 def set_means_lr(optimizers: Optimizers, lr: float) -> None:
-    """Set the learning rate of the position optimizer."""
+    """Set the learning rate of the position optimizer (in place where it is a tensor: rates_on_device)."""
     if not (lr >= 0 and math.isfinite(lr)):
         raise ValueError(f"the position learning rate must be a finite number >= 0, got {lr}")
     for group in optimizers["means"].param_groups:
-        group["lr"] = lr
+        if isinstance(group["lr"], torch.Tensor):
+            group["lr"].fill_(lr)  # a launch with the number in it: nothing waits
+        else:
+            group["lr"] = lr
+
+
+def rates_on_device(optimizers: Optimizers) -> None:
+    """What a step replayed as a CUDA graph needs of the model's Adams (graphed_step.py): the position learning rate,
+    which changes every step, as a tensor of one on the parameters' device (set_means_lr writes it there; the graph
+    reads it), and on CUDA every group `capturable`, which torch asks of an Adam stepped in a capture. In the dtype
+    torch's fused Adam reads it in: float32 on CUDA; on the CPU it reads a double, as from a number."""
+    for key, optimizer in optimizers.items():
+        for group in optimizer.param_groups:
+            device = group["params"][0].device
+            if key == "means" and not isinstance(group["lr"], torch.Tensor):
+                dtype = torch.float32 if device.type == "cuda" else torch.float64
+                group["lr"] = torch.full((), float(group["lr"]), dtype=dtype, device=device)
+            if device.type == "cuda":
+                group["capturable"] = True
+
+
+def portable_state_dict(optimizer: torch.optim.Optimizer) -> dict:
+    """optimizer.state_dict() with its learning rates as numbers and nothing capturable, as make_optimizers makes
+    them: a checkpoint of a run replayed as a CUDA graph resumes anywhere (one read of each rate)."""
+    state = optimizer.state_dict()
+    for group in state["param_groups"]:  # copies of the optimizer's groups
+        if isinstance(group["lr"], torch.Tensor):
+            group["lr"] = float(group["lr"])
+        group["capturable"] = False
+    return state
 
 
 # ------------------------------------------------------------------------------------------------- row surgery

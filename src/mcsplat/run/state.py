@@ -20,7 +20,7 @@ from ..features import FeatureParts, FeatureStart, features_named
 from ..gaussians import GaussianModel
 from ..initialization import initial_model
 from ..loss_terms import LossTerm, standard_terms
-from ..optim import make_optimizers
+from ..optim import make_optimizers, portable_state_dict
 from ..per_image import PerImageModule
 from ..planning import Plan, make_strategy
 from .scene import Background
@@ -80,7 +80,7 @@ class TrainingState:
         trained with), `strategies` every process's strategy state (rank 0's first)."""
         return {"step": self.step, "train_seconds": self.train_seconds, "wall_seconds": self.wall_seconds,
                 "model": self.model.state_dict(),
-                "optimizers": {name: opt.state_dict() for name, opt in self.optimizers.items()},
+                "optimizers": {name: portable_state_dict(opt) for name, opt in self.optimizers.items()},
                 "strategy": strategies[0], "strategy_per_process": strategies if len(strategies) > 1 else None,
                 "generator": self.generator.get_state(), "sampler": self.sampler.state_dict(),
                 **{module.key: module.state_dict() for module in self.modules}, "config": saved_config}

@@ -19,7 +19,7 @@ the model after each step rather than keep references to them.
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import Any, ClassVar, Mapping, Protocol, runtime_checkable
+from typing import Any, ClassVar, Hashable, Mapping, Protocol, runtime_checkable
 
 import torch
 
@@ -126,6 +126,14 @@ def asks_the_scene(strategy: Any) -> bool:
     return bool(getattr(strategy, "asks_the_scene", False))
 
 
+def graph_phase(strategy: Any, step: int) -> Hashable | None:
+    """What the strategy's per-step work branches on at `step` (strategy.graph_phase), for a step replayed as a CUDA
+    graph: a step whose phase matches its graph's capture is replayed. None for a step that must run as it is, and
+    for a strategy that does not say."""
+    said = getattr(strategy, "graph_phase", None)
+    return said(step) if said is not None else None
+
+
 @runtime_checkable
 class Strategy(Protocol):
     def regularization(self, model: GaussianModel) -> torch.Tensor:
@@ -138,8 +146,9 @@ class Strategy(Protocol):
         ...
 
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Mapping[str, torch.optim.Optimizer],
-                            means_lr: float) -> RefineReport:
-        """After the Adam steps: densify / relocate / add noise as due; says what it did."""
+                            means_lr: float | torch.Tensor) -> RefineReport:
+        """After the Adam steps: densify / relocate / add noise as due; says what it did. `means_lr` is the rate the
+        noise follows, a tensor of one on the device in a step replayed as a CUDA graph."""
         ...
 
     def follow(self, schedule: Any) -> None:

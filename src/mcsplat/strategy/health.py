@@ -32,6 +32,7 @@ class SeenWindow:
 
     def __init__(self) -> None:
         self.seen: torch.Tensor | None = None
+        self.rendered = False  # whether a render was added since the last reset
 
     @torch.no_grad()
     def add(self, render_result: Any, num_gaussians: int) -> None:
@@ -41,14 +42,18 @@ class SeenWindow:
         if self.seen is None or self.seen.shape[0] != num_gaussians:
             self.seen = torch.zeros(num_gaussians, dtype=torch.bool, device=contributed.device)
         self.seen |= contributed
+        self.rendered = True
 
     def reset(self) -> None:
-        self.seen = None
+        """Start a new window, in the same tensor (a step replayed as a CUDA graph adds to the one it captured)."""
+        if self.seen is not None:
+            self.seen.zero_()
+        self.rendered = False
 
     def unseen_share(self, mask: torch.Tensor) -> float | None:
         """The share of the Gaussians in `mask` that no view composited in the window (None without a full window:
         the model's rows changed since the last reset, or nothing was rendered)."""
-        if self.seen is None or self.seen.shape != mask.shape:
+        if self.seen is None or not self.rendered or self.seen.shape != mask.shape:
             return None
         count = int(mask.sum())
         return float((mask & ~self.seen.to(mask.device)).sum()) / count if count else 0.0

@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Callable, ClassVar, Literal, Mapping
+from typing import Any, Callable, ClassVar, Hashable, Literal, Mapping
 
 import torch
 
@@ -344,6 +344,17 @@ class MCMCStrategy:
         s = self.schedule
         return s.refine_start < step < s.refine_stop and step % s.refine_every == 0
 
+    def graph_phase(self, step: int) -> Hashable | None:
+        """What the per-step work branches on at `step`, and where its statistics live, for a step replayed as a
+        CUDA graph (graphed_step.py). None where a step cannot be replayed: a refine step (row surgery, counts read)
+        and the noise on every parameter (its strength follows the step)."""
+        if self.is_refine_step(step) or self.config.noise_all_params:
+            return None
+        collecting = self.asks_the_scene and self.chosen_cap is None
+        return (step < self.schedule.refine_stop, collecting,
+                *(t.data_ptr() if t is not None else None for t in (self.seen.seen, self.gradients.total,
+                                                                     self.gradients.views)))
+
     def regularization(self, model: GaussianModel) -> torch.Tensor:
         """opacity_reg mean(sigmoid(o)) + scale_reg mean(exp(s)): means of the activated values, as the official
         code (the paper's Eq. 10 writes sums)."""
@@ -360,7 +371,7 @@ class MCMCStrategy:
             self.gradients.add(render_result, model.num_gaussians, width, height)
 
     def step_post_optimizer(self, step: int, model: GaussianModel, optimizers: Optimizers,
-                            means_lr: float) -> MCMCReport:
+                            means_lr: float | torch.Tensor) -> MCMCReport:
         c = self.config
         counts: dict[str, Any] = {}
         if self.is_refine_step(step):

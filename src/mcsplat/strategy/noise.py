@@ -57,15 +57,16 @@ def _normal(shape: tuple[int, ...], generator: torch.Generator, like: torch.Tens
 
 
 @torch.no_grad()
-def inject_position_noise(model: GaussianModel, factor: float, generator: torch.Generator, *,
+def inject_position_noise(model: GaussianModel, factor: float | torch.Tensor, generator: torch.Generator, *,
                           covariance: bool = True, gated: bool = True) -> None:
     """means += factor x gate(o) x Sigma eta (Sigma dropped without `covariance`, the gate without `gated`).
 
-    `factor` is lambda_noise x the noise schedule's learning rate. Sigma is the full covariance (not its square
+    `factor` is lambda_noise x the noise schedule's learning rate: a number, or a tensor of one on the device (a step
+    replayed as a CUDA graph changes it there). Sigma is the full covariance (not its square
     root). Only the positions change, in place, bypassing the optimizer: its state is untouched.
     """
     n = model.num_gaussians
-    if n == 0 or factor == 0:
+    if n == 0 or (not isinstance(factor, torch.Tensor) and factor == 0):
         return
     means = model.params["means"]
     eta = _normal((n, 3), generator, means)

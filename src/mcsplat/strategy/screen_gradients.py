@@ -39,6 +39,12 @@ class ScreenGradients:
         self.views: torch.Tensor | None = None  # [N] int32
 
     def reset(self, n: int, device: torch.device) -> None:
+        """Zeros for `n` Gaussians, in the same tensors where they fit (a step replayed as a CUDA graph adds to the
+        ones its capture found)."""
+        if self.total is not None and self.total.shape[0] == n and self.total.device == torch.device(device):
+            self.total.zero_()
+            self.views.zero_()
+            return
         self.total = torch.zeros(n, dtype=torch.float32, device=device)
         self.views = torch.zeros(n, dtype=torch.int32, device=device)
 

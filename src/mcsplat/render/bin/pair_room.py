@@ -18,6 +18,11 @@ a room of a fixed size, per image size:
 
 Every other render (evaluation, the viewer, exports) reads its count and lists every pair, as before.
 
+A step captured as a CUDA graph (graphed_step.py) runs the render's Python once, at the capture: the graph's copy of
+the count is queued at every replay, but the event that says it arrived cannot be recorded inside a capture. So a
+capture leaves the room `captured`, and the step calls `replayed()` after each replay (the event), and sizes the room
+with `size_for` before it (a room that has to change size needs a new capture).
+
 The CPU's own binning (cpu_loops.py) reads the count as it goes, which costs nothing there; this room serves the Warp
 kernels, which CUDA runs (and the CPU with set_cpu_kernels("scalar")).
 """
@@ -54,6 +59,7 @@ class PairRoom:
     _copy: torch.Tensor = field(init=False, repr=False)  # int64 [1] on the host: the last render's count
     _on_its_way: tuple[int, int] | None = field(default=None, init=False, repr=False)  # its Gaussians and room
     _arrived: torch.cuda.Event | None = field(default=None, init=False, repr=False)
+    _captured: tuple[int, int] | None = field(default=None, init=False, repr=False)  # a graph's Gaussians and room
 
     def __post_init__(self) -> None:
         self._copy = torch.zeros(1, dtype=torch.int64, pin_memory=self.device.type == "cuda")
@@ -72,10 +78,22 @@ class PairRoom:
     def counted(self, total: torch.Tensor, gaussians: int) -> None:
         """Queue the copy of this render's count (int64 [1] or [] on the device) to the host."""
         self._copy.copy_(total.reshape(1), non_blocking=self.device.type == "cuda")
+        if self.device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+            self._captured = (gaussians, self.capacity)  # each replay queues the copy; replayed() says so
+            return
+        self._note_on_its_way(gaussians, self.capacity)
+
+    def replayed(self) -> None:
+        """A graph holding this room's render was replayed: the copy of its count is on its way (a graph is replayed
+        only with the Gaussians and the room of its capture, graphed_step.py)."""
+        if self._captured is not None:
+            self._note_on_its_way(*self._captured)
+
+    def _note_on_its_way(self, gaussians: int, room: int) -> None:
         if self.device.type == "cuda":
             self._arrived = torch.cuda.Event()
             self._arrived.record(torch.cuda.current_stream(self.device))
-        self._on_its_way = (gaussians, self.capacity)
+        self._on_its_way = (gaussians, room)
 
     def follow(self, count: int, gaussians: int, room: int) -> None:
         """A render of `gaussians` in a room of `room` counted `count` pairs."""
@@ -127,6 +145,20 @@ def room(device: torch.device, tiles_x: int, tiles_y: int, total: torch.Tensor, 
             _rooms.pop(next(iter(_rooms)))
     _rooms[key] = found  # the newest last
     return found
+
+
+def size_for(device: torch.device, tiles_x: int, tiles_y: int, gaussians: int) -> int | None:
+    """The room a training render of `gaussians` at this size (in tiles) would get now, None before the size's first
+    render (a step captured as a graph asks it before each replay: a new size needs a new capture)."""
+    found = _rooms.get((device, tiles_x, tiles_y))
+    return found.size(gaussians) if found is not None else None
+
+
+def replayed(device: torch.device, tiles_x: int, tiles_y: int) -> None:
+    """A graph holding a training render at this size was replayed (PairRoom.replayed)."""
+    found = _rooms.get((device, tiles_x, tiles_y))
+    if found is not None:
+        found.replayed()
 
 
 def forget_rooms() -> None:

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import torch
 import warp as wp
 
-from ...compute.runtime import cpu_threads, ensure_warp, flat_view, run_ranges, warp_view
+from ...compute.runtime import cpu_threads, ensure_warp, flat_view, radix_sort_pairs, run_ranges, warp_view
 from ..constants import ALL_BLOCKS, BLOCK_SIZE, TILE_SIZE
 from . import cpu_loops, pair_room
 from ..kernel_choice import cpu_kernels
@@ -186,7 +186,7 @@ def _depth_order(depths: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
     order = torch.empty(2 * n, dtype=torch.int32, device=device)
     sort_keys[:n] = keys
     torch.arange(n, dtype=torch.int32, device=device, out=order[:n])
-    wp.utils.radix_sort_pairs(wp.from_torch(sort_keys), wp.from_torch(order), n, end_bit=31)
+    radix_sort_pairs(sort_keys, order, n, end_bit=31)
     return order[:n]
 
 
@@ -251,8 +251,7 @@ def _pair_room(total: int, device: torch.device) -> tuple[torch.Tensor, torch.Te
 
 def _sort_by_tile(tiles: torch.Tensor, pairs: torch.Tensor, total: int, num_tiles: int) -> None:
     """A stable radix sort of the first `total` pairs by tile key, on as many bits as keys below `num_tiles` need."""
-    wp.utils.radix_sort_pairs(wp.from_torch(tiles), wp.from_torch(pairs), total,
-                              end_bit=max(1, (num_tiles - 1).bit_length()))
+    radix_sort_pairs(tiles, pairs, total, end_bit=max(1, (num_tiles - 1).bit_length()))
 
 
 def _bin_on_cpu(rectangles: list[torch.Tensor], use_masks: int, depths: torch.Tensor, radii: torch.Tensor,

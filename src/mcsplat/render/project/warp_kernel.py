@@ -29,7 +29,7 @@ from ...compute.runtime import ensure_warp, run_ranges, warp_scalar, warp_view
 from ...geometry.covariance import rotation_function
 from ...geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from ..constants import FAR_PLANE, LOW_PASS, NEAR_PLANE, TILE_SIZE
-from . import cpu_simd as simd, deferred
+from . import camera_slot, cpu_simd as simd, deferred
 from .cpu_simd import CAMERA_LAYOUT
 from ..kernel_choice import kernels_for
 from .torch_autograd import Projection
@@ -573,7 +573,12 @@ def packed_camera(camera_args: tuple, dtype: torch.dtype, device: torch.device) 
     Warp kernels' arguments then do not change from view to view) in the kernels' dtype (the SIMD kernel's: float32
     on the CPU). On a GPU made once per camera and kept: a copy there at every step would wait for its queue. On
     the CPU made at each render (nothing waits there), for small arrays kept between many renders' buffers raise the
-    process's peak memory."""
+    process's peak memory. While a camera slot serves (camera_slot.py: a step replayed as a CUDA graph), the slot's
+    array."""
+    slot = camera_slot.serving()
+    served = slot.serve(camera_args, dtype, device) if slot is not None else None
+    if served is not None:
+        return served
     key = (camera_args, dtype, str(device))
     found = _packed.get(key)
     if found is None:
@@ -586,6 +591,20 @@ def packed_camera(camera_args: tuple, dtype: torch.dtype, device: torch.device) 
                 _packed.pop(next(iter(_packed)))
             _packed[key] = found
     return found
+
+
+def fill_slot(slot: camera_slot.CameraSlot, camera: Camera) -> None:
+    """Put `camera`'s packed numbers in `slot`, for renders with the settings it served (a copy on the device)."""
+    if slot.settings is None or camera_slot.serving() is slot:
+        raise ValueError("a camera slot is filled after it has served a render (which sets its size and planes), "
+                         "outside serving()")
+    width, height, _tiles_x, _tiles_y, near, far, eps2d = slot.settings
+    if (int(camera.width), int(camera.height)) != (width, height):
+        raise ValueError(f"a camera slot for {width}x{height} renders cannot hold a {camera.width}x{camera.height} "
+                         f"camera")
+    args = _camera_arguments(camera, near, far, eps2d)
+    slot.buffer.copy_(packed_camera(args, slot.buffer.dtype, slot.buffer.device))
+    slot.filled = True
 
 
 def project_and_shade(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor,
