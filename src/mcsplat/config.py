@@ -123,8 +123,8 @@ class TrainConfig:
     cuda_graph: bool = field(default=False, metadata=PROCESS)
     """On a GPU, replay the training step as a CUDA graph: its launches recorded once and replayed with one call, far
     less work for the host each step. Recorded again when the image size, the SH degree or the number of Gaussians
-    changes; refine steps, per-image modules and the depth and --surface terms run as before. Experimental (its speed
-    is not measured yet); the CPU runs its steps as they are."""
+    changes; refine steps run as before, and so do runs with per-image modules, the depth or --surface terms, ADC or
+    several processes. Experimental (its speed is not measured yet); the CPU runs its steps as they are."""
     eval_every: int = field(default=0, metadata=PROCESS)
     """Evaluate on the test views every N steps (0: only at the end)."""
     save_every: int = field(default=5000, metadata=PROCESS)

@@ -15,10 +15,13 @@ kernels with the capture's arguments, so:
   and each loss term's.
   - A step whose strategy or terms say None runs as it is: refine steps (row surgery, counts read), ADC, the depth
     and --surface terms.
-  - A step in a new phase runs as it is WARM_STEPS times, so that nothing is done for the first time inside a capture
-    (Adam's state, the room of a new size, kernels loaded). Then it is captured, and the graph is run once.
-- **What a graph cannot hold runs as before:** per-image modules (--pose-opt, --appearance), several processes, and
-  the CPU's fused update.
+  - A step in a new phase runs as it is WARM_STEPS times (or more: a warm step may itself change the phase, as the
+    first after growth makes the strategy's statistics for the new count), so that nothing is done for the first
+    time inside a capture (Adam's state, the room of a new size, kernels loaded). Then it is captured, and the graph
+    is run once. Only the last graph is kept, and at most CAPTURES_PER_WINDOW are made in any WINDOW steps: while the
+    phase keeps changing (coarse to fine, views of several sizes) the steps run as they are.
+- **What a graph cannot hold runs as before:** per-image modules (--pose-opt, --appearance), several processes, the
+  CPU's fused update, ADC, MCMC's noise on every parameter, and a noise of rate 0.
 
 The graph's memory is its own (torch's graph pool): a run on a GPU keeps the step's intermediate buffers twice, once
 for the graph and once for the steps that run as they are.
@@ -31,6 +34,7 @@ reads everything made before the step from the same memory.
 from __future__ import annotations
 
 import warnings
+from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol
 
@@ -50,6 +54,9 @@ from .step import Step, StepInputs, StepResult, alone
 from .strategy.base import RefineReport, graph_phase as strategy_phase
 
 WARM_STEPS = 2  # steps a new phase runs as it is before its capture
+# At most this many captures in any WINDOW steps: each capture waits for the GPU and collects garbage, more than a few
+# replays save, so while the phase keeps changing (coarse to fine, views of several sizes) the steps run as they are.
+CAPTURES_PER_WINDOW, WINDOW = 4, 64
 
 
 class CaptureFailed(RuntimeError):
@@ -119,10 +126,11 @@ class _Captured:
     slot: CameraSlot
     values: torch.Tensor  # [loss, PSNR], written by each replay
     refine: RefineReport | None = None  # the strategy's report of the capture's step, the same at each replay
+    room: pair_room.PairRoom | None = None  # the pairs' room its render writes the count of (kept while it lives)
 
-    @property
-    def tiles(self) -> tuple[int, int]:
-        return -(-self.inputs.camera.width // TILE_SIZE), -(-self.inputs.camera.height // TILE_SIZE)
+
+def _tiles(camera: Any) -> tuple[int, int]:
+    return -(-camera.width // TILE_SIZE), -(-camera.height // TILE_SIZE)
 
 
 class GraphedStep:
@@ -143,6 +151,7 @@ class GraphedStep:
         self._warming: tuple | None = None  # the phase being warmed,
         self._slot: CameraSlot | None = None  # the slot its capture will read the camera from (it notes the size)
         self._warm = 0  # and its steps so far
+        self._recent: deque[bool] = deque(maxlen=WINDOW)  # whether each of the last steps was a capture
 
     # what the run and its planner use of a step (planning/planner.py's RunStep)
     @property
@@ -160,6 +169,12 @@ class GraphedStep:
         self.step.check_finite()
 
     def __call__(self, step: int, view: View, plan: Plan, view_index: int = 0) -> StepResult:
+        captures = self.captures
+        done = self._step(step, view, plan, view_index)
+        self._recent.append(self.captures > captures)
+        return done
+
+    def _step(self, step: int, view: View, plan: Plan, view_index: int) -> StepResult:
         inputs = self.step.inputs(step, view, plan, view_index)
         phase = self.phase(step, plan, inputs) if not self.failed else None
         if phase is None:
@@ -167,7 +182,7 @@ class GraphedStep:
         captured = self._captured
         if captured is not None and captured.phase == phase:
             return self._replay(step, plan, inputs, captured)
-        if self._warming == phase and self._warm >= WARM_STEPS:
+        if self._warming == phase and self._warm >= WARM_STEPS and sum(self._recent) < CAPTURES_PER_WINDOW:
             self.backend.settle()
             settled = self.phase(step, plan, inputs)  # with every count of the steps before at hand
             if settled == phase:
@@ -189,11 +204,13 @@ class GraphedStep:
         strategy, terms = strategy_phase(s.strategy, step), terms_phase(s.terms(), step, plan.steps)
         if strategy is None or terms is None:
             return None
+        if s.noise_lr(step, plan) == 0:  # the step skips a noise of rate 0, which a graph would draw
+            return None
         camera, model = inputs.camera, s.model
-        tiles = (-(-camera.width // TILE_SIZE), -(-camera.height // TILE_SIZE))
-        room = pair_room.size_for(model.means.device, *tiles, model.num_gaussians)
+        room = pair_room.room_at(model.means.device, *_tiles(camera))
+        room_phase = (id(room), room.size(model.num_gaussians)) if room is not None else None
         return (camera.width, camera.height, inputs.keep is not None, plan.sh_degree_at(step), model.num_gaussians,
-                room, _memory_of(s), strategy, terms)
+                room_phase, _memory_of(s), strategy, terms)
 
     def _as_it_is(self, step: int, view: View, plan: Plan, view_index: int, inputs: StepInputs,
                   slot: CameraSlot | None) -> StepResult:
@@ -228,6 +245,7 @@ class GraphedStep:
                 param.grad = None
             return self._as_it_is(step, view, plan, view_index, inputs, None)
         captured.refine = returned["refine"]
+        captured.room = pair_room.room_at(s.model.means.device, *_tiles(fixed.camera))
         self._captured, self._warming = captured, None
         self.captures += 1
         return self._done(step, captured)
@@ -249,7 +267,8 @@ class GraphedStep:
             captured.inputs.keep.copy_(inputs.keep)
 
     def _done(self, step: int, captured: _Captured) -> StepResult:
-        pair_room.replayed(self.step.model.means.device, *captured.tiles)
+        if captured.room is not None:
+            captured.room.replayed()
         values = captured.values.clone()  # the graph writes its own at the next replay
         self.step.finite.add(step, values)
         return StepResult(StepValues(values), captured.refine)
@@ -267,16 +286,32 @@ def _memory_of(step: Step) -> tuple[int, ...]:
     return tuple(places)
 
 
+def not_replayable(step: Step) -> str | None:
+    """Why none of the run's steps can be replayed as a graph, or None."""
+    if step.device.type != "cuda":
+        return "on the CPU"
+    if step.modules:
+        return "with per-image modules (--pose-opt, --appearance)"
+    if step.reduce is not alone:
+        return "with several processes"
+    if type(step.update) is not PlainUpdate:
+        return "with the fused update"
+    if getattr(step.strategy, "graph_phase", None) is None:
+        return "with this strategy (ADC)"
+    return None
+
+
 def graphed(step: Step, asked: bool) -> Step | GraphedStep:
-    """The run's step: replayed as a CUDA graph when `asked` (--cuda-graph) and on a GPU; on the CPU, with a warning
-    that there it runs as it is."""
+    """The run's step: replayed as a CUDA graph when `asked` (--cuda-graph) and the run allows it; otherwise the step
+    itself, with a warning that says why when it was asked."""
     if not asked:
         return step
-    if step.device.type != "cuda":
-        warnings.warn("--cuda-graph replays the step on a GPU; on the CPU it runs as it is", RuntimeWarning,
-                      stacklevel=2)
+    why = not_replayable(step)
+    if why is not None:
+        warnings.warn(f"--cuda-graph: a training step cannot be replayed as a CUDA graph {why}; it runs as it is",
+                      RuntimeWarning, stacklevel=2)
         return step
     return GraphedStep(step)
 
 
-__all__ = ["GraphedStep", "CudaGraphs", "GraphBackend", "CaptureFailed", "graphed", "WARM_STEPS"]
+__all__ = ["GraphedStep", "CudaGraphs", "GraphBackend", "CaptureFailed", "graphed", "not_replayable", "WARM_STEPS"]

@@ -11,7 +11,9 @@ operator and every Warp launch, with its numbers as they are and each tensor or 
   its address: a graph would read the capture's.
 
 A replay that differs shows what a real graph would get wrong: a number that changes from step to step (a learning
-rate given as a number), or an input that is not copied into a fixed place (a view's own photo or camera).
+rate given as a number), or an input that is not copied into a fixed place (a view's own photo or camera, a rate
+put in a new tensor). The pair rooms are told the work is being captured, as they are on a GPU, so that a room
+follows the counts of replays only as the graphed step tells it to (PairRoom.replayed).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils._pytree import tree_leaves
 
 from mcsplat.compute.runtime import array_t
+from mcsplat.render.bin import pair_room, warp_kernels
 
 
 _NUMBERS_AND_NAMES = (bool, int, float, complex, str, torch.dtype, torch.device, torch.layout, torch.memory_format)
@@ -43,7 +46,7 @@ class _Recording(TorchDispatchMode):
         return any(start <= address < end for start, end in self.made)
 
     def place(self, address: int, shape: tuple, what: Any) -> tuple:
-        if address == 0 or not shape or 0 in shape:
+        if address == 0 or 0 in shape:  # no memory (a 0-d tensor has one number: it counts)
             return ("empty", shape, what)
         return ("made", shape, what) if self._is_made(address) else ("kept", address, shape, what)
 
@@ -79,12 +82,16 @@ class _Recording(TorchDispatchMode):
     def launched(self, kernel, dim, inputs) -> None:
         self.entries.append((getattr(kernel, "key", str(kernel)), dim, self.describe(list(inputs))))
 
+    def sorted_pairs(self, keys, values, count, end_bit) -> None:
+        self.entries.append(("radix_sort_pairs", self.describe((keys, values)), count, end_bit))
+
 
 def record(work: Callable[[], Any]) -> list[tuple]:
-    """What `work` launched: its operators and Warp launches, in order (run with set_cpu_threads(1), so that the
-    launches of a thread pool come in one order)."""
+    """What `work` launched: its operators, Warp launches and radix sorts, in order (run with set_cpu_threads(1), so
+    that the launches of a thread pool come in one order). The pair rooms are told they are being captured, as on a
+    GPU: what a capture runs once (the room's Python), a replay does not run."""
     recording = _Recording()
-    launch, launch_tiled = wp.launch, wp.launch_tiled
+    launch, launch_tiled, sort = wp.launch, wp.launch_tiled, warp_kernels.radix_sort_pairs
 
     def recorded(real):
         def launch_recorded(kernel, dim=None, inputs=(), **options):
@@ -92,12 +99,18 @@ def record(work: Callable[[], Any]) -> list[tuple]:
             return real(kernel, dim=dim, inputs=inputs, **options)
         return launch_recorded
 
-    wp.launch, wp.launch_tiled = recorded(launch), recorded(launch_tiled)
+    def sort_recorded(keys, values, count, end_bit):
+        recording.sorted_pairs(keys, values, count, end_bit)
+        return sort(keys, values, count, end_bit)
+
+    wp.launch, wp.launch_tiled, warp_kernels.radix_sort_pairs = recorded(launch), recorded(launch_tiled), sort_recorded
+    capturing, pair_room.capturing = pair_room.capturing, lambda device: True
     try:
         with recording:
             work()
     finally:
-        wp.launch, wp.launch_tiled = launch, launch_tiled
+        wp.launch, wp.launch_tiled, warp_kernels.radix_sort_pairs = launch, launch_tiled, sort
+        pair_room.capturing = capturing
     return recording.entries
 
 

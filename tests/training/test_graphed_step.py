@@ -22,8 +22,9 @@ from mcsplat.render import set_cpu_threads
 from mcsplat.render.bin import pair_room
 from mcsplat.render.composite.function import set_cpu_kernels
 from mcsplat.run.scene import background_of
+from mcsplat import step as step_module
 from mcsplat.step import Step
-from mcsplat.graphed_step import WARM_STEPS, CaptureFailed, GraphedStep, graphed
+from mcsplat.graphed_step import WARM_STEPS, CaptureFailed, GraphedStep, graphed, not_replayable
 
 from tests.support.device_reads import RefuseReads
 from tests.support.graph_check import NotReplayable, ReplayRecorder, record
@@ -41,9 +42,9 @@ def warp_kernels():
     pair_room.forget_rooms()
 
 
-def mcmc_step(scene, device: torch.device = torch.device("cpu")) -> tuple[Step, Plan]:
-    """MCMC with a cap of 2,200 from 2,000 Gaussians."""
-    config = config_of(data=scene.root, steps=1000, cap_max=2200)
+def mcmc_step(scene, device: torch.device = torch.device("cpu"), steps: int = 1000) -> tuple[Step, Plan]:
+    """MCMC with a cap of 2,200 from 2,000 Gaussians, on the paper's schedules (the first refine step is 500)."""
+    config = config_of(data=scene.root, steps=steps, cap_max=2200)
     plan = Plan.literal(config)
     model = GaussianModel.random_init(scene.radius, blender=True, num_points=2000,
                                       generator=torch.Generator().manual_seed(0)).to(device)
@@ -61,6 +62,7 @@ def test_a_replayed_step_trains_as_the_step_does_and_recaptures_after_growth(min
     growth = next(step for step in range(8, 5000) if strategy.is_refine_step(step))
     steps = list(range(8)) + [growth] + list(range(growth + 1, growth + 4 + WARM_STEPS))
     room_copies: list[torch.Tensor] = []
+    followed = {}  # the counts the room followed, by step
     for step in steps:
         view_index = step % 3
         view = scene.train[view_index]
@@ -70,6 +72,10 @@ def test_a_replayed_step_trains_as_the_step_does_and_recaptures_after_growth(min
         with RefuseReads(host=room_copies) if room_copies and step != growth else contextlib.nullcontext():
             got = graphed(step, view, plan, view_index)  # the growth step reads its counts, as it always has
         assert got.loss == expected.loss and got.train_psnr == expected.train_psnr, step
+        followed[step] = len(next(iter(pair_room._rooms.values()))._ratios)
+    # The room follows the replays' counts (told by the step, PairRoom.replayed: a graph runs none of its Python):
+    # two a step, as the step run as it is renders at the same size into the same room
+    assert followed[7] - followed[4] == 2 * 3
     # Step 0 before Adam has a state (a phase of its own), then warm steps, a capture, replays; the growth step as it
     # is (row surgery), then the grown model warms and is captured again
     assert recorder.captures == 2 and recorder.replays >= 3
@@ -112,9 +118,10 @@ def test_a_step_the_device_cannot_capture_runs_as_it_is_and_the_run_goes_on(mini
     assert graphed.failed and graphed.as_they_are == WARM_STEPS + 4
 
 
-def test_the_recorder_catches_a_number_or_an_input_that_changes_between_replays(mini_demo, warp_kernels):
-    """The check can fail: a learning rate given as a number (a graph would keep its first value), and a tensor
-    that is not in the capture's place (a graph would read the capture's)."""
+def test_the_recorder_catches_a_number_or_an_input_that_changes_between_replays(mini_demo, warp_kernels,
+                                                                                 monkeypatch):
+    """The check can fail: a learning rate given as a number (a graph would keep its first value), a rate or a
+    tensor that is not in the capture's place (a graph would read the capture's)."""
     scene = load_scene(mini_demo, downscale=4)
     step, plan = mcmc_step(scene)
     recorder = ReplayRecorder()
@@ -126,6 +133,17 @@ def test_the_recorder_catches_a_number_or_an_input_that_changes_between_replays(
         for index in range(WARM_STEPS + 4):
             graphed(index, scene.train[0], plan)
     assert recorder.captures == 1
+    set_means_lr = step_module.set_means_lr  # a rate put in a new tensor at each step: the graph reads the old one
+
+    def in_a_new_tensor(optimizers, lr):
+        optimizers["means"].param_groups[0]["lr"] = torch.tensor(lr, dtype=torch.float64)
+    step, plan = mcmc_step(scene)
+    graphed, recorder = GraphedStep(step, ReplayRecorder()), None
+    monkeypatch.setattr(step_module, "set_means_lr", in_a_new_tensor)
+    with pytest.raises(NotReplayable, match="kept.*\\(\\), \\(torch.float64"):
+        for index in range(WARM_STEPS + 4):
+            graphed(index, scene.train[0], plan)
+    monkeypatch.setattr(step_module, "set_means_lr", set_means_lr)
     photos = [torch.ones(4), torch.ones(4)]
     recorder = ReplayRecorder()
     chosen = iter(photos + photos)
@@ -135,12 +153,17 @@ def test_the_recorder_catches_a_number_or_an_input_that_changes_between_replays(
     assert len(record(lambda: torch.ones(3) + 1)) == 2
 
 
-def test_the_run_replays_its_step_only_where_asked_and_on_a_gpu(mini_demo):
+def test_the_run_replays_its_step_only_where_asked_and_where_it_can(mini_demo):
     scene = load_scene(mini_demo, downscale=4)
-    step, _ = mcmc_step(scene)
+    step, plan = mcmc_step(scene)
     assert graphed(step, False) is step
-    with pytest.warns(RuntimeWarning, match="on the CPU it runs as it is"):
+    with pytest.warns(RuntimeWarning, match="cannot be replayed as a CUDA graph on the CPU; it runs as it is"):
         assert graphed(step, True) is step
+    on_a_gpu = dataclasses.replace(step, device=torch.device("cuda"))  # (nothing moved: only asked)
+    assert not_replayable(on_a_gpu) is None
+    assert "per-image modules" in not_replayable(dataclasses.replace(on_a_gpu, modules=(object(),)))
+    adc = make_strategy(config_of(data=scene.root, strategy="adc"), plan, scene.radius, torch.Generator())
+    assert "ADC" in not_replayable(dataclasses.replace(on_a_gpu, strategy=adc))
 
 
 def test_on_a_gpu_the_captured_graph_trains_as_the_step_does(mini_demo, device):
@@ -150,9 +173,10 @@ def test_on_a_gpu_the_captured_graph_trains_as_the_step_does(mini_demo, device):
         pytest.skip("a CUDA graph needs a GPU: pytest --device cuda")
     pair_room.forget_rooms()
     scene = load_scene(mini_demo, downscale=4)
-    alone, plan = mcmc_step(scene, device)
-    graphed = GraphedStep(mcmc_step(scene, device)[0])
-    for step in range(12):
+    alone, plan = mcmc_step(scene, device, steps=30)  # the rates fall 100 times over the 30 steps: stale ones show
+    graphed = GraphedStep(mcmc_step(scene, device, steps=30)[0])
+    rate = graphed.step.optimizers["means"].param_groups[0]["lr"]
+    for step in range(24):
         view_index = step % 3
         expected = alone(step, scene.train[view_index], plan, view_index)
         torch.cuda.set_sync_debug_mode("error" if graphed.captures else "default")
@@ -161,7 +185,10 @@ def test_on_a_gpu_the_captured_graph_trains_as_the_step_does(mini_demo, device):
         finally:
             torch.cuda.set_sync_debug_mode("default")
         assert got.loss == pytest.approx(expected.loss, rel=1e-3), step
-    assert graphed.captures >= 1 and graphed.replays >= 5
+    assert graphed.captures >= 1 and graphed.replays >= 15
+    assert graphed.step.optimizers["means"].param_groups[0]["lr"] is rate and float(rate) < 2e-5 * scene.radius
+    (room,) = pair_room._rooms.values()
+    assert len(room._ratios) >= graphed.replays and room.overflows == 0  # it followed the replays' counts
     for key in PARAM_KEYS:
         torch.testing.assert_close(graphed.step.model.params[key], alone.model.params[key], rtol=1e-3, atol=1e-4)
     graphed.check_finite()

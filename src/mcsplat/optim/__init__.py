@@ -137,6 +137,8 @@ def rates_on_device(optimizers: Optimizers) -> None:
                 group["lr"] = torch.full((), float(group["lr"]), dtype=dtype, device=device)
             if device.type == "cuda":
                 group["capturable"] = True
+        # its steps run both captured and not (refine steps, a new phase's first steps): torch need not warn of it
+        optimizer._warned_capturable_if_run_uncaptured = True
 
 
 def portable_state_dict(optimizer: torch.optim.Optimizer) -> dict:

@@ -346,10 +346,10 @@ class MCMCStrategy:
 
     def graph_phase(self, step: int) -> Hashable | None:
         """What the per-step work branches on at `step`, and where its statistics live, for a step replayed as a
-        CUDA graph (graphed_step.py). None where a step cannot be replayed: a refine step (row surgery, counts read)
-        and the noise on every parameter (its strength follows the step)."""
-        if self.is_refine_step(step) or self.config.noise_all_params:
-            return None
+        CUDA graph (graphed_step.py). None where a step cannot be replayed: a refine step (row surgery, counts read),
+        the noise on every parameter (its strength follows the step) and no noise at all."""
+        if self.is_refine_step(step) or self.config.noise_all_params or self.config.noise_lr == 0:
+            return None  # (no noise: the plain step draws none, a graph would)
         collecting = self.asks_the_scene and self.chosen_cap is None
         return (step < self.schedule.refine_stop, collecting,
                 *(t.data_ptr() if t is not None else None for t in (self.seen.seen, self.gradients.total,

@@ -20,8 +20,8 @@ Every other render (evaluation, the viewer, exports) reads its count and lists e
 
 A step captured as a CUDA graph (graphed_step.py) runs the render's Python once, at the capture: the graph's copy of
 the count is queued at every replay, but the event that says it arrived cannot be recorded inside a capture. So a
-capture leaves the room `captured`, and the step calls `replayed()` after each replay (the event), and sizes the room
-with `size_for` before it (a room that has to change size needs a new capture).
+capture leaves the room `captured`, and the step calls its `replayed()` after each replay (the event), and sizes it
+(`room_at(...).size`) before it (a room that has to change size needs a new capture).
 
 The CPU's own binning (cpu_loops.py) reads the count as it goes, which costs nothing there; this room serves the Warp
 kernels, which CUDA runs (and the CPU with set_cpu_kernels("scalar")).
@@ -78,7 +78,7 @@ class PairRoom:
     def counted(self, total: torch.Tensor, gaussians: int) -> None:
         """Queue the copy of this render's count (int64 [1] or [] on the device) to the host."""
         self._copy.copy_(total.reshape(1), non_blocking=self.device.type == "cuda")
-        if self.device.type == "cuda" and torch.cuda.is_current_stream_capturing():
+        if capturing(self.device):
             self._captured = (gaussians, self.capacity)  # each replay queues the copy; replayed() says so
             return
         self._note_on_its_way(gaussians, self.capacity)
@@ -108,6 +108,11 @@ class PairRoom:
     def host_copy(self) -> torch.Tensor:
         """The host tensor the counts are copied into (what `size` reads; no device is read there)."""
         return self._copy
+
+
+def capturing(device: torch.device) -> bool:
+    """Whether the render is being captured as a CUDA graph (tests/support/graph_check.py says so on the CPU)."""
+    return device.type == "cuda" and torch.cuda.is_current_stream_capturing()
 
 
 def _room_for(pairs: float) -> int:
@@ -147,18 +152,10 @@ def room(device: torch.device, tiles_x: int, tiles_y: int, total: torch.Tensor, 
     return found
 
 
-def size_for(device: torch.device, tiles_x: int, tiles_y: int, gaussians: int) -> int | None:
-    """The room a training render of `gaussians` at this size (in tiles) would get now, None before the size's first
-    render (a step captured as a graph asks it before each replay: a new size needs a new capture)."""
-    found = _rooms.get((device, tiles_x, tiles_y))
-    return found.size(gaussians) if found is not None else None
-
-
-def replayed(device: torch.device, tiles_x: int, tiles_y: int) -> None:
-    """A graph holding a training render at this size was replayed (PairRoom.replayed)."""
-    found = _rooms.get((device, tiles_x, tiles_y))
-    if found is not None:
-        found.replayed()
+def room_at(device: torch.device, tiles_x: int, tiles_y: int) -> PairRoom | None:
+    """The room of this image size (in tiles), None before the size's first training render (a step captured as a
+    graph asks for it before each replay: another room, or another size of it, needs a new capture)."""
+    return _rooms.get((device, tiles_x, tiles_y))
 
 
 def forget_rooms() -> None:
