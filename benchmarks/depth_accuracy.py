@@ -7,6 +7,8 @@
     .venv/bin/python benchmarks/depth_accuracy.py --picture depth-errors-distortion.png --arms mcmc mcmc-surface
         mcmc-antialiased mcmc-surface-antialiased mcmc-surface-distortion10-antialiased
         mcmc-surface-distortion100-antialiased                           # (one line) with 2DGS's distortion
+    .venv/bin/python benchmarks/depth_accuracy.py --arms mcmc-surface-antialiased mcmc-surface-multiview-antialiased
+        mcmc-surface-multiview0.1x-antialiased                           # (one line) with PGSR's multi-view term
 
 Each arm trains lego at half size (200x200, `--downscale 2`) for --steps with cap 300k (the paper's cap for the
 synthetic scenes) from the default 100,000 random points, into results/depth_accuracy/runs/ (git-ignored). It is
@@ -47,7 +49,10 @@ ARMS = {"mcmc": [], "mcmc-surface": SURFACE, "adc": ["--strategy", "adc"],
         "mcmc-antialiased": ["--antialiased"], "mcmc-surface-antialiased": [*SURFACE, "--antialiased"],
         # ... and with 2DGS's depth distortion at two weights.
         "mcmc-surface-distortion10-antialiased": [*SURFACE, "--antialiased", "--surface-distortion", "10"],
-        "mcmc-surface-distortion100-antialiased": [*SURFACE, "--antialiased", "--surface-distortion", "100"]}
+        "mcmc-surface-distortion100-antialiased": [*SURFACE, "--antialiased", "--surface-distortion", "100"],
+        # ... and with PGSR's multi-view geometric consistency, at PGSR's weight and a tenth of it.
+        "mcmc-surface-multiview-antialiased": [*SURFACE, "--antialiased", "--surface-multiview", "0.03"],
+        "mcmc-surface-multiview0.1x-antialiased": [*SURFACE, "--antialiased", "--surface-multiview", "0.003"]}
 DEFAULT_ARMS = ("mcmc", "mcmc-surface", "adc", "adc-surface")
 CAP = 300_000
 WITHIN = 0.02        # units of the scene (lego is about 2.5 units across)

@@ -9,6 +9,9 @@
     distortion       from DISTORTION_FROM of the run on, surface_distortion * mean over the pixels of 2DGS's depth
                      distortion (render/outputs/distortion.py) times the scene radius squared: each pixel's Gaussians
                      pulled together in (inverse) depth, so that its weight sits on one surface, not in layers
+    multi-view       from --surface-from of the run on, surface_multiview * the weighted mean distance, in pixels,
+                     at which the step's pixels come back from a neighbouring view by the two planar depths (PGSR's
+                     multi-view geometric consistency): a second render a step
 
 All are loss terms (loss_terms.py) and work with either strategy. For MCMC nothing else changes: its position noise
 is shaped by each Gaussian's covariance, so a flat Gaussian moves within its plane and hardly across it, and Eq. 9's
@@ -18,18 +21,25 @@ relocation scales all three axes by one factor, so a copy stays as flat as its s
 
 from __future__ import annotations
 
+import random
 from dataclasses import dataclass
+from typing import Sequence
 
 import torch
+
+from . import render
+from .data import View
 
 from .errors import MCSplatError
 from .option_checks import refuse_non_finite
 from .features import FeatureParts, FeatureStart
 from .geometry.depth_normals import normals_from_depth
+from .geometry.reprojection import neighbours, round_trip_error
 from .loss_terms import StepContext
 
 NORMAL_EPS = 1e-6  # a rendered normal shorter than this (no Gaussian there) is left out
 DISTORTION_FROM = 0.1  # 2DGS starts its distortion term at step 3,000 of 30,000, before the normal term
+MULTIVIEW_THRESHOLD = 1.0  # pixels: a round trip that comes back farther is left out (PGSR's)
 
 
 class Flatten:
@@ -102,10 +112,42 @@ class Distortion:
         return self.weight * self.scene_radius ** 2 * ctx.result.distortion.mean()
 
 
+class MultiView:
+    """PGSR's multi-view geometric consistency, from a share of the run on: the step's planar depth and that of one
+    of its view's neighbours (rendered here), each pixel sent to the neighbour and back (geometry/reprojection.py).
+    The distance it comes back at is weighted by exp(-distance), as PGSR does, and left out beyond
+    MULTIVIEW_THRESHOLD pixels (occluded there, or the two depths not yet near)."""
+
+    def __init__(self, weight: float, start_share: float, views: Sequence[View]):
+        self.weight, self.start_share, self.views = weight, start_share, list(views)
+        self.neighbours = neighbours([view.camera for view in self.views]) if weight > 0 else []
+
+    def active(self, step: int, steps: int) -> bool:
+        return self.weight > 0 and step >= self.start_share * steps
+
+    def render_outputs(self, step: int, steps: int) -> frozenset[str]:
+        return frozenset({"normals", "planar_depth"}) if self.active(step, steps) else frozenset()
+
+    def __call__(self, ctx: StepContext) -> torch.Tensor | None:
+        if not self.active(ctx.step, ctx.steps) or not self.neighbours[ctx.view_index]:
+            return None
+        # the neighbour drawn from the step's number: a resumed run draws the same ones
+        other = self.views[random.Random(ctx.step).choice(self.neighbours[ctx.view_index])]
+        camera = other.camera_at(ctx.camera.width / ctx.view.camera.width).to(ctx.model.means.device)
+        background = torch.zeros(3, dtype=ctx.model.means.dtype, device=ctx.model.means.device)
+        seen = render.render(ctx.model, camera, background, 0, outputs={"normals", "planar_depth"})
+        error, valid = round_trip_error(ctx.result.planar_depth, ctx.camera, seen.planar_depth, camera)
+        near = (valid & (error < MULTIVIEW_THRESHOLD)).to(error.dtype)
+        weighted = torch.exp(-error).detach() * error * near
+        return self.weight * weighted.sum() / near.sum().clamp_min(1.0)
+
+
 def surface_terms(flatten: float, normal: float, start_share: float, scene_radius: float,
-                  distortion: float = 0.0) -> list:
-    """The --surface terms, in the order they are added after the standard ones."""
-    return [Flatten(flatten, scene_radius), DepthNormal(normal, start_share), Distortion(distortion, scene_radius)]
+                  distortion: float = 0.0, multiview: float = 0.0, views: Sequence[View] = ()) -> list:
+    """The --surface terms, in the order they are added after the standard ones (`views`: the scene's training
+    views, the multi-view term's neighbours)."""
+    return [Flatten(flatten, scene_radius), DepthNormal(normal, start_share), Distortion(distortion, scene_radius),
+            MultiView(multiview, start_share, views)]
 
 
 @dataclass(frozen=True)
@@ -125,6 +167,10 @@ class SurfaceOptions:
     surface_distortion: float = 0.0
     """Weight of 2DGS's depth distortion (a pixel's Gaussians pulled together in inverse depth, in scene radii),
     from a tenth of the run on; 0: off. Costs one more compositing pass a step while it is on."""
+    surface_multiview: float = 0.0
+    """Weight of PGSR's multi-view geometric consistency (PGSR: 0.03), from --surface-from on: each pixel sent to a
+    neighbouring training view by the planar depth and back by that view's, the distance it comes back at held small.
+    0: off. Costs a second render a step (the neighbour's) while it is on."""
     surface_mesh: bool = True
     """At the end of a --surface run, fuse its mesh into RUN/mesh.ply (as `mcsplat export RUN --format mesh` does,
     with that command's defaults), which the run's report then pictures; --no-surface-mesh leaves it to that
@@ -133,13 +179,13 @@ class SurfaceOptions:
     def __post_init__(self) -> None:
         refuse_non_finite(self)
         if not (self.surface_flatten >= 0 and self.surface_normal >= 0 and self.surface_distortion >= 0
-                and 0 <= self.surface_from <= 1):
-            raise MCSplatError("--surface-flatten, --surface-normal and --surface-distortion must be >= 0 and "
-                               "--surface-from within [0, 1]")
+                and self.surface_multiview >= 0 and 0 <= self.surface_from <= 1):
+            raise MCSplatError("--surface-flatten, --surface-normal, --surface-distortion and --surface-multiview "
+                               "must be >= 0 and --surface-from within [0, 1]")
 
     def unused_options(self) -> tuple[str, ...]:
         return () if self.surface else ("surface_flatten", "surface_normal", "surface_from", "surface_distortion",
-                                        "surface_mesh")
+                                        "surface_multiview", "surface_mesh")
 
     unused_reason = ("the --surface-* options shape the loss terms of --surface and the mesh it ends with, which "
                      "this run trains without, so they would be ignored; add --surface, or leave them out")
@@ -148,4 +194,5 @@ class SurfaceOptions:
         if not self.surface:
             return FeatureParts()
         return FeatureParts(loss_terms=surface_terms(self.surface_flatten, self.surface_normal, self.surface_from,
-                                                     start.scene.radius, self.surface_distortion))
+                                                     start.scene.radius, self.surface_distortion,
+                                                     self.surface_multiview, start.scene.train))
