@@ -27,8 +27,8 @@ The graph's memory is its own (torch's graph pool): a run on a GPU keeps the ste
 for the graph and once for the steps that run as they are.
 
 The CPU has no graphs. Its tests stand a recorder in for one (tests/support/graph_check.py): it runs the captured work
-again at each replay, and checks that the work launches the same kernels and operators with the same numbers, and
-reads everything made before the step from the same memory.
+again at each replay, and checks that the work launches the same kernels, operators and sorts with the same numbers,
+and reads everything made before the step from the same memory.
 """
 
 from __future__ import annotations
@@ -43,13 +43,13 @@ import torch
 from .data import View
 from .gaussians import PARAM_KEYS
 from .loss_terms import graph_phase as terms_phase
+from .metrics import StepValues
 from .optim import PlainUpdate, rates_on_device
 from .planning import Plan
 from .render.bin import pair_room
 from .render.constants import TILE_SIZE
 from .render.project.camera_slot import CameraSlot
 from .render.project.warp_kernel import fill_slot
-from .metrics import StepValues
 from .step import Step, StepInputs, StepResult, alone
 from .strategy.base import RefineReport, graph_phase as strategy_phase
 
