@@ -176,16 +176,12 @@ def phase_profile(args, seconds: float, log: Path) -> dict:
     """The plain step's profile, then the step replayed as a CUDA graph (under "graph")."""
     sizes = ["--cap", "4000", "--warm", "20", "--profiled", "5", "--device", "cpu"] if args.dry_run else \
         ["--cap", "300000", "--warm", "400", "--profiled", "30", "--device", "cuda"]
-    started, codes = time.monotonic(), []
-    for graph in ([], ["--cuda-graph"]):
-        left = seconds - (time.monotonic() - started)
-        codes.append(run_logged([sys.executable, "benchmarks/step_profile.py", "--data", str(args.lego), *sizes,
-                                 *graph], log, left / (1 if graph else 2))[0])
-    code = next((c for c in codes if c), 0)  # the first that failed
+    code, took = run_logged([sys.executable, "benchmarks/step_profile.py", "--data", str(args.lego), *sizes,
+                             "--both"], log, seconds)
     records = [json.loads(line) for line in log.read_text().splitlines() if line.startswith("{")]
     plain = [r for r in records if not r.get("cuda_graph")]
     graph = [r for r in records if r.get("cuda_graph")]
-    return {"exit_code": code, "seconds": round(time.monotonic() - started, 1), **(plain[-1] if plain else {}),
+    return {"exit_code": code, "seconds": round(took, 1), **(plain[-1] if plain else {}),
             "graph": graph[-1] if graph else None}
 
 

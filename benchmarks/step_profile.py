@@ -5,6 +5,7 @@
     .venv/bin/python benchmarks/step_profile.py --device cpu --data PATH/lego --cap 100000 --warm 20 --profiled 5
     .venv/bin/python benchmarks/step_profile.py --device cpu --data PATH/lego --cap 1000 --downscale 6   # fixed cost
     python benchmarks/step_profile.py --data PATH/lego --cuda-graph     # the step replayed as a CUDA graph
+    python benchmarks/step_profile.py --data PATH/lego --both           # the two, one after the other
 
 First, with no profiler, --profiled steps are counted: the torch operators dispatched (aten operators, the autograd
 backward's included: what the step asks of the framework), those among them that read a value back to the host
@@ -55,6 +56,8 @@ class Options:
     cuda_graph: bool = False
     """The step replayed as a CUDA graph (`train --cuda-graph`): the operators and launches counted are then the
     host's own around each replay (on the CPU, where there are no graphs, the plain step's)."""
+    both: bool = False
+    """The step, then the step replayed as a CUDA graph, in one process (a JSON line each)."""
 
 
 # Operators whose result the host must wait for on a GPU: a value read (item, int, float, bool), or an output whose
@@ -130,7 +133,13 @@ def main() -> None:
     args = tyro.cli(Options, description=__doc__)
     steps = args.warm + 2 * args.profiled  # warm, counted, profiled
     setup = Setup(args.training, steps, downscale=args.downscale)
-    arm = (McsplatGraphArm if args.cuda_graph else McsplatArm)(setup)
+    for graphed in (False, True) if args.both else (args.cuda_graph,):  # one scene load for both
+        print(json.dumps(profile_arm(args, setup, graphed)), flush=True)
+
+
+def profile_arm(args: Options, setup: Setup, graphed: bool) -> dict:
+    """The counts and the profile of one arm's steps (the step, or the step replayed as a CUDA graph)."""
+    arm = (McsplatGraphArm if graphed else McsplatArm)(setup)
     views = setup.views()
     for step in range(args.warm):
         arm.step(step, next(views))
@@ -155,16 +164,13 @@ def main() -> None:
     for sort in ("self_device_time_total", "self_cpu_time_total"):
         if sort == "self_device_time_total" and setup.device.type != "cuda":
             continue
-        print(f"--- by {sort}")
+        print(f"--- by {sort}{' (as a CUDA graph)' if graphed else ''}")
         print(events.table(sort_by=sort, row_limit=args.top, max_name_column_width=70))
-    record = {"gaussians": arm.count(), "image": f"{views_size(setup)}", "wall_ms_per_step": round(1000 * wall, 3),
-              "gpu_busy_ms_per_step": round(device_time / 1000 / args.profiled, 3),
-              "host_op_ms_per_step": round(host_time / 1000 / args.profiled, 3),
-              "kernel_launches_per_step": round(launches / args.profiled, 1), "profiled_steps": args.profiled,
-              "cuda_graph": args.cuda_graph,
-              **counted,
-              **C.machine(args.training.device)}
-    print(json.dumps(record), flush=True)
+    return {"gaussians": arm.count(), "image": f"{views_size(setup)}", "wall_ms_per_step": round(1000 * wall, 3),
+            "gpu_busy_ms_per_step": round(device_time / 1000 / args.profiled, 3),
+            "host_op_ms_per_step": round(host_time / 1000 / args.profiled, 3),
+            "kernel_launches_per_step": round(launches / args.profiled, 1), "profiled_steps": args.profiled,
+            "cuda_graph": graphed, **counted, **C.machine(args.training.device)}
 
 
 if __name__ == "__main__":
