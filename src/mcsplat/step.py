@@ -32,7 +32,7 @@ from .optim import ParameterUpdate, PlainUpdate, means_lr_at, set_means_lr
 from .per_image import PerImageModule
 from .planning import Plan
 from .render import RenderResult
-from .strategy import Strategy
+from .strategy import Strategy, training_kernels as strategy_kernels
 from .strategy.base import RefineReport
 from .strategy.noise import noise_lr_at
 
@@ -229,4 +229,4 @@ class Step:
 def step_kernels(device: torch.device, appearance: str = "none") -> list:
     """Every Warp kernel a training step launches on `device` (compiled before the first step)."""
     return (render.training_kernels(device) + losses.training_kernels(device) + optim.training_kernels(device)
-            + appearance_kernels(appearance))
+            + appearance_kernels(appearance) + strategy_kernels(device))

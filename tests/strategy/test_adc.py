@@ -49,7 +49,7 @@ def fake_result(pixel_grads: torch.Tensor, radii: torch.Tensor) -> RenderResult:
     n = pixel_grads.shape[0]
     means2d = torch.zeros(n, 2, requires_grad=True)
     means2d.grad = pixel_grads.clone()
-    return RenderResult(rgb=torch.zeros(1, 1, 3), alpha=torch.zeros(1, 1), depth=torch.zeros(1, 1),
+    return RenderResult(rgb=torch.zeros(1, 1, 3), alpha=torch.zeros(1, 1), depth_sum=torch.zeros(1, 1),
                         means2d=means2d, radii=radii.to(torch.int32), depths=torch.ones(n),
                         contributed=radii > 0)
 

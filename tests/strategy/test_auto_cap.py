@@ -15,7 +15,7 @@ from mcsplat.metrics import StepValues
 from mcsplat.optim import OptimConfig, make_optimizers
 from mcsplat.strategy.auto_cap import growth_demand, pixel_ceiling
 from mcsplat.strategy.mcmc import MCMCConfig, MCMCReport, MCMCStrategy
-from mcsplat.strategy.screen_gradients import ScreenGradients
+from mcsplat.strategy.screen_gradients import ScreenGradients, ndc_gradient_norms
 
 from tests.strategy.test_mcmc import RADIUS, make_model
 
@@ -42,6 +42,22 @@ def test_the_statistic_is_the_mean_ndc_norm_over_the_views_that_saw_each_gaussia
     expected = torch.tensor([(0.01 * 20 + 0.03 * 20) / 2, 0.02 * 10, ((0.03 * 20) ** 2 + (0.04 * 10) ** 2) ** 0.5])
     torch.testing.assert_close(g.means(), expected)
     assert g.views.tolist() == [2, 1, 1]
+
+
+def test_the_cpu_loop_adds_what_the_torch_form_adds():
+    """float32 on the CPU adds the norms in one loop (screen_gradients.add_norms_cpu): the sums and counts of the
+    torch form, over rows that span several of the loop's threads."""
+    g = torch.Generator().manual_seed(2)
+    n = 5000
+    renders = [fake_render(torch.randn(n, 2, generator=g) * 1e-3, torch.rand(n, generator=g) > 0.3) for _ in range(3)]
+    stat = ScreenGradients()
+    total, views = torch.zeros(n), torch.zeros(n, dtype=torch.int32)
+    for render in renders:
+        stat.add(render, n, WIDTH, HEIGHT)
+        visible, norms = ndc_gradient_norms(render, n, WIDTH, HEIGHT)
+        total, views = total + norms, views + visible
+    torch.testing.assert_close(stat.total, total, rtol=2e-7, atol=0)
+    assert torch.equal(stat.views, views)
 
 
 def test_demand_counts_live_gaussians_at_or_over_the_threshold():

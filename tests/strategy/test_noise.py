@@ -10,7 +10,7 @@ import torch
 
 from mcsplat.cli import main
 from mcsplat.config import TrainConfig
-from mcsplat.gaussians import PARAM_KEYS
+from mcsplat.gaussians import PARAM_KEYS, GaussianModel
 from mcsplat.optim import OptimConfig, means_lr_at
 from mcsplat.planning import initial_plan, load_run_config
 from mcsplat.strategy import MCMCConfig, MCMCStrategy
@@ -46,6 +46,27 @@ def test_without_the_gate_opaque_gaussians_move_by_sigma_eta():
     expected = 2.0 * (model.covariances().detach() @ eta[:, :, None])[:, :, 0]
     torch.testing.assert_close(model.means.detach() - before, expected, rtol=1e-10, atol=1e-15)
     assert (model.means.detach() - before)[3:].abs().min() > 0
+
+
+@pytest.mark.parametrize("covariance, gated", [(True, True), (False, True), (True, False)])
+def test_the_cpu_kernel_adds_the_noise_of_the_torch_form(covariance, gated):
+    """float32 on the CPU takes one kernel (strategy/position_noise_simd.py): the positions it moves agree with the
+    formula in float64 from the same draw, over two chunks of 16 and a short one, opacities from dead to opaque."""
+    opacities = torch.linspace(0.0005, 0.9, 37)
+    model = make_model(opacities, seed=3)
+    with torch.no_grad():
+        model.params["log_scales"].uniform_(-7.0, 1.0, generator=torch.Generator().manual_seed(4))
+    before = model.means.detach().double().clone()
+    inject_position_noise(model, 0.37, torch.Generator().manual_seed(9), covariance=covariance, gated=gated)
+    eta = torch.randn((37, 3), generator=torch.Generator().manual_seed(9)).double()
+    covariances = GaussianModel.from_state_dict(model.state_dict()).double().covariances().detach()
+    shaped = (covariances @ eta[:, :, None])[:, :, 0] if covariance else eta
+    gate = noise_gate(torch.sigmoid(model.params["opacity_logits"].detach().double())) if gated else 1.0
+    expected = before + 0.37 * (gate * torch.ones(37, dtype=torch.float64))[:, None] * shaped
+    moved = model.means.detach().double()
+    torch.testing.assert_close(moved, expected, rtol=1e-6, atol=1e-6)  # float32 positions of about 1
+    assert (moved[-12:] != before[-12:]).all() if not gated else torch.equal(moved[-12:], before[-12:])
+    assert (moved[:5] - before[:5]).abs().amax() > 1e-4  # the nearly dead ones do move
 
 
 def test_parameter_noise_moves_shape_and_opacity_of_the_gated_only():

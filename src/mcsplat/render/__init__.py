@@ -13,6 +13,7 @@ constants.py.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Collection, Protocol, Sequence
 
 import torch
@@ -59,7 +60,7 @@ class Splats:
 class RenderResult:
     rgb: torch.Tensor          # [H, W, 3], composited over the background
     alpha: torch.Tensor        # [H, W] accumulated opacity
-    depth: torch.Tensor        # [H, W] expected depth (alpha-weighted mean camera z; 0 where alpha is 0)
+    depth_sum: torch.Tensor    # [H, W] alpha-weighted sum of camera z (`depth` divides it by alpha)
     means2d: torch.Tensor      # [N, 2] screen-space means; .grad is kept after backward (for ADC)
     radii: torch.Tensor        # [N] int32 pixel radius, 0 where culled
     depths: torch.Tensor       # [N] camera-space z of each Gaussian
@@ -78,6 +79,13 @@ class RenderResult:
     # 1/z_j)^2 (units^-2), with gradients. A compositing pass of its own.
     distortion: torch.Tensor | None = None
     bins: TileBins | None = None  # the per-tile lists the render composited
+
+    @cached_property
+    def depth(self) -> torch.Tensor:
+        """[H, W] expected depth: the alpha-weighted mean camera z, 0 where alpha is 0. Divided on first use (with
+        gradients where the render has them): a training step whose loss reads no depth skips the division."""
+        return torch.where(self.alpha > 0, self.depth_sum / torch.clamp(self.alpha, min=1e-10),
+                           torch.zeros_like(self.depth_sum))
 
     @property
     def num_pairs(self) -> int:
@@ -131,7 +139,6 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
     rgb, alpha, depth_sum, contributed, *median_ids = stages.composite(
         means2d, projection.conics, opacities, colors, projection.depths, bg, bins, camera.width, camera.height,
         **({"median_gaussian": True} if with_median else {}))
-    depth = torch.where(alpha > 0, depth_sum / torch.clamp(alpha, min=1e-10), torch.zeros_like(depth_sum))
 
     def composited(values: torch.Tensor, scalars: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return stages.composite(means2d, projection.conics, opacities, values, scalars, torch.zeros_like(bg), bins,
@@ -140,7 +147,7 @@ def render(gaussians: GaussiansLike, camera: Camera, background: Sequence[float]
     inputs = PassInputs(means, quats, scales, opacities, camera, near, composited,
                         median_ids[0] if with_median else None)
     given = {field: value for output_pass in passes for field, value in output_pass.run(inputs, asked).items()}
-    return RenderResult(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=projection.radii,
+    return RenderResult(rgb=rgb, alpha=alpha, depth_sum=depth_sum, means2d=means2d, radii=projection.radii,
                         depths=projection.depths, contributed=contributed, bins=bins, **given)
 
 
@@ -183,7 +190,8 @@ def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -
     if choice == "simd":
         return [project_simd.project_simd, project_simd.project_backward_simd, cpu_loops.count_pairs_cpu,
                 cpu_loops.slot_offsets_cpu, cpu_loops.write_pairs_cpu, cpu_loops.split_pairs_cpu,
-                composite_simd.composite_forward_simd, composite_simd.composite_backward_simd]
+                composite_simd.composite_forward_simd, composite_simd.composite_backward_simd,
+                composite_simd.pack_records_simd, composite_simd.sum_gradient_rows_simd]
     found = [*project_warp.projection_kernels(scalar), bin_warp._count_pairs, bin_warp._write_pairs,
              bin_warp._tile_ranges]
     if choice == "tile":

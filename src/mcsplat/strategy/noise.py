@@ -27,6 +27,7 @@ import torch
 
 from ..gaussians import GaussianModel
 from ..optim import OptimConfig, means_lr_at
+from . import position_noise_simd
 
 __all__ = ["NOISE_SCHEDULES", "NoiseSchedule", "noise_gate", "inject_position_noise", "inject_parameter_noise",
            "noise_lr_at", "NOISE_GATE_K", "NOISE_GATE_CENTER"]
@@ -70,6 +71,10 @@ def inject_position_noise(model: GaussianModel, factor: float | torch.Tensor, ge
         return
     means = model.params["means"]
     eta = _normal((n, 3), generator, means)
+    if position_noise_simd.takes(model.params, factor):  # the CPU's float32 runs: one kernel, the same sum
+        position_noise_simd.add_position_noise(model.params, eta, factor, covariance=covariance, gated=gated,
+                                               gate_k=NOISE_GATE_K, gate_center=NOISE_GATE_CENTER)
+        return
     shaped = model.covariance_times(eta) if covariance else eta
     means.add_(shaped * (factor * _gate(model, gated))[:, None])
 

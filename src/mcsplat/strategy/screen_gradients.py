@@ -11,6 +11,11 @@ from __future__ import annotations
 from typing import Any
 
 import torch
+import warp as wp
+
+from ..compute.cpp_snippets import read_snippet
+from ..compute.runtime import ensure_warp, flat_view, run_ranges
+from ..render.kernel_choice import kernels_for
 
 __all__ = ["ndc_gradient_norms", "ScreenGradients"]
 
@@ -29,6 +34,29 @@ def ndc_gradient_norms(render_result: Any, num_gaussians: int, width: int, heigh
     ndc = torch.stack([grad[:, 0] * (0.5 * width), grad[:, 1] * (0.5 * height)], dim=-1)  # no tensor to upload
     norms = torch.linalg.vector_norm(ndc, dim=-1)
     return visible, torch.where(visible, norms, torch.zeros_like(norms))
+
+
+ROWS_PER_THREAD = 1024
+_floats, _ints = wp.array(dtype=wp.float32), wp.array(dtype=wp.int32)
+
+
+@wp.func_native(read_snippet(__package__, "screen_gradients_add.cpp", {"ROWS": ROWS_PER_THREAD}))
+def _add_norms(block: int, n: int, grad: _floats, radii: _ints, total: _floats, views: _ints, half_width: float,
+               half_height: float): ...
+
+
+@wp.kernel
+def add_norms_cpu(first_block: int, n: int, grad: _floats, radii: _ints, total: _floats, views: _ints,
+                  half_width: float, half_height: float):
+    """One thread per ROWS_PER_THREAD Gaussians: `ScreenGradients.add` on the CPU."""
+    _add_norms(first_block + wp.tid(), n, grad, radii, total, views, half_width, half_height)
+
+
+def _one_pass(render_result: Any, num_gaussians: int) -> bool:
+    """Whether add_norms_cpu serves this render: float32 on the CPU with the CPU's own kernels (kernel_choice)."""
+    grad = render_result.means2d.grad
+    return (grad is not None and tuple(grad.shape) == (num_gaussians, 2) and grad.dtype == torch.float32
+            and grad.is_contiguous() and render_result.radii.dtype == torch.int32 and kernels_for(grad) == "simd")
 
 
 class ScreenGradients:
@@ -51,9 +79,15 @@ class ScreenGradients:
     @torch.no_grad()
     def add(self, render_result: Any, num_gaussians: int, width: int, height: int) -> torch.Tensor:
         """Add one render's norms; returns which Gaussians it saw ([N] bool)."""
-        visible, norms = ndc_gradient_norms(render_result, num_gaussians, width, height)
         if self.total is None or self.total.shape[0] != num_gaussians:
-            self.reset(num_gaussians, visible.device)
+            self.reset(num_gaussians, render_result.radii.device)
+        if _one_pass(render_result, num_gaussians):  # the CPU's float32 runs: one loop in place of seven operators
+            ensure_warp()
+            arguments = [num_gaussians, *(flat_view(t) for t in (render_result.means2d.grad, render_result.radii,
+                                                                 self.total, self.views)), 0.5 * width, 0.5 * height]
+            run_ranges(add_norms_cpu, -(-num_gaussians // ROWS_PER_THREAD), self.total.device, arguments, 16)
+            return render_result.radii > 0
+        visible, norms = ndc_gradient_norms(render_result, num_gaussians, width, height)
         self.total += norms.to(self.total.dtype)
         self.views += visible
         return visible

@@ -28,12 +28,13 @@ outputs and gradient buffers, the launches) is at the end of it.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import warp as wp
 
 from ...compute.cpp_snippets import read_snippet
 from ...compute.cpu_target import kernel_flags
-from ...compute.runtime import flat_view, num_workers_for, run_bands
+from ...compute.runtime import flat_view, num_workers_for, numpy_view, run_bands, run_ranges
 from ..bin.warp_kernels import TileBins
 from ..constants import (ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, MEDIAN_TRANSMITTANCE, POWER_SKIP, TILE_SIZE,
                          TRANSMITTANCE_MIN)
@@ -92,20 +93,21 @@ wp.set_module_options({"cpu_compiler_flags": kernel_flags("-mprefer-vector-width
 
 _int_array = wp.array(dtype=wp.int32)
 _float_array = wp.array(dtype=wp.float32)
+_byte_array = wp.array(dtype=wp.uint8)  # a torch bool tensor's bytes
 
 
 @wp.func_native(_forward_body(with_median=False))
 def _composite_tile_forward(tile: int, tiles_x: int, width: int, height: int, tile_ranges: _int_array,
                             gaussian_ids: _int_array, pair_masks: _int_array, records: _float_array,
                             background: _float_array, out_rgb: _float_array, out_transmittance: _float_array,
-                            out_depth: _float_array, out_last: _int_array, contributed: _int_array): ...
+                            out_depth: _float_array, out_last: _int_array, contributed: _byte_array): ...
 
 
 @wp.func_native(_forward_body(with_median=True))
 def _composite_tile_forward_median(tile: int, tiles_x: int, width: int, height: int, tile_ranges: _int_array,
                                    gaussian_ids: _int_array, pair_masks: _int_array, records: _float_array,
                                    background: _float_array, out_rgb: _float_array, out_transmittance: _float_array,
-                                   out_depth: _float_array, out_last: _int_array, contributed: _int_array,
+                                   out_depth: _float_array, out_last: _int_array, contributed: _byte_array,
                                    out_median: _int_array): ...
 
 
@@ -122,7 +124,7 @@ def _composite_tile_backward(tile: int, tiles_x: int, width: int, height: int, t
 def composite_forward_simd(first_tile: int, tiles_x: int, width: int, height: int, tile_ranges: _int_array,
                            gaussian_ids: _int_array, pair_masks: _int_array, records: _float_array,
                            background: _float_array, out_rgb: _float_array, out_transmittance: _float_array,
-                           out_depth: _float_array, out_last: _int_array, contributed: _int_array):
+                           out_depth: _float_array, out_last: _int_array, contributed: _byte_array):
     """One thread per tile of the band that starts at `first_tile`."""
     _composite_tile_forward(first_tile + wp.tid(), tiles_x, width, height, tile_ranges, gaussian_ids, pair_masks,
                             records, background, out_rgb, out_transmittance, out_depth, out_last, contributed)
@@ -132,7 +134,7 @@ def composite_forward_simd(first_tile: int, tiles_x: int, width: int, height: in
 def composite_forward_median_simd(first_tile: int, tiles_x: int, width: int, height: int, tile_ranges: _int_array,
                                   gaussian_ids: _int_array, pair_masks: _int_array, records: _float_array,
                                   background: _float_array, out_rgb: _float_array, out_transmittance: _float_array,
-                                  out_depth: _float_array, out_last: _int_array, contributed: _int_array,
+                                  out_depth: _float_array, out_last: _int_array, contributed: _byte_array,
                                   out_median: _int_array):
     """The forward that also writes each pixel's median Gaussian (forward only: no loss uses it)."""
     _composite_tile_forward_median(first_tile + wp.tid(), tiles_x, width, height, tile_ranges, gaussian_ids,
@@ -156,25 +158,61 @@ def composite_backward_simd(first_tile: int, tiles_x: int, width: int, height: i
 # The host side: pack the records, allocate outputs and gradient buffers, launch one Warp thread per tile through
 # the banded CPU launcher (compute/runtime.py).
 
-def pack_records(means2d, conics, opacities, colors, depths) -> torch.Tensor:
-    """[N, 10] rows (mean x, y, conic a, b, c, opacity, r, g, b, depth): one cache line per list entry."""
-    return torch.cat([means2d, conics, opacities[:, None], colors, depths[:, None]], dim=1).contiguous()
-
-
 _flat = flat_view  # the kernels take every array as a flat run of elements
+
+# The records packed, and the workers' gradient rows summed and split back into the five gradients, by C++ loops over
+# ROWS_PER_THREAD rows a Warp thread (torch's cat and the sums and copies of slices took 3 ms a step at 100k).
+ROWS_PER_THREAD = 256
+
+
+@wp.func_native(read_snippet(__package__, "cpu_simd_rows_pack.cpp", {"ROWS": ROWS_PER_THREAD}))
+def _pack_rows(block: int, n: int, means2d: _float_array, conics: _float_array, opacities: _float_array,
+               colors: _float_array, depths: _float_array, records: _float_array): ...
+
+
+@wp.func_native(read_snippet(__package__, "cpu_simd_rows_unpack.cpp", {"ROWS": ROWS_PER_THREAD}))
+def _unpack_rows(block: int, n: int, buffers: wp.array(dtype=wp.int64), workers: int, grad_means2d: _float_array,
+                 grad_conics: _float_array, grad_opacities: _float_array, grad_colors: _float_array,
+                 grad_depths: _float_array): ...
+
+
+@wp.kernel
+def pack_records_simd(first_block: int, n: int, means2d: _float_array, conics: _float_array,
+                      opacities: _float_array, colors: _float_array, depths: _float_array, records: _float_array):
+    """One thread per ROWS_PER_THREAD rows."""
+    _pack_rows(first_block + wp.tid(), n, means2d, conics, opacities, colors, depths, records)
+
+
+@wp.kernel
+def sum_gradient_rows_simd(first_block: int, n: int, buffers: wp.array(dtype=wp.int64), workers: int,
+                           grad_means2d: _float_array, grad_conics: _float_array, grad_opacities: _float_array,
+                           grad_colors: _float_array, grad_depths: _float_array):
+    """One thread per ROWS_PER_THREAD rows."""
+    _unpack_rows(first_block + wp.tid(), n, buffers, workers, grad_means2d, grad_conics, grad_opacities,
+                 grad_colors, grad_depths)
+
+
+def pack_records(means2d, conics, opacities, colors, depths) -> torch.Tensor:
+    """[N, 10] rows (mean x, y, conic a, b, c, opacity, r, g, b, depth): one cache line per list entry. The inputs
+    are contiguous float32 on the CPU."""
+    n = means2d.shape[0]
+    records = torch.empty(n, RECORD_WIDTH)
+    run_ranges(pack_records_simd, -(-n // ROWS_PER_THREAD), records.device,
+               [n, *(_flat(t) for t in (means2d, conics, opacities, colors, depths, records))], 16)
+    return records
 
 
 def forward(records: torch.Tensor, background: torch.Tensor, bins: TileBins, width: int, height: int,
             with_median: bool = False):
     """-> rgb [H, W, 3], final transmittance [H, W], accumulated depth [H, W], last contributor [H, W] int32 (list
-    position + 1 within the pixel's tile), contributed [N] int32, median Gaussian [H, W] int32 (-1 where none; None
+    position + 1 within the pixel's tile), contributed [N] bool, median Gaussian [H, W] int32 (-1 where none; None
     without with_median)."""
     n = records.shape[0]
     rgb = torch.empty(height, width, 3)
     transmittance = torch.empty(height, width)
     depth = torch.empty(height, width)
     last = torch.empty(height, width, dtype=torch.int32)
-    contributed = torch.zeros(n, dtype=torch.int32)
+    contributed = torch.zeros(n, dtype=torch.bool)
     median = torch.empty(height, width, dtype=torch.int32) if with_median else None
     num_tiles = bins.tiles_x * bins.tiles_y
     arguments = [bins.tiles_x, width, height] + [_flat(t) for t in (
@@ -199,7 +237,8 @@ def backward(records, background, transmittance, last, rgb, depth, grad_rgb, gra
     per_worker = [_flat(b) for b in buffers]
     run_bands(composite_backward_simd, lambda worker, first_tile: [first_tile] + arguments + [per_worker[worker]],
               num_tiles, bins.tile_ranges, records.device, workers, threads_per_tile=1)
-    total = buffers[0]
-    for extra in buffers[1:]:
-        total = total + extra
-    return (total[:, 0:2], total[:, 2:5], total[:, 5], total[:, 6:9], total[:, 9])
+    grads = (torch.empty(n, 2), torch.empty(n, 3), torch.empty(n), torch.empty(n, 3), torch.empty(n))
+    addresses = np.array([b.data_ptr() for b in buffers], dtype=np.int64)
+    run_ranges(sum_gradient_rows_simd, -(-n // ROWS_PER_THREAD), records.device,
+               [n, numpy_view(addresses), workers, *(_flat(g) for g in grads)], 16)
+    return grads

@@ -9,7 +9,7 @@
         last[b] = 0; done[b] = ~inside[b];
         if (!all_lanes(done[b])) active |= 1 << b;
     }
-    int* contributed_ = (int*)contributed.data;
+    unsigned char* contributed_ = (unsigned char*)contributed.data;  // a bool tensor
     for (int k = start; k < end && active; ++k) {
 {{LIST_ENTRY}}
         bool composited = false;
