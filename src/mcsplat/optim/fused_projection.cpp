@@ -1,11 +1,16 @@
-    // One chunk of {{LANES}} Gaussians: the projection's backward into gradient rows kept on the stack, then Adam
-    // over the chunk's rows of each parameter (means, log_scales, quats, opacity_logits, sh0, shN: PARAM_KEYS).
-    float scratch_means[3 * {{LANES}}], scratch_quats[4 * {{LANES}}], scratch_scales[3 * {{LANES}}];
-    float scratch_dc[3 * {{LANES}}], scratch_rest[{{REST_MAX}} * {{LANES}}];
-    const int chunk_first = {{LANES}} * chunk;
-{{BACKWARD}}
-    const int rows = n - chunk_first < {{LANES}} ? n - chunk_first : {{LANES}};
+    // One block of {{CHUNKS}} chunks of {{LANES}} Gaussians: the projection's backward, chunk by chunk, into gradient
+    // rows kept on the stack, then Adam over the block's rows of each parameter (means, log_scales, quats,
+    // opacity_logits, sh0, shN: PARAM_KEYS). A block's rows of a parameter are one run of memory: Adam streams
+    // through six runs of its three arrays, long enough for the hardware's prefetch, where a chunk's were a few lines.
+    constexpr int BLOCK = {{CHUNKS}} * {{LANES}};
+    float scratch_means[3 * BLOCK], scratch_quats[4 * BLOCK], scratch_scales[3 * BLOCK];
+    float scratch_dc[3 * BLOCK], scratch_rest[{{REST_MAX}} * BLOCK];
+    const int chunk_first = BLOCK * block;  // the scratch rows start at the block's first Gaussian
+    const int rows = n - chunk_first < BLOCK ? n - chunk_first : BLOCK;
     if (rows <= 0) return;
+    for (int chunk = {{CHUNKS}} * block; chunk < {{CHUNKS}} * block + (rows + {{LANES}} - 1) / {{LANES}}; ++chunk) {
+{{BACKWARD}}
+    }
 
     // Per parameter: its tensor, exp_avg, exp_avg_sq and the gradient other terms gave it (0: none), as addresses;
     // -lr / (1 - beta1^step) and sqrt(1 - beta2^step) as float32 (the host reads the step counters).
@@ -18,7 +23,7 @@
     const bool small_weight = __builtin_fabsf(weight) < 0.5f;
     const float coefficient = small_weight ? weight : weight - 1.0f;
     const float decay2 = (float)beta2, weight2 = (float)(1.0 - beta2), epsilon = (float)eps;
-    float g[{{REST_MAX}} * {{LANES}}];  // one parameter's gradient rows of the chunk
+    float g[{{REST_MAX}} * BLOCK];  // one parameter's gradient rows of the block
     for (int t = 0; t < 6; ++t) {
         // torch's fused CPU Adam, element for element (optim/fused_projection.py): no contraction but the fmas
         // written out, the other form of v in torch's scalar loop over a tensor's last n % 8 elements.

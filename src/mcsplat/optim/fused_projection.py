@@ -45,9 +45,10 @@ from . import fused_projection_warp
 from .stepping import step_optimizers, together_in_one_launch
 
 REST_MAX = 45  # floats in a Gaussian's rest SH row at degree 3, the highest the model stores
+CHUNKS = 8  # chunks of LANES Gaussians a thread takes at once (fused_projection.cpp: about 50 KB of stack rows)
 
 _SOURCE = read_snippet(__package__, "fused_projection.cpp", {
-    "LANES": LANES, "REST_MAX": REST_MAX, "TORCH_SCALAR_TAIL": adam_cpu.TORCH_SCALAR_TAIL,
+    "LANES": LANES, "CHUNKS": CHUNKS, "REST_MAX": REST_MAX, "TORCH_SCALAR_TAIL": adam_cpu.TORCH_SCALAR_TAIL,
     "BACKWARD": cpu_simd.backward_source(
         {"means": "scratch_means", "quats": "scratch_quats", "scales": "scratch_scales", "dc": "scratch_dc",
          "rest": "scratch_rest"}, out_first="chunk_first")})
@@ -60,7 +61,7 @@ _floats = wp.array(dtype=wp.float32)
 
 
 @wp.func_native(_SOURCE)
-def _update_chunk(chunk: int, n: int, camera: _floats, width: int, height: int, sh_degree: int, antialiased: int,
+def _update_block(block: int, n: int, camera: _floats, width: int, height: int, sh_degree: int, antialiased: int,
                   means: _floats, quats: _floats, scales: _floats, sh_dc: _floats, sh_rest: _floats, dc_stride: int,
                   rest_stride: int, rest_shift: int, rest_count: int, colors: _floats, grad_means2d: _floats,
                   grad_conics: _floats, grad_depths: _floats, grad_colors: _floats, grad_compensations: _floats,
@@ -69,15 +70,15 @@ def _update_chunk(chunk: int, n: int, camera: _floats, width: int, height: int, 
 
 
 @wp.kernel
-def projection_backward_adam(first_chunk: int, n: int, camera: _floats, width: int, height: int, sh_degree: int,
+def projection_backward_adam(first_block: int, n: int, camera: _floats, width: int, height: int, sh_degree: int,
                              antialiased: int, means: _floats, quats: _floats, scales: _floats, sh_dc: _floats,
                              sh_rest: _floats, dc_stride: int, rest_stride: int, rest_shift: int, rest_count: int,
                              colors: _floats, grad_means2d: _floats, grad_conics: _floats, grad_depths: _floats,
                              grad_colors: _floats, grad_compensations: _floats, view_grad: int, out_view: _floats,
                              tensors: wp.array(dtype=wp.int64), step_constants: _floats, beta1: wp.float64,
                              beta2: wp.float64, eps: wp.float64):
-    """One thread per chunk of LANES Gaussians; each thread writes only its own Gaussians' rows."""
-    _update_chunk(first_chunk + wp.tid(), n, camera, width, height, sh_degree, antialiased, means, quats, scales,
+    """One thread per block of CHUNKS x LANES Gaussians; each thread writes only its own Gaussians' rows."""
+    _update_block(first_block + wp.tid(), n, camera, width, height, sh_degree, antialiased, means, quats, scales,
                   sh_dc, sh_rest, dc_stride, rest_stride, rest_shift, rest_count, colors, grad_means2d, grad_conics,
                   grad_depths, grad_colors, grad_compensations, view_grad, out_view, tensors, step_constants, beta1,
                   beta2, eps)
@@ -118,13 +119,13 @@ def update(pending: deferred.DeferredBackward, params: list[torch.Tensor], state
     n = pending.means.shape[0]
     dc_stride, rest_stride, rest_shift, rest_count = cpu_simd._sh_layout(pending.sh_dc, pending.sh_rest, False)
     no_view = _NO_VIEW  # the backward's view gradient is off; an array of its own stands for its output
-    run_ranges(projection_backward_adam, -(-n // LANES), pending.means.device, [
+    run_ranges(projection_backward_adam, -(-n // (CHUNKS * LANES)), pending.means.device, [
         n, flat_view(pending.camera), pending.width, pending.height, pending.sh_degree, int(pending.antialiased),
         *(flat_view(t) for t in (pending.means, pending.quats, pending.scales, pending.sh_dc, pending.sh_rest)),
         dc_stride, rest_stride, rest_shift, rest_count, flat_view(pending.colors),
         *(flat_view(t) for t in pending.upstream), 0, flat_view(no_view), numpy_view(table),
         numpy_view(_step_constants(steps, rates, beta1, beta2)), float(beta1), float(beta2), float(eps)],
-        min_per_thread=4096 // LANES)
+        min_per_thread=4096 // (CHUNKS * LANES))
     for param in params:
         param.grad = None
 
