@@ -2,9 +2,10 @@
 
 The plain step walks every Gaussian's parameters three times after the compositing: the projection's backward reads
 them and writes their gradients, autograd hands those on, then Adam reads parameters, gradients and moments and writes
-them back. Here one SIMD kernel (fused_projection.cpp) takes 16 Gaussians at a time: the projection's backward
-(render/project/cpu_simd_backward.cpp, the same C++) writes their gradient rows to the stack, and Adam updates their
-rows of all six parameters at once, while they are in the cache; the gradients never reach memory. The render leaves
+them back. Here one SIMD kernel (fused_projection.cpp) takes 128 Gaussians at a time, 16 to a vector: the
+projection's backward (render/project/cpu_simd_backward.cpp, the same C++) writes their gradient rows to the stack,
+and Adam updates their rows of all six parameters at once, while they are in the cache; the gradients never reach
+memory. The render leaves
 the projection's share of the gradients to this update (render/project/deferred.py); what other terms gave the
 parameters (the regularizers, --surface) is in their `.grad` and joins here, and the opacities' gradient, which
 the compositing gives, is read from theirs.
