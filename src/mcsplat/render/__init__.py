@@ -189,7 +189,7 @@ def training_kernels(device: torch.device, dtype: torch.dtype = torch.float32) -
     choice = kernels_for(torch.empty(0, dtype=dtype, device=device))
     if choice == "simd":
         return [project_simd.project_simd, project_simd.project_backward_simd, cpu_loops.count_pairs_cpu,
-                cpu_loops.slot_offsets_cpu, cpu_loops.write_pairs_cpu, cpu_loops.split_pairs_cpu,
+                cpu_loops.depth_slots_cpu, cpu_loops.write_pairs_cpu, cpu_loops.sort_split_cpu,
                 composite_simd.composite_forward_simd, composite_simd.composite_backward_simd,
                 composite_simd.pack_records_simd, composite_simd.sum_gradient_rows_simd]
     found = [*project_warp.projection_kernels(scalar), bin_warp._count_pairs, bin_warp._write_pairs,

@@ -5,9 +5,13 @@ one multiplication) instead of a Warp thread per Gaussian.
 
 Four kernels, in the order warp_kernels.bin_gaussians runs them:
 - count_pairs_cpu: each Gaussian's non-empty pairs, one thread per range of Gaussians;
-- slot_offsets_cpu: one thread: each Gaussian's first slot, the Gaussians taken front to back, and the total;
+- depth_slots_cpu: one thread: the Gaussians front to back (a radix sort of their depths' bits), then each one's
+  first slot, and the total;
 - write_pairs_cpu: each pair's tile key and (block mask << 32 | Gaussian) value at its slot, one thread per range;
-- split_pairs_cpu: one thread, after the sort by tile: the Gaussian and the mask of each pair, each tile's range.
+- sort_split_cpu: one thread: the pairs sorted by tile (a counting sort, stable) into the Gaussian and the mask of
+  each pair, and each tile's range.
+The two sorts are the lists' order of Warp's radix sorts (stable, by the same keys), in a third of their time: those
+take 16-bit digits (two passes of 65,536 counts for the depths) and copy a one-pass result back.
 """
 
 from __future__ import annotations
@@ -29,13 +33,13 @@ _PAIR_TILES = read_snippet(__package__, "cpu_loops_pair_tiles.h", {"TILE_SIZE": 
 
 _COUNT = read_snippet(__package__, "cpu_loops_count.cpp", {"PAIR_TILES": _PAIR_TILES})
 
-_SLOTS = read_snippet(__package__, "cpu_loops_slots.cpp")
+_DEPTH_SLOTS = read_snippet(__package__, "cpu_loops_order.cpp")
 
 _WRITE = read_snippet(__package__, "cpu_loops_write.cpp", {
     "PAIR_TILES": _PAIR_TILES, "TILE_SIZE": TILE_SIZE, "TILE_LAST": TILE_SIZE - 1, "BLOCK_SIZE": BLOCK_SIZE,
     "ALL_BLOCKS": ALL_BLOCKS})
 
-_SPLIT = read_snippet(__package__, "cpu_loops_split.cpp")
+_SORT_SPLIT = read_snippet(__package__, "cpu_loops_sort_split.cpp")
 
 
 @wp.func_native(_COUNT)
@@ -43,8 +47,9 @@ def _count_range(begin: int, end: int, tile_min: _int_array, tile_max: _int_arra
                  alpha_extent: _float_array, use_masks: int, counts: _int_array): ...
 
 
-@wp.func_native(_SLOTS)
-def _slots(n: int, order: _int_array, counts: _int_array, offsets: _int_array, total: _long_array): ...
+@wp.func_native(_DEPTH_SLOTS)
+def _depth_slots(n: int, depths: _float_array, radii: _int_array, counts: _int_array, keys: _int_array,
+                 order: _int_array, offsets: _int_array, total: _long_array): ...
 
 
 @wp.func_native(_WRITE)
@@ -53,9 +58,9 @@ def _write_range(begin: int, end: int, tile_min: _int_array, tile_max: _int_arra
                  pairs: _long_array): ...
 
 
-@wp.func_native(_SPLIT)
-def _split(total: int, num_tiles: int, tiles: _int_array, pairs: _long_array, gaussian_ids: _int_array,
-           pair_masks: _int_array, tile_ranges: _int_array): ...
+@wp.func_native(_SORT_SPLIT)
+def _sort_split(total: int, num_tiles: int, tiles: _int_array, pairs: _long_array, gaussian_ids: _int_array,
+                pair_masks: _int_array, tile_ranges: _int_array): ...
 
 
 @wp.kernel
@@ -69,9 +74,11 @@ def count_pairs_cpu(first_part: int, n: int, parts: int, tile_min: _int_array, t
 
 
 @wp.kernel
-def slot_offsets_cpu(n: int, order: _int_array, counts: _int_array, offsets: _int_array, total: _long_array):
-    """One thread: offsets[g] = the pairs of the Gaussians in front of g (order: front to back); total[0] = all."""
-    _slots(n, order, counts, offsets, total)
+def depth_slots_cpu(n: int, depths: _float_array, radii: _int_array, counts: _int_array, keys: _int_array,
+                    order: _int_array, offsets: _int_array, total: _long_array):
+    """One thread: offsets[g] = the pairs of the Gaussians in front of g (the visible ones by depth, equal depths by
+    index, the others first); total[0] = all. `keys` and `order` are rooms of 2n for the sort."""
+    _depth_slots(n, depths, radii, counts, keys, order, offsets, total)
 
 
 @wp.kernel
@@ -85,7 +92,7 @@ def write_pairs_cpu(first_part: int, n: int, parts: int, tile_min: _int_array, t
 
 
 @wp.kernel
-def split_pairs_cpu(total: int, num_tiles: int, tiles: _int_array, pairs: _long_array, gaussian_ids: _int_array,
-                    pair_masks: _int_array, tile_ranges: _int_array):
-    """One thread: the sorted pairs split into Gaussians and masks, and each tile's [start, end)."""
-    _split(total, num_tiles, tiles, pairs, gaussian_ids, pair_masks, tile_ranges)
+def sort_split_cpu(total: int, num_tiles: int, tiles: _int_array, pairs: _long_array, gaussian_ids: _int_array,
+                   pair_masks: _int_array, tile_ranges: _int_array):
+    """One thread: the pairs as written, sorted by tile into Gaussians and masks, and each tile's [start, end)."""
+    _sort_split(total, num_tiles, tiles, pairs, gaussian_ids, pair_masks, tile_ranges)

@@ -256,7 +256,8 @@ def _sort_by_tile(tiles: torch.Tensor, pairs: torch.Tensor, total: int, num_tile
 
 def _bin_on_cpu(rectangles: list[torch.Tensor], use_masks: int, depths: torch.Tensor, radii: torch.Tensor,
                 tiles_x: int, tiles_y: int) -> TileBins:
-    """bin_gaussians with the CPU's C++ loops (cpu_loops.py) around the same two radix sorts: the same lists."""
+    """bin_gaussians with the CPU's C++ loops (cpu_loops.py), whose two sorts order the lists as the Warp path's radix
+    sorts do: the same lists."""
     n, num_tiles = depths.shape[0], tiles_x * tiles_y
     views = [flat_view(t) for t in rectangles] + [use_masks]
     parts = max(1, min(cpu_threads(), n // 4096))  # each thread a range of Gaussians; ranges write their own
@@ -265,17 +266,23 @@ def _bin_on_cpu(rectangles: list[torch.Tensor], use_masks: int, depths: torch.Te
     total = torch.zeros(1, dtype=torch.int64)
     if n:
         run_ranges(cpu_loops.count_pairs_cpu, parts, depths.device, [n, parts, *views, warp_view(counts)], 1)
-        order = _depth_order(depths, radii > 0)
-        wp.launch(cpu_loops.slot_offsets_cpu, dim=1, inputs=[n, *map(warp_view, (order, counts, offsets, total))],
-                  device="cpu")
-    count = total.item()  # read on the host: it sizes the pair lists and the sort (on the CPU, no wait)
-    tiles, pairs = _pair_room(count, torch.device("cpu"))
+        if depths.dtype == torch.float32:
+            keys, order = torch.empty(2 * n, dtype=torch.int32), torch.empty(2 * n, dtype=torch.int32)  # sort's room
+            wp.launch(cpu_loops.depth_slots_cpu, dim=1, device="cpu", inputs=[
+                n, *map(flat_view, (depths.detach().contiguous(), radii.contiguous(), counts, keys, order, offsets,
+                                    total))])
+        else:  # float64 (the tests' renders): the ranks' order, the slots summed by torch
+            order = _depth_order(depths, radii > 0).long()
+            ends = torch.cumsum(counts[order], 0, dtype=torch.int64)
+            offsets[order] = (ends - counts[order]).to(torch.int32)
+            total[0] = ends[-1]
+    count = total.item()  # read on the host: it sizes the pair lists (on the CPU, no wait)
+    tiles, pairs = torch.empty(count, dtype=torch.int32), torch.empty(count, dtype=torch.int64)
     if count:
         run_ranges(cpu_loops.write_pairs_cpu, parts, depths.device,
                    [n, parts, *views, tiles_x, *map(warp_view, (offsets, tiles, pairs))], 1)
-        _sort_by_tile(tiles, pairs, count, num_tiles)
     gaussian_ids, pair_masks = torch.empty(count, dtype=torch.int32), torch.empty(count, dtype=torch.int32)
     tile_ranges = torch.empty(num_tiles, 2, dtype=torch.int32)
-    wp.launch(cpu_loops.split_pairs_cpu, dim=1, device="cpu", inputs=[
+    wp.launch(cpu_loops.sort_split_cpu, dim=1, device="cpu", inputs=[
         count, num_tiles, *map(flat_view, (tiles, pairs, gaussian_ids, pair_masks, tile_ranges))])
     return TileBins(gaussian_ids, tile_ranges, pair_masks, tiles_x, tiles_y)
