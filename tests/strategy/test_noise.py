@@ -16,6 +16,7 @@ from mcsplat.planning import initial_plan, load_run_config
 from mcsplat.strategy import MCMCConfig, MCMCStrategy
 from mcsplat.strategy.adc import ADCConfig, ADCStrategy
 from mcsplat.strategy.noise import inject_parameter_noise, inject_position_noise, noise_gate, noise_lr_at
+from mcsplat.strategy.position_noise_simd import draw_key, fill_normals
 
 from tests.strategy.test_mcmc import RADIUS, adam_with_moments, make_model, moments
 
@@ -51,14 +52,15 @@ def test_without_the_gate_opaque_gaussians_move_by_sigma_eta():
 @pytest.mark.parametrize("covariance, gated", [(True, True), (False, True), (True, False)])
 def test_the_cpu_kernel_adds_the_noise_of_the_torch_form(covariance, gated):
     """float32 on the CPU takes one kernel (strategy/position_noise_simd.py): the positions it moves agree with the
-    formula in float64 from the same draw, over two chunks of 16 and a short one, opacities from dead to opaque."""
+    formula in float64 from the same draw (the kernel's, from a key the generator gives), over two chunks of 16 and
+    a short one, opacities from dead to opaque."""
     opacities = torch.linspace(0.0005, 0.9, 37)
     model = make_model(opacities, seed=3)
     with torch.no_grad():
         model.params["log_scales"].uniform_(-7.0, 1.0, generator=torch.Generator().manual_seed(4))
     before = model.means.detach().double().clone()
     inject_position_noise(model, 0.37, torch.Generator().manual_seed(9), covariance=covariance, gated=gated)
-    eta = torch.randn((37, 3), generator=torch.Generator().manual_seed(9)).double()
+    eta = fill_normals(37, draw_key(torch.Generator().manual_seed(9))).double()  # the kernel's own draw
     covariances = GaussianModel.from_state_dict(model.state_dict()).double().covariances().detach()
     shaped = (covariances @ eta[:, :, None])[:, :, 0] if covariance else eta
     gate = noise_gate(torch.sigmoid(model.params["opacity_logits"].detach().double())) if gated else 1.0
@@ -67,6 +69,22 @@ def test_the_cpu_kernel_adds_the_noise_of_the_torch_form(covariance, gated):
     torch.testing.assert_close(moved, expected, rtol=1e-6, atol=1e-6)  # float32 positions of about 1
     assert (moved[-12:] != before[-12:]).all() if not gated else torch.equal(moved[-12:], before[-12:])
     assert (moved[:5] - before[:5]).abs().amax() > 1e-4  # the nearly dead ones do move
+
+
+def test_the_cpu_kernels_draw_is_standard_normal_and_a_function_of_key_and_index():
+    """The kernel's eta (normals_simd.h): mean 0, variance 1, no correlation between components or neighbours, the
+    normal's quantiles; the same numbers for a Gaussian whatever the count, other numbers for another key."""
+    eta = fill_normals(200_000, 12345).double()
+    flat = eta.reshape(-1)
+    assert flat.mean().abs() < 5 / 600_000 ** 0.5 and (flat.var() - 1).abs() < 0.01
+    assert ((flat - flat.mean()) ** 4).mean() / flat.var() ** 2 == pytest.approx(3.0, abs=0.05)  # kurtosis
+    correlations = torch.corrcoef(torch.cat([eta, eta.roll(1, 0)], dim=1).T)
+    assert (correlations - torch.eye(6)).abs().max() < 0.01
+    quantiles = torch.quantile(flat[:100_000], torch.tensor([0.01, 0.1, 0.5, 0.9, 0.99], dtype=torch.float64))
+    torch.testing.assert_close(quantiles, torch.tensor([-2.3263, -1.2816, 0.0, 1.2816, 2.3263], dtype=torch.float64),
+                               atol=0.02, rtol=0)
+    assert torch.equal(fill_normals(37, 12345), eta[:37].float())
+    assert not torch.isclose(fill_normals(37, 12346), eta[:37].float()).any()
 
 
 def test_parameter_noise_moves_shape_and_opacity_of_the_gated_only():

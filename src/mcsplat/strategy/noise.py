@@ -64,17 +64,20 @@ def inject_position_noise(model: GaussianModel, factor: float | torch.Tensor, ge
 
     `factor` is lambda_noise x the noise schedule's learning rate: a number, or a tensor of one on the device (a step
     replayed as a CUDA graph changes it there). Sigma is the full covariance (not its square
-    root). Only the positions change, in place, bypassing the optimizer: its state is untouched.
+    root). Only the positions change, in place, bypassing the optimizer: its state is untouched. eta is torch's
+    draw from `generator`, or on the CPU's float32 runs the kernel's own from a key drawn from it
+    (position_noise_simd.py).
     """
     n = model.num_gaussians
     if n == 0 or (not isinstance(factor, torch.Tensor) and factor == 0):
         return
     means = model.params["means"]
-    eta = _normal((n, 3), generator, means)
-    if position_noise_simd.takes(model.params, factor):  # the CPU's float32 runs: one kernel, the same sum
-        position_noise_simd.add_position_noise(model.params, eta, factor, covariance=covariance, gated=gated,
+    if position_noise_simd.takes(model.params, factor):  # the CPU's float32 runs: one kernel draws and adds
+        key = position_noise_simd.draw_key(generator)
+        position_noise_simd.add_position_noise(model.params, key, factor, covariance=covariance, gated=gated,
                                                gate_k=NOISE_GATE_K, gate_center=NOISE_GATE_CENTER)
         return
+    eta = _normal((n, 3), generator, means)
     shaped = model.covariance_times(eta) if covariance else eta
     means.add_(shaped * (factor * _gate(model, gated))[:, None])
 

@@ -7,7 +7,6 @@
     const float* quats_ = (const float*)quats.data;
     const float* log_scales_ = (const float*)log_scales.data;
     const float* logits_ = (const float*)opacity_logits.data;
-    const float* eta_ = (const float*)eta.data;
     // exp(x) by Cephes' expf polynomial and the 2^n exponent trick (relative error about 1e-7), x kept where 2^n is a
     // normal float: a libm call would stop the loop from vectorising.
     auto exp_lanes = [](vf x) -> vf {
@@ -26,9 +25,10 @@
         p = p * x * x + x + 1.0f;
         return p * (vf)((k + 127) << 23);
     };
-    vf m[3], e[3];
+{{NORMALS}}
+    vf m[3];
 {{LOAD_M}}
-{{LOAD_E}}
+    const vf* e = eta;
     vf shaped[3] = {e[0], e[1], e[2]};
     if (covariance) {  // Sigma eta = R S^2 R^T eta, as geometry/covariance_simd.cpp
         vf q[4], log_s[3];
