@@ -189,15 +189,16 @@ class Step:
         lap = self.phases.lap if self.phases is not None else (lambda phase: None)
         camera, target, keep, terms = inputs.camera, inputs.target, inputs.keep, self.terms()
         lap("other")
-        with self.update.rendering(model), render.pairs_sized_ahead():
-            result = render.render(model, camera, self._background(model.means.dtype), plan.sh_degree_at(step),
-                                   outputs=render_outputs(terms, step, plan.steps))
-        lap("render")
-        rgb = result.rgb
-        for module in modules:
-            rgb = module.apply(view_index, rgb)
-        loss = total_loss(terms, StepContext(step, view, view_index, camera, rgb, target, keep, model, result,
-                                             plan.steps))
+        with self.update.rendering(model):  # the render's and the regularizers' gradients may be left to the update
+            with render.pairs_sized_ahead():
+                result = render.render(model, camera, self._background(model.means.dtype), plan.sh_degree_at(step),
+                                       outputs=render_outputs(terms, step, plan.steps))
+            lap("render")
+            rgb = result.rgb
+            for module in modules:
+                rgb = module.apply(view_index, rgb)
+            loss = total_loss(terms, StepContext(step, view, view_index, camera, rgb, target, keep, model, result,
+                                                 plan.steps))
         lap("loss")
         if self.phases is not None:
             self.phases.rendered(result)

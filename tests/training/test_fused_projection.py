@@ -19,6 +19,8 @@ from mcsplat.optim import fused_projection, fused_projection_warp
 from mcsplat.optim.fused_projection import FusedProjectionAdam
 from mcsplat.render import set_cpu_threads
 from mcsplat.render.composite.function import set_cpu_kernels
+from mcsplat.render.project import deferred
+from mcsplat.strategy.base import l1_regularizers
 
 from tests.render.test_render import make_camera
 from tests.training.test_adam_cpu import assert_identical
@@ -49,9 +51,10 @@ def twins(n: int, seed: int):
 def train_step(model, optimizers, update, camera, sh_degree: int, seed: int, renders: int = 1,
                normals: bool = False) -> None:
     """A render (or several, summed) with a random linear loss of its colours and depth (and its normal map, which
-    reads the scales and rotations in torch: --surface's), MCMC's two regularizers."""
+    reads the scales and rotations in torch: --surface's), MCMC's two regularizers after them, as the step adds them
+    (the fused update takes their gradients too)."""
     g = torch.Generator().manual_seed(seed)
-    loss = 0.01 * model.opacities.mean() + 0.01 * model.scales.mean()
+    loss = 0.0
     with update.rendering(model):
         for _ in range(renders):
             result = render.render(model, camera, (0.1, 0.2, 0.3), sh_degree, outputs=("normals",) if normals else ())
@@ -59,6 +62,7 @@ def train_step(model, optimizers, update, camera, sh_degree: int, seed: int, ren
             loss = loss + 0.1 * (result.depth * weights_like(result.depth, g)).sum()
             if normals:
                 loss = loss + (result.normal * weights_like(result.normal, g)).sum()
+        loss = loss + l1_regularizers(model, 0.01, 0.02)
     loss.backward()
     update.step(optimizers)
 
@@ -74,8 +78,17 @@ def counted_fused_updates(monkeypatch) -> list[int]:
     return calls
 
 
+def counted_regularizers_left(monkeypatch) -> list[bool]:
+    left: list[bool] = []
+    take = deferred.regularizers_left_to_update
+    monkeypatch.setattr(deferred, "regularizers_left_to_update",
+                        lambda *a: (lambda value: (left.append(value is not None), value)[1])(take(*a)))
+    return left
+
+
 def test_the_fused_update_is_the_plain_update_to_the_bit_through_steps_and_row_surgery(monkeypatch):
     calls = counted_fused_updates(monkeypatch)
+    left = counted_regularizers_left(monkeypatch)
     (plain, plain_opt), (fused, fused_opt) = twins(4001, seed=3)
     camera = make_camera(width=70, height=50, distance=3.0)
     updates = PlainUpdate(), FusedProjectionAdam()
@@ -96,6 +109,7 @@ def test_the_fused_update_is_the_plain_update_to_the_bit_through_steps_and_row_s
     finally:
         set_cpu_threads(None)
     assert len(calls) == 8  # the fused kernel took every step
+    assert left == [False, True] * 8  # and the regularizers' gradients, which the plain twin's autograd took
 
 
 def test_where_it_cannot_fuse_it_steps_as_the_plain_update(monkeypatch):

@@ -17,6 +17,7 @@
     const long long* table = (const long long*)tensors.data;
     const float* constants = (const float*)step_constants.data;
     const float* scales_ = (const float*)scales.data;
+    const float* opacities_ = (const float*)opacities.data;  // read only where `regularized`
     const float* fresh[6] = {scratch_means, scratch_scales, scratch_quats, nullptr, scratch_dc, scratch_rest};
     const int widths[6] = {3, 3, 4, 1, 3, rest_stride};
     const float weight = (float)(1.0 - beta1);
@@ -36,11 +37,19 @@
         const float minus_step_size = constants[2 * t], bias2_sqrt = constants[2 * t + 1];
         const long long width = widths[t], total = (long long)n * width;
         const long long begin = (long long)chunk_first * width, count = (long long)rows * width;
-        // The gradient as autograd sums it: the projection's (through exp for the log-scales), plus the others'.
-        if (own == nullptr) {
-            for (long long j = 0; j < count; ++j) g[j] = earlier[begin + j];  // the opacities' always has one
+        // The gradient as autograd sums it: the projection's (through exp for the log-scales), the regularizers'
+        // where they were left here (their mean's backward times exp's or sigmoid's), plus the others'.
+        if (own == nullptr) {  // the opacity logits: the compositing's, through sigmoid, comes in `earlier`
+            for (long long j = 0; j < count; ++j) g[j] = earlier != nullptr ? earlier[begin + j] : 0.0f;
+            if (regularized)
+                for (long long j = 0; j < count; ++j) {
+                    const float o = opacities_[begin + j];
+                    g[j] = g[j] + opacity_factor * (1.0f - o) * o;  // torch's sigmoid_backward: (a (1 - o)) o
+                }
         } else if (t == 1) {
             for (long long j = 0; j < count; ++j) g[j] = own[j] * scales_[begin + j];
+            if (regularized)
+                for (long long j = 0; j < count; ++j) g[j] = g[j] + scale_factor * scales_[begin + j];
         } else {
             for (long long j = 0; j < count; ++j) g[j] = own[j];
         }

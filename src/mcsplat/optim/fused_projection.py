@@ -67,7 +67,8 @@ def _update_block(block: int, n: int, camera: _floats, width: int, height: int, 
                   rest_stride: int, rest_shift: int, rest_count: int, colors: _floats, grad_means2d: _floats,
                   grad_conics: _floats, grad_depths: _floats, grad_colors: _floats, grad_compensations: _floats,
                   view_grad: int, out_view: _floats, tensors: wp.array(dtype=wp.int64), step_constants: _floats,
-                  beta1: wp.float64, beta2: wp.float64, eps: wp.float64): ...
+                  beta1: wp.float64, beta2: wp.float64, eps: wp.float64, opacities: _floats, regularized: int,
+                  opacity_factor: float, scale_factor: float): ...
 
 
 @wp.kernel
@@ -77,12 +78,13 @@ def projection_backward_adam(first_block: int, n: int, camera: _floats, width: i
                              colors: _floats, grad_means2d: _floats, grad_conics: _floats, grad_depths: _floats,
                              grad_colors: _floats, grad_compensations: _floats, view_grad: int, out_view: _floats,
                              tensors: wp.array(dtype=wp.int64), step_constants: _floats, beta1: wp.float64,
-                             beta2: wp.float64, eps: wp.float64):
+                             beta2: wp.float64, eps: wp.float64, opacities: _floats, regularized: int,
+                             opacity_factor: float, scale_factor: float):
     """One thread per block of CHUNKS x LANES Gaussians; each thread writes only its own Gaussians' rows."""
     _update_block(first_block + wp.tid(), n, camera, width, height, sh_degree, antialiased, means, quats, scales,
                   sh_dc, sh_rest, dc_stride, rest_stride, rest_shift, rest_count, colors, grad_means2d, grad_conics,
                   grad_depths, grad_colors, grad_compensations, view_grad, out_view, tensors, step_constants, beta1,
-                  beta2, eps)
+                  beta2, eps, opacities, regularized, opacity_factor, scale_factor)
 
 
 KERNELS = [projection_backward_adam]
@@ -120,12 +122,15 @@ def update(pending: deferred.DeferredBackward, params: list[torch.Tensor], state
     n = pending.means.shape[0]
     dc_stride, rest_stride, rest_shift, rest_count = cpu_simd._sh_layout(pending.sh_dc, pending.sh_rest, False)
     no_view = _NO_VIEW  # the backward's view gradient is off; an array of its own stands for its output
+    regularized = pending.regularizers is not None
+    factors = [float(f) for f in pending.regularizers] if regularized else [0.0, 0.0]
     run_ranges(projection_backward_adam, -(-n // (CHUNKS * LANES)), pending.means.device, [
         n, flat_view(pending.camera), pending.width, pending.height, pending.sh_degree, int(pending.antialiased),
         *(flat_view(t) for t in (pending.means, pending.quats, pending.scales, pending.sh_dc, pending.sh_rest)),
         dc_stride, rest_stride, rest_shift, rest_count, flat_view(pending.colors),
         *(flat_view(t) for t in pending.upstream), 0, flat_view(no_view), numpy_view(table),
-        numpy_view(_step_constants(steps, rates, beta1, beta2)), float(beta1), float(beta2), float(eps)],
+        numpy_view(_step_constants(steps, rates, beta1, beta2)), float(beta1), float(beta2), float(eps),
+        flat_view(pending.opacities if regularized else no_view), int(regularized), *factors],
         min_per_thread=4096 // (CHUNKS * LANES))
     for param in params:
         param.grad = None
@@ -143,11 +148,17 @@ def takes(pending: deferred.DeferredBackward, params: list[torch.Tensor]) -> boo
 
 
 def finish_gradients(pending: deferred.DeferredBackward, model: GaussianModel) -> None:
-    """Add the deferred projection gradients to the model's `.grad`s, as autograd would have (where the fused update
-    does not apply)."""
+    """Add the deferred projection gradients (and the regularizers', where they were left too) to the model's
+    `.grad`s, as autograd would have (where the fused update does not apply)."""
     g_means, g_quats, g_scales, g_dc, g_rest = gradients_of(pending)
-    for key, grad in (("means", g_means), ("quats", g_quats), ("log_scales", g_scales * pending.scales),
-                      ("sh0", g_dc), ("shN", g_rest)):
+    g_log_scales = g_scales * pending.scales
+    extra = []
+    if pending.regularizers is not None:
+        opacity_factor, scale_factor = pending.regularizers
+        g_log_scales = g_log_scales + scale_factor * pending.scales
+        extra = [("opacity_logits", opacity_factor * (1.0 - pending.opacities) * pending.opacities)]
+    for key, grad in (("means", g_means), ("quats", g_quats), ("log_scales", g_log_scales), ("sh0", g_dc),
+                      ("shN", g_rest), *extra):
         param = model.params[key]
         param.grad = grad if param.grad is None else param.grad + grad
 
@@ -168,7 +179,7 @@ class FusedProjectionAdam:
             return nullcontext()
         self._model = model
         self._deferral = deferred.Deferral(params["means"], params["quats"], params["log_scales"], params["sh0"],
-                                           params["shN"])
+                                           params["shN"], params["opacity_logits"])
         return deferred.deferring(self._deferral)
 
     def step(self, optimizers: Mapping[str, torch.optim.Optimizer]) -> None:

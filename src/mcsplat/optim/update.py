@@ -1,4 +1,4 @@
-"""How a training step updates the Gaussians: a `ParameterUpdate` wraps the step's render (`rendering`) and takes
+"""How a training step updates the Gaussians: a `ParameterUpdate` wraps the step's render and loss (`rendering`) and takes
 the optimizers' step after the backward (`step`). The plain update lets autograd finish every gradient and steps
 the optimizers (stepping.step_optimizers); on the CPU one process fuses the projection's backward with Adam
 (fused_projection.py), the same result to the bit in one pass over the Gaussians."""
@@ -19,7 +19,7 @@ from .stepping import step_optimizers
 
 class ParameterUpdate(Protocol):
     def rendering(self, model: GaussianModel) -> AbstractContextManager:
-        """Around the step's render of `model`."""
+        """Around the step's render of `model` and its loss terms."""
         ...
 
     def step(self, optimizers: Mapping[str, torch.optim.Optimizer]) -> None:

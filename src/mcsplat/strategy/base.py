@@ -24,6 +24,7 @@ from typing import Any, ClassVar, Hashable, Mapping, Protocol, runtime_checkable
 import torch
 
 from ..gaussians import GaussianModel
+from ..render.project import deferred
 
 __all__ = ["Strategy", "Collective", "ALONE", "RefineReport", "Schedule", "AT_STEP", "EVERY", "DECAY", "PLANNED",
            "asks_the_scene", "changed", "l1_regularizers"]
@@ -167,4 +168,8 @@ def l1_regularizers(model: GaussianModel, opacity_reg: float, scale_reg: float) 
     the activated values (the paper writes sums). Zero for an empty model or zero weights."""
     if model.num_gaussians == 0 or (opacity_reg == 0 and scale_reg == 0):
         return model.means.new_zeros(())
+    left = deferred.regularizers_left_to_update(model.params["log_scales"], model.params["opacity_logits"],
+                                                opacity_reg, scale_reg)  # the CPU's fused update adds the gradient
+    if left is not None:
+        return left
     return opacity_reg * model.opacities.mean() + scale_reg * model.scales.mean()

@@ -474,9 +474,11 @@ class _ProjectFunction(torch.autograd.Function):
             (grad_compensations, means[:, 0]))]
         view_grad = ctx.needs_input_grad[10]
         if ctx.deferral is not None:  # the update finishes these gradients (deferred.py)
+            left = ctx.deferral.regularizers
             ctx.deferral.pending = deferred.DeferredBackward(
                 means, quats, scales, sh_dc, sh_rest, ctx.camera_args, ctx.packed_camera, ctx.sh_degree,
-                ctx.antialiased, colors, upstream, ctx.simd)
+                ctx.antialiased, colors, upstream, ctx.simd,
+                ctx.deferral.activations[1] if left is not None else None, left)
             ctx.deferral = None
             return (None,) * 12
         if ctx.simd:
@@ -624,6 +626,8 @@ def project_and_shade(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
         deferral = None
     if deferral is not None:
         deferral.taken = True
+        if kernels_for(means) == "simd":  # the CPU's fused update can take the regularizers too
+            deferral.note_activations(scales, opacities)
     means2d, conics, depths, colors, compensations, radii, tile_min, tile_max, alpha_extent = _ProjectFunction.apply(
         means, quats, scales, sh, sh_rest, opacities, camera_args, sh_degree, opacity_aware_radius, antialiased, view,
         deferral)
