@@ -35,20 +35,21 @@ KEY_BITS = 62  # a draw's key: a number below 2^62 from the strategy's generator
 
 wp.set_module_options({"cpu_compiler_flags": kernel_flags("-mprefer-vector-width=512")})
 _floats = wp.array(dtype=wp.float32)
+_keys = wp.array(dtype=wp.int64)  # the draw's key: one number, read by the kernel (the host reads nothing)
 
 
 @wp.func_native(_SOURCE)
 def _noise_chunk(chunk: int, n: int, means: _floats, quats: _floats, log_scales: _floats, opacity_logits: _floats,
-                 key: wp.int64, factor: float, covariance: int, gated: int, gate_k: float, gate_center: float): ...
+                 key: _keys, factor: float, covariance: int, gated: int, gate_k: float, gate_center: float): ...
 
 
 @wp.func_native(_FILL)
-def _fill_chunk(chunk: int, n: int, key: wp.int64, out: _floats): ...
+def _fill_chunk(chunk: int, n: int, key: _keys, out: _floats): ...
 
 
 @wp.kernel
 def position_noise_simd(first_chunk: int, n: int, means: _floats, quats: _floats, log_scales: _floats,
-                        opacity_logits: _floats, key: wp.int64, factor: float, covariance: int, gated: int,
+                        opacity_logits: _floats, key: _keys, factor: float, covariance: int, gated: int,
                         gate_k: float, gate_center: float):
     """One thread per chunk of LANES Gaussians; each writes only its own rows of `means`."""
     _noise_chunk(first_chunk + wp.tid(), n, means, quats, log_scales, opacity_logits, key, factor, covariance, gated,
@@ -56,7 +57,7 @@ def position_noise_simd(first_chunk: int, n: int, means: _floats, quats: _floats
 
 
 @wp.kernel
-def normals_simd(first_chunk: int, n: int, key: wp.int64, out: _floats):
+def normals_simd(first_chunk: int, n: int, key: _keys, out: _floats):
     """The position noise's eta for rows [0, n) of `out` [n, 3], one thread per chunk of LANES rows."""
     _fill_chunk(first_chunk + wp.tid(), n, key, out)
 
@@ -72,13 +73,13 @@ def takes(params: dict[str, torch.Tensor], factor: float | torch.Tensor) -> bool
             and (not isinstance(factor, torch.Tensor) or factor.device.type == "cpu"))
 
 
-def draw_key(generator: torch.Generator) -> int:
-    """A draw's key, from the strategy's generator (one number: the generator moves on by the same amount each
-    step, whatever the count)."""
-    return int(torch.randint(0, 2**KEY_BITS, (1,), generator=generator, dtype=torch.int64))
+def draw_key(generator: torch.Generator) -> torch.Tensor:
+    """A draw's key: one number below 2^62 from the strategy's generator, as a tensor of one (the generator moves on
+    by the same amount each step, whatever the count)."""
+    return torch.randint(0, 2**KEY_BITS, (1,), generator=generator, dtype=torch.int64)
 
 
-def add_position_noise(params: dict[str, torch.Tensor], key: int, factor: float | torch.Tensor, *,
+def add_position_noise(params: dict[str, torch.Tensor], key: torch.Tensor, factor: float | torch.Tensor, *,
                        covariance: bool, gated: bool, gate_k: float, gate_center: float) -> None:
     """params["means"] += factor x sigmoid(-gate_k (sigmoid(logit) - gate_center)) x Sigma eta, in place, eta the
     draw of `key` (`fill_normals`; `takes` says where; the gate is 1 without `gated`, Sigma the identity without
@@ -87,13 +88,14 @@ def add_position_noise(params: dict[str, torch.Tensor], key: int, factor: float 
     means = params["means"]
     n = means.shape[0]
     run_ranges(position_noise_simd, -(-n // LANES), means.device, [
-        n, *(flat_view(params[name]) for name in ("means", "quats", "log_scales", "opacity_logits")), key,
+        n, *(flat_view(params[name]) for name in ("means", "quats", "log_scales", "opacity_logits")), flat_view(key),
         float(factor), int(covariance), int(gated), float(gate_k), float(gate_center)], 4096 // LANES)
 
 
-def fill_normals(n: int, key: int) -> torch.Tensor:
+def fill_normals(n: int, key: torch.Tensor | int) -> torch.Tensor:
     """[n, 3] float32: the eta that add_position_noise draws for Gaussians 0 .. n - 1 with `key`."""
     ensure_warp()
     out = torch.empty(n, 3)
-    run_ranges(normals_simd, -(-n // LANES), out.device, [n, key, flat_view(out)], 4096 // LANES)
+    key = torch.as_tensor(key, dtype=torch.int64).reshape(1)
+    run_ranges(normals_simd, -(-n // LANES), out.device, [n, flat_view(key), flat_view(out)], 4096 // LANES)
     return out

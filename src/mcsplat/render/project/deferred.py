@@ -17,6 +17,7 @@ sigmoid'(o) to the opacity logits) in its pass: one exp, one sigmoid and their b
 
 from __future__ import annotations
 
+import functools
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass
@@ -117,8 +118,10 @@ def regularizers_left_to_update(log_scales: torch.Tensor, opacity_logits: torch.
     return value
 
 
+@functools.lru_cache(maxsize=16)
 def _mean_gradient(weight: float, count: int) -> float:
-    """d (weight mean(x)) / d x_i as autograd computes it in float32 (exact as a Python float)."""
+    """d (weight mean(x)) / d x_i as autograd computes it in float32 (exact as a Python float; worked out once for a
+    count of Gaussians)."""
     return float((torch.tensor([weight], dtype=torch.float32) / count)[0])
 
 
