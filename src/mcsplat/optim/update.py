@@ -1,5 +1,5 @@
-"""How a training step updates the Gaussians: a `ParameterUpdate` wraps the step's render and loss (`rendering`) and takes
-the optimizers' step after the backward (`step`). The plain update lets autograd finish every gradient and steps
+"""How a training step updates the Gaussians: a `ParameterUpdate` wraps the step's render and loss (`rendering`) and
+takes the optimizers' step after the backward (`step`). The plain update lets autograd finish every gradient and steps
 the optimizers (stepping.step_optimizers); on the CPU one process fuses the projection's backward with Adam
 (fused_projection.py), the same result to the bit in one pass over the Gaussians."""
 

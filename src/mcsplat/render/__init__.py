@@ -2,7 +2,7 @@
 
 Three stages, each a package holding its torch, Warp and CPU versions side by side. Projection and SH colour run in
 one kernel (project/warp_kernel.py: SIMD kernels on the CPU, project/cpu_simd.py; a Warp kernel on CUDA and for
-float64), binning in Warp kernels and a radix sort (bin/warp_kernels.py; C++ loops on the CPU, bin/cpu_loops.py), and
+float64), binning in Warp kernels and radix sorts (bin/warp_kernels.py; C++ loops on the CPU, bin/cpu_loops.py), and
 alpha compositing in Warp kernels with a hand-written backward (composite/function.py): SIMD kernels on the CPU
 (composite/cpu_simd.py), tile kernels on CUDA (composite/warp_tiles.py), scalar kernels for float64 on the CPU
 (composite/warp_scalar.py). The outputs given only when asked are in outputs/. Everything runs on every CPU core or on
