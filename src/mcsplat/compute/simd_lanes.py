@@ -22,6 +22,8 @@ assert LANES in (4, 8, 16), "MCSPLAT_SIMD_LANES must be 4, 8 or 16"
 
 # vf / vi: LANES floats / ints; the _u variants allow unaligned loads and stores (rows start anywhere).
 VECTOR_TYPES = read_snippet(__package__, "simd_vector_types.h", {"LANES": LANES})
+# exp_lanes and log_lanes over a vf (simd_math.h), for kernels that have defined vf and vi.
+SIMD_MATH = read_snippet(__package__, "simd_math.h")
 
 
 def concatenated(parts: list[str]) -> str:

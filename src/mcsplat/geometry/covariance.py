@@ -56,8 +56,10 @@ def _covariance_kernel(dtype):
 
 # The CPU's float32 version: 16 Gaussians per vector (compute/simd_lanes.py), the same maths (C++ in
 # covariance_simd.cpp).
+# The product over the lanes (covariance_lanes.h; the CPU's MCMC noise kernel takes it too, strategy/).
+COVARIANCE_LANES = read_snippet(__package__, "covariance_lanes.h")
 _COVARIANCE_SIMD = read_snippet(__package__, "covariance_simd.cpp", {
-    "VECTOR_TYPES": VECTOR_TYPES, "LANES": LANES, "LOAD_Q": lanes_in("q", "quats_", 4),
+    "VECTOR_TYPES": VECTOR_TYPES, "LANES": LANES, "COVARIANCE": COVARIANCE_LANES, "LOAD_Q": lanes_in("q", "quats_", 4),
     "LOAD_S": lanes_in("s", "scales_", 3), "LOAD_V": lanes_in("v", "vectors_", 3),
     "STORE_OUT": lanes_out(["result[0]", "result[1]", "result[2]"], "out_")})
 

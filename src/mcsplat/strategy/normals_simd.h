@@ -8,30 +8,6 @@
         z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
         return z ^ (z >> 31);
     };
-    // ln x for x in (0, 1] (Cephes' logf: mantissa in [sqrt(1/2), sqrt(2)), a degree-9 polynomial).
-    auto log_lanes = [](vf x) -> vf {
-        vi bits = (vi)x;
-        vi e = ((bits >> 23) & 0xff) - 126;
-        vf m = (vf)((bits & 0x807fffff) | 0x3f000000);
-        vi small = m < 0.707106781186547524f;
-        e += small;
-        m = (vf)(((vi)(m + m) & small) | ((vi)m & ~small)) - 1.0f;
-        vf z = m * m;
-        vf y = 7.0376836292e-2f;
-        y = y * m - 1.1514610310e-1f;
-        y = y * m + 1.1676998740e-1f;
-        y = y * m - 1.2420140846e-1f;
-        y = y * m + 1.4249322787e-1f;
-        y = y * m - 1.6668057665e-1f;
-        y = y * m + 2.0000714765e-1f;
-        y = y * m - 2.4999993993e-1f;
-        y = y * m + 3.3333331174e-1f;
-        y = y * m * z;
-        vf fe = __builtin_convertvector(e, vf);
-        y += -2.12194440e-4f * fe;
-        y += -0.5f * z;
-        return m + y + 0.693359375f * fe;
-    };
     // cos and sin of 2 pi t for t in [-1/2, 1/2): quarter turns taken out, then Cephes' sinf and cosf polynomials.
     auto turn_lanes = [](vf t, vf* cosine, vf* sine) {
         const vf quarter = __builtin_elementwise_roundeven(t * 4.0f);

@@ -20,16 +20,18 @@ import warp as wp
 from ..compute.cpp_snippets import read_snippet
 from ..compute.cpu_target import kernel_flags
 from ..compute.runtime import ensure_warp, flat_view, run_ranges
-from ..compute.simd_lanes import LANES, VECTOR_TYPES, lanes_in, lanes_out
+from ..compute.simd_lanes import LANES, SIMD_MATH, VECTOR_TYPES, lanes_in, lanes_out
+from ..geometry.covariance import COVARIANCE_LANES
 from ..render.kernel_choice import kernels_for
 
 _NORMALS = read_snippet(__package__, "normals_simd.h", {"LANES": LANES})
 _SOURCE = read_snippet(__package__, "position_noise_simd.cpp", {
-    "VECTOR_TYPES": VECTOR_TYPES, "LANES": LANES, "NORMALS": _NORMALS, "LOAD_M": lanes_in("m", "means_", 3),
+    "VECTOR_TYPES": VECTOR_TYPES, "SIMD_MATH": SIMD_MATH, "COVARIANCE": COVARIANCE_LANES, "LANES": LANES,
+    "NORMALS": _NORMALS, "LOAD_M": lanes_in("m", "means_", 3),
     "LOAD_Q": lanes_in("q", "quats_", 4), "LOAD_S": lanes_in("log_s", "log_scales_", 3),
     "STORE_M": lanes_out(["m[0]", "m[1]", "m[2]"], "means_")})
 _FILL = read_snippet(__package__, "normals_fill_simd.cpp", {
-    "VECTOR_TYPES": VECTOR_TYPES, "LANES": LANES, "NORMALS": _NORMALS,
+    "VECTOR_TYPES": VECTOR_TYPES, "SIMD_MATH": SIMD_MATH, "LANES": LANES, "NORMALS": _NORMALS,
     "STORE_ETA": lanes_out(["eta[0]", "eta[1]", "eta[2]"], "out_")})
 KEY_BITS = 62  # a draw's key: a number below 2^62 from the strategy's generator
 

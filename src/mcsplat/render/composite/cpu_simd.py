@@ -37,6 +37,7 @@ import warp as wp
 from ...compute.cpp_snippets import read_snippet
 from ...compute.cpu_target import kernel_flags
 from ...compute.runtime import flat_view, num_workers_for, numpy_view, run_bands, run_ranges
+from ...compute.simd_lanes import SIMD_MATH
 from ..bin.warp_kernels import TileBins
 from ..constants import (ALPHA_MAX, ALPHA_MIN, BLOCK_SIZE, MEDIAN_TRANSMITTANCE, POWER_SKIP, TILE_SIZE,
                          TRANSMITTANCE_MIN)
@@ -51,8 +52,8 @@ PREFETCH_DISTANCE = 8
 # The C++ is in cpu_simd_*.cpp and .h. The prelude holds the types and helpers both tile bodies share (masks are int
 # vectors of 0 / -1, clang's vector comparisons) and the tile's blocks.
 _PRELUDE = read_snippet(__package__, "cpu_simd_prelude.h", {
-    "ALPHA_MIN": ALPHA_MIN, "ALPHA_MAX": ALPHA_MAX, "PREFETCH_DISTANCE": PREFETCH_DISTANCE, "POWER_SKIP": POWER_SKIP,
-    "TRANSMITTANCE_MIN": TRANSMITTANCE_MIN, "TILE_SIZE": TILE_SIZE})
+    "SIMD_MATH": SIMD_MATH, "ALPHA_MIN": ALPHA_MIN, "ALPHA_MAX": ALPHA_MAX, "PREFETCH_DISTANCE": PREFETCH_DISTANCE,
+    "POWER_SKIP": POWER_SKIP, "TRANSMITTANCE_MIN": TRANSMITTANCE_MIN, "TILE_SIZE": TILE_SIZE})
 
 
 def _list_entry(gradient_rows: str) -> str:

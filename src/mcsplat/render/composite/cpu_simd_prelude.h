@@ -16,23 +16,8 @@
         vf4 b = a.lo + a.hi;
         return (b.x + b.z) + (b.y + b.w);
     };
-    // exp(x) for x in [power_skip, 0] (Cephes' expf polynomial with the 2^n exponent trick): a libm call would
-    // stop the loop from vectorising. Relative error about 1e-7, and the same function serves forward and backward.
-    auto exp_lanes = [](vf x) -> vf {
-        vf fx = x * 1.44269504088896341f + 0.5f;
-        vi n = __builtin_convertvector(fx, vi);
-        n -= (vi)(__builtin_convertvector(n, vf) > fx) & 1;  // truncation -> floor for negative values
-        vf nf = __builtin_convertvector(n, vf);
-        x = x - nf * 0.693359375f + nf * 2.12194440e-4f;
-        vf p = 1.9875691500e-4f;
-        p = p * x + 1.3981999507e-3f;
-        p = p * x + 8.3334519073e-3f;
-        p = p * x + 4.1665795894e-2f;
-        p = p * x + 1.6666665459e-1f;
-        p = p * x + 5.0000001201e-1f;
-        p = p * x * x + x + 1.0f;
-        return p * (vf)((n + 127) << 23);
-    };
+    // exp_lanes (compute/simd_math.h) serves forward and backward alike: x lies in [power_skip, 0].
+{{SIMD_MATH}}
 
     const int* range = (const int*)tile_ranges.data + 2 * tile;
     const int start = range[0], end = range[1];

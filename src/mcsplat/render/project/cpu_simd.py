@@ -30,7 +30,7 @@ import warp as wp
 from ...compute.cpp_snippets import read_snippet
 from ...compute.cpu_target import kernel_flags
 from ...compute.runtime import flat_view, run_ranges
-from ...compute.simd_lanes import LANES, VECTOR_TYPES, lanes_in, lanes_out
+from ...compute.simd_lanes import LANES, SIMD_MATH, VECTOR_TYPES, lanes_in, lanes_out
 from ...geometry.sh import SH_C0, SH_C1, SH_C2, SH_C3
 from ..constants import TILE_SIZE
 
@@ -59,7 +59,7 @@ def _store(values: list[str], array: str, kind: str = "f") -> str:
 
 
 _PRELUDE = read_snippet(__package__, "cpu_simd_prelude.h", {
-    "VECTOR_TYPES": VECTOR_TYPES, "LANES": LANES, "LOAD_MEAN": _load("mean", "means", 3),
+    "VECTOR_TYPES": VECTOR_TYPES, "SIMD_MATH": SIMD_MATH, "LANES": LANES, "LOAD_MEAN": _load("mean", "means", 3),
     "LOAD_S": _load("s", "scales", 3), "LOAD_Q_RAW": _load("q_raw", "quats", 4)})
 _GEOMETRY = read_snippet(__package__, "cpu_simd_geometry.h", _SH_LITERALS)
 

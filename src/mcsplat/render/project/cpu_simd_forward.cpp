@@ -30,7 +30,7 @@
     vi valid = valid_conic;
     if (opacity_aware_radius) {
         // Beyond sqrt(2 ln(255 o)) sigma the alpha falls under 1/255 and the pixel is skipped anyway.
-        extent = vmin(vsqrt(vmax(2.0f * vlog(vmax(255.0f * opacity, (vf)1.0f)), (vf)0.0f)), (vf)3.0f);
+        extent = vmin(vsqrt(vmax(2.0f * log_lanes(vmax(255.0f * opacity, (vf)1.0f)), (vf)0.0f)), (vf)3.0f);
         valid &= 255.0f * opacity > 1.0f;
     }
     const vf radius = __builtin_elementwise_ceil(extent * vsqrt(vmax(lambda_max, (vf)0.0f)));
@@ -45,7 +45,7 @@
         & ((vf)((vi)mean2d[1] & 0x7fffffff) <= 3.40282347e38f);
     valid &= (radius > 0.0f) & (hi_x > lo_x) & (hi_y > lo_y) & finite;
     // Half-widths of the box outside which o exp(-d^T Q d / 2) < 1/255 (see project._alpha_extent).
-    const vf k_box = vmax(2.0f * vlog(vmax(255.0f * opacity, (vf)1e-30f)), (vf)0.0f);
+    const vf k_box = vmax(2.0f * log_lanes(vmax(255.0f * opacity, (vf)1e-30f)), (vf)0.0f);
     const vi has_box = k_box > 0.0f;
     const vf box_x = select(has_box, vsqrt(k_box * vmax(a, (vf)0.0f)) * 1.001f + 0.01f, (vf)0.0f);
     const vf box_y = select(has_box, vsqrt(k_box * vmax(c, (vf)0.0f)) * 1.001f + 0.01f, (vf)0.0f);

@@ -6,30 +6,7 @@
     auto vmax = [](vf a, vf b) -> vf { return __builtin_elementwise_max(a, b); };
     auto vsqrt = [](vf x) -> vf { return __builtin_elementwise_sqrt(x); };
     auto any_lane = [](vi mask) -> bool { return __builtin_reduce_or(mask) != 0; };
-    // Natural log of positive normal numbers (Cephes' logf: mantissa in [sqrt(1/2), sqrt(2)), a degree-9 polynomial).
-    auto vlog = [=](vf x) -> vf {
-        vi bits = (vi)x;
-        vi e = ((bits >> 23) & 0xff) - 126;
-        vf m = (vf)((bits & 0x807fffff) | 0x3f000000);  // in [0.5, 1)
-        vi small = m < 0.707106781186547524f;
-        e += small;  // small is -1 where true
-        m = select(small, m + m, m) - 1.0f;
-        vf z = m * m;
-        vf y = 7.0376836292e-2f;
-        y = y * m - 1.1514610310e-1f;
-        y = y * m + 1.1676998740e-1f;
-        y = y * m - 1.2420140846e-1f;
-        y = y * m + 1.4249322787e-1f;
-        y = y * m - 1.6668057665e-1f;
-        y = y * m + 2.0000714765e-1f;
-        y = y * m - 2.4999993993e-1f;
-        y = y * m + 3.3333331174e-1f;
-        y = y * m * z;
-        vf fe = __builtin_convertvector(e, vf);
-        y += -2.12194440e-4f * fe;
-        y += -0.5f * z;
-        return m + y + 0.693359375f * fe;
-    };
+{{SIMD_MATH}}
 
     const int first = {{LANES}} * chunk;
     const int count = n - first < {{LANES}} ? n - first : {{LANES}};
