@@ -95,7 +95,9 @@ def test_two_processes_train_one_model_and_rank_0_alone_writes(together, tmp_pat
     alone = train(demo_config(tmp_path / "alone", threads=None))
     print(f"test PSNR: 2 processes x {VIEWS // 2} steps {metrics['psnr']:.2f} dB, 1 process x {VIEWS} steps "
           f"{alone['psnr']:.2f} dB")
-    assert abs(metrics["psnr"] - alone["psnr"]) <= 0.3
+    # Seeds 0-2 put the two 0.05-0.42 dB apart (before and after the CPU's noise kernel drew its own normals,
+    # 2026-11-29): the bound is that spread, not a finer one.
+    assert abs(metrics["psnr"] - alone["psnr"]) <= 0.5
 
 
 def test_a_two_process_run_resumes_exactly_with_two_processes_only(tmp_path):

@@ -46,14 +46,17 @@
                     const float o = opacities_[begin + j];
                     g[j] = g[j] + opacity_factor * (1.0f - o) * o;  // torch's sigmoid_backward: (a (1 - o)) o
                 }
+        } else if (t == 1 && regularized) {  // the projection's share plus (the others' plus the regularizer's)
+            for (long long j = 0; j < count; ++j) {
+                const float s = scales_[begin + j], others = scale_factor * s;
+                g[j] = own[j] * s + (earlier != nullptr ? earlier[begin + j] + others : others);
+            }
         } else if (t == 1) {
             for (long long j = 0; j < count; ++j) g[j] = own[j] * scales_[begin + j];
-            if (regularized)
-                for (long long j = 0; j < count; ++j) g[j] = g[j] + scale_factor * scales_[begin + j];
         } else {
             for (long long j = 0; j < count; ++j) g[j] = own[j];
         }
-        if (own != nullptr && earlier != nullptr)
+        if (own != nullptr && earlier != nullptr && !(t == 1 && regularized))
             for (long long j = 0; j < count; ++j) g[j] = g[j] + earlier[begin + j];
         float* __restrict p_ = param + begin;
         float* __restrict m_ = exp_avg + begin;

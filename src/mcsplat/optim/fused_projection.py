@@ -7,8 +7,9 @@ projection's backward (render/project/cpu_simd_backward.cpp, the same C++) write
 and Adam updates their rows of all six parameters at once, while they are in the cache; the gradients never reach
 memory. The render leaves
 the projection's share of the gradients to this update (render/project/deferred.py); what other terms gave the
-parameters (the regularizers, --surface) is in their `.grad` and joins here, and the opacities' gradient, which
-the compositing gives, is read from theirs.
+parameters (--surface's) is in their `.grad` and joins here, and the opacities' gradient, which the compositing
+gives, is read from theirs. The MCMC regularizers leave their gradients here too (deferred.regularizers_left_to_update)
+and the kernel adds them: weight / count x exp(s) to the log-scales, x sigmoid'(o) to the opacity logits.
 
 The result is the plain step's to the bit where at most one other term adds to a parameter the projection reads (the
 regularizers; tests/training/test_fused_projection.py): the backward is the same C++ built with the same options, the
@@ -151,15 +152,16 @@ def finish_gradients(pending: deferred.DeferredBackward, model: GaussianModel) -
     """Add the deferred projection gradients (and the regularizers', where they were left too) to the model's
     `.grad`s, as autograd would have (where the fused update does not apply)."""
     g_means, g_quats, g_scales, g_dc, g_rest = gradients_of(pending)
-    g_log_scales = g_scales * pending.scales
+    params = model.params
     extra = []
-    if pending.regularizers is not None:
+    if pending.regularizers is not None:  # theirs join the others' first, as the fused kernel sums them
         opacity_factor, scale_factor = pending.regularizers
-        g_log_scales = g_log_scales + scale_factor * pending.scales
+        left = scale_factor * pending.scales
+        params["log_scales"].grad = left if params["log_scales"].grad is None else params["log_scales"].grad + left
         extra = [("opacity_logits", opacity_factor * (1.0 - pending.opacities) * pending.opacities)]
-    for key, grad in (("means", g_means), ("quats", g_quats), ("log_scales", g_log_scales), ("sh0", g_dc),
-                      ("shN", g_rest), *extra):
-        param = model.params[key]
+    for key, grad in (("means", g_means), ("quats", g_quats), ("log_scales", g_scales * pending.scales),
+                      ("sh0", g_dc), ("shN", g_rest), *extra):
+        param = params[key]
         param.grad = grad if param.grad is None else param.grad + grad
 
 

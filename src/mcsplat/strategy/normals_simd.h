@@ -29,7 +29,7 @@
         const unsigned long long golden = 0x9E3779B97F4A7C15ULL, seed = ((const unsigned long long*)key.data)[0];
         const vu64 h0 = mix(seed + (2 * index + 1) * golden), h1 = mix(seed + (2 * index + 2) * golden);
         const float unit = 5.9604644775390625e-8f;  // 2^-24
-        auto uniform = [&](vu64 h, int shift) -> vf {  // (0, 1): 24 bits and a half
+        auto uniform = [&](vu64 h, int shift) -> vf {  // (0, 1]: 24 bits and a half (1 where float32 rounds up)
             return (__builtin_convertvector(__builtin_convertvector((h >> shift) & 0xFFFFFFULL, vu32), vf) + 0.5f)
                    * unit;
         };

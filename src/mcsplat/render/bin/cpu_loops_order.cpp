@@ -1,7 +1,8 @@
     // The Gaussians front to back, then each one's first slot. Keys: a visible Gaussian's depth as its float's bits
     // (positive floats order like their bit patterns), 0 for the others. A stable LSD radix sort on three digits of
-    // 11 bits (31 bits; 2,048 counts a digit, all three counted in one read) scatters between the two halves of the
-    // room; a digit every key shares is skipped. Then offsets[g] = the pairs of the Gaussians in front of g.
+    // 11, 11 and 10 bits (the last holds the sign bit, 0 here; 2,048 counts a digit, all three counted in one read)
+    // scatters between the two halves of the room; a digit every key shares is skipped. Then offsets[g] = the pairs
+    // of the Gaussians in front of g.
     const float* depths_ = (const float*)depths.data;
     const int* radii_ = (const int*)radii.data;
     const int* counts_ = (const int*)counts.data;

@@ -18,10 +18,10 @@ then tile, 2026-11-26 (later)").
 
 CUDA runs these Warp kernels and Warp's CUB radix sort; this shape has been checked on the CPU only (the tests compare
 the lists with the torch binning's) until a GPU run is recorded in benchmarks/README.md ("GPU"). The CPU runs the
-same steps as C++ loops over ranges of Gaussians (cpu_loops.py, with the offsets and the split of the sorted pairs
-in one pass each instead of torch's gathers and scatters) around the same radix sorts: the same lists, in less time
-(benchmarks/results/train_speed/2026-11-27-kernels-side-by-side.md, "The pieces alone"); set_cpu_kernels("scalar")
-puts the Warp kernels back.
+same steps as C++ loops over ranges of Gaussians (cpu_loops.py), with sorts of its own that order the pairs as the
+radix sorts do: a radix sort of the depths fused with the offsets, and a counting sort by tile that writes the
+lists (benchmarks/results/train_speed/2026-11-27-kernels-side-by-side.md and 2026-11-29-glue-side-by-side.md);
+set_cpu_kernels("scalar") puts the Warp kernels back.
 """
 
 from __future__ import annotations
