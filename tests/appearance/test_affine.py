@@ -50,9 +50,10 @@ def test_affine_appearance_learns_the_colour_shift_instead_of_the_scene(shared_d
     compensated = train(_config(root, tmp_path / "affine", appearance="affine"))
     # The test photos were not shifted: a scene that did not absorb the shift renders them better.
     print(f"test PSNR {plain['psnr']:.2f} dB plain, {compensated['psnr']:.2f} dB with --appearance affine")
-    # Seeds 0-3 gave it 0.48-1.21 dB more (before and after the CPU's noise kernel drew its own normals, 2026-11-29).
+    # Seeds 0-3 gave it 0.48-1.21 dB more (before and after the CPU's noise kernel drew its own normals, 2026-11-29) ...
     assert compensated["psnr"] > plain["psnr"] + 0.3, (compensated["psnr"], plain["psnr"])
-    assert compensated["compensated_psnr"] > plain["compensated_psnr"] + 2.0
+    # ... and, compensated, 1.74-3.63 dB more (seeds 0-3; 1.86-3.55 before the noise's own draw).
+    assert compensated["compensated_psnr"] > plain["compensated_psnr"] + 1.5
     state = torch.load(tmp_path / "affine" / "checkpoint.pt", weights_only=True)
     from mcsplat.data import load_scene
     names = [view.name for view in load_scene(root, downscale=8).train]
