@@ -1,7 +1,7 @@
 """The MCMC position noise in one pass on the CPU: means += factor x gate(o) x Sigma eta for 16 Gaussians at a time.
 
 strategy/noise.py's torch form takes a dozen operators over the Gaussians a step (the draw, the opacities, the gate's
-sigmoids, the scales' exp, the covariance product, the products and the sum: about 2.5 ms at 100k on two cores, half
+sigmoids, the scales' exp, the covariance product, the products and the sum: about 3 ms at 100k on two cores, 40%
 of it torch's normal draw); here one kernel reads the stored parameters (quaternions, log-scales, opacity logits),
 draws eta itself and adds the noise to the positions in place.
 
