@@ -59,7 +59,7 @@ class Deferral:
     """One step's deferred projection backward: the parameters it stands for, and what the backward left."""
 
     def __init__(self, means: torch.Tensor, quats: torch.Tensor, log_scales: torch.Tensor, sh0: torch.Tensor,
-                 sh_rest: torch.Tensor, opacity_logits: torch.Tensor | None = None):
+                 sh_rest: torch.Tensor, opacity_logits: torch.Tensor):
         self.means, self.quats, self.log_scales, self.sh0, self.sh_rest = means, quats, log_scales, sh0, sh_rest
         self.opacity_logits = opacity_logits
         self.taken = False  # a projection has deferred to it
@@ -71,8 +71,7 @@ class Deferral:
     def note_activations(self, scales: torch.Tensor, opacities: torch.Tensor) -> None:
         """The deferred SIMD projection's scales and opacities, kept for the regularizers where the opacities are
         one sigmoid of the opacity logits."""
-        if self.opacity_logits is not None and opacities.is_contiguous() and _made_from(opacities, "SigmoidBackward0",
-                                                                                        self.opacity_logits):
+        if opacities.is_contiguous() and _made_from(opacities, "SigmoidBackward0", self.opacity_logits):
             self.activations = (scales, opacities)
 
     def accepts(self, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, sh_dc: torch.Tensor,
