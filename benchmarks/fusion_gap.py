@@ -15,11 +15,14 @@ defaults, stage by stage as `mcsplat.mesh.pipeline` does:
                  inside it, the depth at its pixel minus the point's depth (pairs beyond 5% of R left out, as in
                  sfm_depth.py: the point is hidden in that view); and the SfM points with at least one such pair
     confirmed    the same after the consistency check (4 of the 6 nearest views)
+    (clear)      every view's clear depth (mcsplat.mesh.clear_space): the fusion takes its empty space only from
+                 in front of it
     volume       the fused truncated signed distance at each SfM point: inside the grid, observed, within the band
     mesh         SfM point to mesh distance (median, p90, within 1% of R) after marching cubes, then after dropping
                  the small pieces (the exported mesh: mesh_quality.py's measure), over all points and over the
                  points the depth has (those with a pair in the first stage)
-                 (and, fused with a view's empty space weighing 0.1 and 0.01 of a depth: MeshOptions.free_weight),
+                 (and, fused with a view's empty space weighing 0.1 and 0.01 of a depth: MeshOptions.free_weight;
+                 and as before 2026-11-29, each view's empty space reaching to its median depth's band),
                  and mesh vertex to nearest SfM point (median: an accuracy proxy)
     Open3D       VoxelBlockGrid TSDF integration fed the same depth maps (raw, and as confirmed) and colours, at the
                  same voxel size and band; its mesh scored alike, whole and cut to our grid's box
@@ -92,21 +95,24 @@ def run(arm: Arm, options: Options, folder: Path) -> list[dict]:
 
 # ------------------------------------------------------------------------------------------------ the stages
 @torch.no_grad()
-def depth_maps(trained, cameras, options) -> tuple[list, list, list]:
-    """(raw depth maps, confirmed depth maps, colours) of every view, as extract() fuses them."""
+def depth_maps(trained, cameras, options) -> tuple[list, list, list, list]:
+    """(raw depth maps, confirmed depth maps, colours, clear depths) of every view, as extract() fuses them."""
+    from mcsplat.mesh.clear_space import clear_depth, raised_opacities
     from mcsplat.mesh.consistency import KeptDepth, consistent_depth, nearest_views
     from mcsplat.mesh.pipeline import surface_of_view
 
-    raw, colours = [], []
+    raw, colours, clears = [], [], []
+    raised = raised_opacities(trained.model, options.clear_alpha)
     for camera in cameras:
         depth, rgb = surface_of_view(trained.model, camera, options.alpha_min, trained.sh_degree, options.depth)
         raw.append(depth)
         colours.append(rgb)
+        clears.append(clear_depth(raised, camera, depth, trained.sh_degree))
     kept = [KeptDepth(camera, depth) for camera, depth in zip(cameras, raw)]
     neighbours = nearest_views(cameras)
     confirmed = [consistent_depth(depth, camera, [kept[j] for j in near], min(options.consistent_views, len(near)))
                  for camera, depth, near in zip(cameras, raw, neighbours)]
-    return raw, confirmed, colours
+    return raw, confirmed, colours, clears
 
 
 def pairs(points: torch.Tensor, cameras, depths, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -151,12 +157,13 @@ def pair_figures(indices: np.ndarray, differences: np.ndarray, radius: float, nu
             "points_with_close_pair": float(len(np.unique(indices[magnitude <= CLOSE])) / num_points)}
 
 
-def fuse(grid, cameras, depths, colours, free_weight: float = 1.0):
+def fuse(grid, cameras, depths, colours, clears: list | None, free_weight: float = 1.0):
+    """The volume extract() fuses; with `clears` None, each view's empty space reaches to its depth's band."""
     from mcsplat.mesh.fusion import TSDFVolume
 
     volume = TSDFVolume(grid, torch.device("cpu"), free_weight)
-    for camera, depth, rgb in zip(cameras, depths, colours):
-        volume.integrate(camera, depth, rgb)
+    for index, (camera, depth, rgb) in enumerate(zip(cameras, depths, colours)):
+        volume.integrate(camera, depth, rgb, None if clears is None else clears[index])
     volume.fill_gaps()
     return volume
 
@@ -284,7 +291,7 @@ def measure(run: Path, voxel_size: float | None, picture: Path | None) -> list[d
     points = scene.points.float()
     points_np = scene.points.double().numpy()
     started = time.perf_counter()
-    raw, confirmed, colours = depth_maps(trained, cameras, options)
+    raw, confirmed, colours, clears = depth_maps(trained, cameras, options)
     base = {"strategy": trained.config.strategy, "radius": radius, "voxel_size": grid.voxel_size,
             "grid": list(grid.shape), "sfm_points": len(points)}
     records = []
@@ -303,7 +310,7 @@ def measure(run: Path, voxel_size: float | None, picture: Path | None) -> list[d
         pixel_share=sum(int(torch.isfinite(d).sum()) for d in confirmed) / surface,
         **pair_figures(kept_index, kept_difference, radius, len(points)),
         **see_through(points, cameras, confirmed, grid.truncation))
-    volume = fuse(grid, cameras, confirmed, colours)
+    volume = fuse(grid, cameras, confirmed, colours, clears)
     add("volume", **volume_figures(volume, points, has_depth))
     before, after = our_mesh(volume)
     del volume
@@ -313,8 +320,11 @@ def measure(run: Path, voxel_size: float | None, picture: Path | None) -> list[d
                                      has_depth)
     add("mesh: small pieces dropped (exported)", **figures)
     ours_seconds = time.perf_counter() - started
+    before, after = our_mesh(fuse(grid, cameras, confirmed, colours, None))
+    add("mesh: exported, empty space up to the median depth (before 2026-11-29)",
+        **mesh_figures(np.asarray(after.vertices), np.asarray(after.faces), points_np, radius, has_depth)[0])
     for free_weight in FREE_WEIGHTS:
-        before, after = our_mesh(fuse(grid, cameras, confirmed, colours, free_weight))
+        before, after = our_mesh(fuse(grid, cameras, confirmed, colours, clears, free_weight))
         add(f"mesh: marching cubes, free-space weight {free_weight:g}",
             **mesh_figures(np.asarray(before.vertices), np.asarray(before.faces), points_np, radius, has_depth)[0])
         add(f"mesh: exported, free-space weight {free_weight:g}",

@@ -6,6 +6,7 @@ whether MCMC puts its Gaussians on the surface more than ADC does, at the same c
     .venv/bin/python benchmarks/mesh_quality.py --runs RUN [RUN ...]   # runs trained elsewhere (no SfM: no distances)
     .venv/bin/python benchmarks/mesh_quality.py --report               # rebuild results.md from results.jsonl
     .venv/bin/python benchmarks/mesh_quality.py --scenes bird --strategies mcmc --truncation 24   # a wider band
+    .venv/bin/python benchmarks/mesh_quality.py --scenes cup --strategies mcmc --clear-alpha 0.5   # the fusion before
 
 Each scene trains (or a finished run is reused) with the squeezed schedule of the other benchmarks: 3,000 steps, cap
 100k, refinement from step 50 every 10 steps to 2,500 (MCMC) or densification to 1,500 with an opacity reset every
@@ -50,6 +51,7 @@ from scipy.spatial import cKDTree
 import _common as C
 from framework import Arm, Common, recorded
 from mcsplat.mesh.grid import TRUNCATION_VOXELS
+from mcsplat.mesh.options import CLEAR_ALPHA
 
 # name -> (folder under the shared data, downscale, options of its own)
 SCENES = {"cup": ("colmap_cup", 2, []), "bird": ("colmap_bird", 2, []),
@@ -106,6 +108,9 @@ class Options:
     """Measure these run folders instead of training."""
     truncation: float = TRUNCATION_VOXELS
     """The export's --truncation, in voxels; the runs' records and pictures are then named <run>-t<N>."""
+    clear_alpha: float = CLEAR_ALPHA
+    """The export's MeshOptions.clear_alpha (0.5: each view vouches for empty space in front of its median depth, as
+    before 2026-11-29); the records and pictures are then named <run>-clear<A>."""
     common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
 
 
@@ -117,9 +122,10 @@ def trained_runs(options: Options) -> list[tuple[str, str]]:
             and (options.strategies is None or strategy in options.strategies)]
 
 
-def band_suffix(truncation: float) -> str:
-    """-t<N> for an export band of N voxels other than the default."""
-    return "" if truncation == TRUNCATION_VOXELS else f"-t{truncation:g}"
+def export_suffix(options: Options) -> str:
+    """-t<N> for an export band of N voxels, -clear<A> for a clear alpha A, where they are not the defaults."""
+    return ("" if options.truncation == TRUNCATION_VOXELS else f"-t{options.truncation:g}") + \
+        ("" if options.clear_alpha == CLEAR_ALPHA else f"-clear{options.clear_alpha:g}")
 
 
 def arms(options: Options) -> list[Arm]:
@@ -128,8 +134,9 @@ def arms(options: Options) -> list[Arm]:
     first: dict[str, str] = {}  # scene (names have no dash; strategies may) -> its first arm
     declared = []
     for run_name, given in runs:
-        name, scene = run_name + band_suffix(options.truncation), run_name.split("-", 1)[0]
-        labels = {"run": name, "truncation_voxels": options.truncation, **({"run_folder": given} if given else {})}
+        name, scene = run_name + export_suffix(options), run_name.split("-", 1)[0]
+        labels = {"run": name, "truncation_voxels": options.truncation, "clear_alpha": options.clear_alpha,
+                  **({"run_folder": given} if given else {})}
         declared.append(Arm(name, labels, after=(first[scene],) if scene in first else ()))
         first.setdefault(scene, name)
     return declared
@@ -138,11 +145,11 @@ def arms(options: Options) -> list[Arm]:
 def run(arm: Arm, options: Options, folder: Path) -> dict:
     """Train the arm's run (a finished one is reused) or take the one given, export its mesh and measure it."""
     given = arm.labels.get("run_folder")
-    trained = arm.name.removesuffix(band_suffix(options.truncation))
+    trained = arm.name.removesuffix(export_suffix(options))
     run_dir = Path(given) if given else train(*trained.split("-", 1), folder / "runs", options.common.data_root,
                                                options.common.threads)
     voxel_size = recorded("mesh_quality", folder).get(arm.after[0])["voxel_size"] if arm.after else None
-    exported = export(run_dir, voxel_size, options.truncation)
+    exported = export(run_dir, voxel_size, options.truncation, options.clear_alpha)
     return measure(run_dir, exported, arm.name, folder / f"{arm.name}.png")
 
 
@@ -171,7 +178,7 @@ def train(scene: str, strategy: str, runs: Path, data_root: Path, threads: int |
 
 
 # ------------------------------------------------------------------------------------------------ export
-def export_worker(run: str, voxel_size: float | None, truncation: float) -> None:
+def export_worker(run: str, voxel_size: float | None, truncation: float, clear_alpha: float = CLEAR_ALPHA) -> None:
     """In a fresh process: what `mcsplat export RUN --format mesh [--voxel-size S]` does, timed; prints one JSON
     line."""
     from mcsplat.run import trained as trained_run
@@ -180,8 +187,9 @@ def export_worker(run: str, voxel_size: float | None, truncation: float) -> None
     started = time.perf_counter()
     trained = trained_run.load(run, torch.device("cpu"))
     # A given voxel size may need more voxels than the default budget when this model's box is larger.
-    options = MeshOptions(truncation=truncation) if voxel_size is None else \
-        MeshOptions(voxel_size=voxel_size, voxel_budget=4 * DEFAULT_VOXEL_BUDGET, truncation=truncation)
+    options = MeshOptions(truncation=truncation, clear_alpha=clear_alpha) if voxel_size is None else \
+        MeshOptions(voxel_size=voxel_size, voxel_budget=4 * DEFAULT_VOXEL_BUDGET, truncation=truncation,
+                    clear_alpha=clear_alpha)
     mesh = extract(trained.model, trained.scene.train, options, sh_degree=trained.sh_degree)
     write_mesh(trained.folder.mesh_file, mesh)
     made = mesh.metadata["mcsplat"]
@@ -192,16 +200,17 @@ def export_worker(run: str, voxel_size: float | None, truncation: float) -> None
                       "views": made["views"], "vertices": len(mesh.vertices), "faces": len(mesh.faces)}))
 
 
-def export(run: Path, voxel_size: float | None = None, truncation: float = TRUNCATION_VOXELS) -> dict:
+def export(run: Path, voxel_size: float | None = None, truncation: float = TRUNCATION_VOXELS,
+           clear_alpha: float = CLEAR_ALPHA) -> dict:
     """The export worker's figures for `run`, fused in `voxel_size` where that fits 4x the default voxel budget, else
     (a model whose box is much larger: ADC's floaters) in the finest size its own box allows, as the voxel column
     then shows."""
-    asked = {"run": str(run), "voxel_size": voxel_size, "truncation": truncation}
+    asked = {"run": str(run), "voxel_size": voxel_size, "truncation": truncation, "clear_alpha": clear_alpha}
     done = subprocess.run([sys.executable, __file__, "--export-worker", json.dumps(asked)], capture_output=True,
                           text=True)
     if done.returncode != 0 and voxel_size is not None and "over the budget" in done.stderr:
         print(f"{run.name}: the shared voxel size does not fit its box; fused in its own", file=sys.stderr)
-        return export(run, None, truncation)
+        return export(run, None, truncation, clear_alpha)
     if done.returncode != 0:
         sys.exit(f"export of {run} failed: {done.stderr.strip()}")
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -340,6 +349,8 @@ def report(records: list[dict], folder: Path) -> str:
         ("run", "run", ""), ("PSNR", "psnr", ".2f"), ("Gaussians", "num_gaussians", ","), ("faces", "faces", ","),
         ("voxel %R", "voxel_size_r", percent("voxel_size_r")),
         ("band (voxels)", "", lambda r: f"{r.get('truncation_voxels', TRUNCATION_VOXELS):g}"),
+        # Records before the clear depth (2026-11-29) fused every view's empty space up to its median depth (0.5).
+        ("clear alpha", "", lambda r: f"{r.get('clear_alpha', 0.5):g}"),
         ("SfM->mesh median %R", "", percent("points_to_mesh_median")),
         ("SfM->mesh p90 %R", "", percent("points_to_mesh_p90")),
         ("complete (1% R)", "", percent("completeness")),

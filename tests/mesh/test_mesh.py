@@ -18,6 +18,7 @@ from mcsplat.cli import Export, main
 from mcsplat.errors import MCSplatError
 from mcsplat.export import ExportOptions
 from mcsplat.mesh import DEFAULT_VOXEL_BUDGET, MeshOptions, extract, holds_mesh, read_mesh, write_mesh
+from mcsplat.mesh.clear_space import clear_depth, raised_opacities
 from mcsplat.mesh.consistency import KeptDepth, consistent_depth, nearest_views
 from mcsplat.mesh.options import CONSISTENT_VIEWS
 from mcsplat.mesh.fusion import TSDFVolume
@@ -171,26 +172,68 @@ def test_a_band_narrower_than_the_views_disagreement_moves_the_surface_inward():
     assert heights[4] < -0.02 and abs(heights[24]) < 0.003, heights
 
 
-def test_views_that_see_through_a_surface_carve_it_unless_their_empty_space_weighs_less():
+def test_views_that_see_through_a_surface_carve_it_unless_they_vouch_only_for_their_clear_space():
     """Ten views from above of the plane z = 0; four see it, six see through it (a semi-transparent surface whose
     median depth lands on a floor 0.5 below). Every observation counting alike, the six say "empty" at the plane and
-    carve it away; with their empty space weighing a tenth, the plane stays where the four put it, and a second sheet
-    appears a band behind it (where the four's band ends and only the six's empty space is left)."""
+    carve it away. With their empty space weighing a tenth, the plane stays where the four put it, and a second sheet
+    appears a band behind it (where the four's band ends and only the six's empty space is left). Given their clear
+    depth (their rays met the plane), the six leave the plane and the space behind it alone: the plane and the floor
+    stay, and nothing else."""
     camera = look_at(torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), 64)
     grid = VoxelGrid(origin=(-0.2, -0.2, -0.7), voxel_size=0.01, shape=(41, 41, 91))
     surfaces = {}
-    for free_weight in (1.0, 0.1):
+    for free_weight, clear in ((1.0, False), (0.1, False), (1.0, True)):
         volume = TSDFVolume(grid, torch.device("cpu"), free_weight)
         for seen_through in [False] * 4 + [True] * 6:
             depth = torch.full((64, 64), 3.5 if seen_through else 3.0)
-            volume.integrate(camera, depth, torch.full((64, 64, 3), 0.5))
+            volume.integrate(camera, depth, torch.full((64, 64, 3), 0.5),
+                             torch.full((64, 64), 3.0) if clear else None)
         vertices = zero_surface(volume)[0]
-        surfaces[free_weight] = vertices[:, 2]
-    assert (np.abs(surfaces[1.0]) < 0.1).sum() == 0
-    on_plane, behind = np.abs(surfaces[0.1]) < 0.01, np.abs(surfaces[0.1] + 0.045) < 0.01
-    assert on_plane.sum() > 1000 and behind.sum() > 1000 and (on_plane | behind | (surfaces[0.1] < -0.4)).all()
+        surfaces[free_weight, clear] = vertices[:, 2]
+    assert (np.abs(surfaces[1.0, False]) < 0.1).sum() == 0
+    on_plane, behind = np.abs(surfaces[0.1, False]) < 0.01, np.abs(surfaces[0.1, False] + 0.045) < 0.01
+    assert on_plane.sum() > 1000 and behind.sum() > 1000 and (on_plane | behind | (surfaces[0.1, False] < -0.4)).all()
+    cleared = surfaces[1.0, True]
+    on_plane, on_floor = np.abs(cleared) < 0.01, np.abs(cleared + 0.5) < 0.01
+    assert on_plane.sum() > 1000 and on_floor.sum() > 1000 and (on_plane | on_floor).all()
     with pytest.raises(MCSplatError, match="free_weight"):
         MeshOptions(free_weight=0.0)
+    with pytest.raises(MCSplatError, match="clear_alpha"):
+        MeshOptions(clear_alpha=0.6)
+
+
+def test_the_clear_depth_is_where_a_ray_starts_to_meet_the_gaussians():
+    """A faint layer of discs at z = 0 (alpha about 0.3 where a ray crosses it) over an opaque floor at z = -0.5, seen
+    from above at z = 3: the median depth passes the layer and lands on the floor (3.5), the clear depth stops at the
+    layer (3.0). On an opaque box the clear depth is the median depth but along its edges."""
+    ticks = torch.linspace(-1.0, 1.0, 41, dtype=torch.float64)
+    grid_xy = torch.stack(torch.meshgrid(ticks, ticks, indexing="ij"), dim=-1).reshape(-1, 2)
+    up = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64).expand(len(grid_xy), 3)
+    layer = flat_gaussians(torch.cat([grid_xy, torch.zeros(len(grid_xy), 1, dtype=torch.float64)], 1), up, 0.04)
+    floor = flat_gaussians(torch.cat([grid_xy, torch.full((len(grid_xy), 1), -0.5, dtype=torch.float64)], 1), up,
+                           0.04)
+    layered = Splats(*(torch.cat([getattr(layer, name), getattr(floor, name)]) for name in
+                       ("means", "quats", "scales")),
+                     opacities=torch.cat([torch.full((len(grid_xy),), 0.08), floor.opacities]),
+                     sh=torch.cat([layer.sh, floor.sh]))
+    camera = look_at(torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), 64)
+    centre = (slice(16, 48), slice(16, 48))
+    faint = render(Splats(layer.means, layer.quats, layer.scales, layered.opacities[:len(grid_xy)], layer.sh),
+                   camera).alpha[centre]
+    assert 0.2 < float(faint.min()) and float(faint.max()) < 0.5, (faint.min(), faint.max())
+    out = render(layered, camera, None, outputs={"median_depth"})
+    median = out.median_depth[centre]
+    clear = clear_depth(raised_opacities(layered), camera, out.median_depth, None)[centre]
+    assert (median - 3.5).abs().max() < 0.01, median
+    assert (clear - 3.0).abs().max() < 0.01, clear
+    box, views = box_of_gaussians(), all_around(8)
+    for view in views:
+        depth = render(box, view, None, outputs={"median_depth"}).median_depth
+        seen = depth > 0
+        clear = clear_depth(raised_opacities(box), view, depth, None)
+        ahead = (depth - clear)[seen]  # apart only along the edges, where the discs hang over
+        assert (clear <= depth).all() and (ahead == 0).float().mean() > 0.9 and (ahead > 0.02).float().mean() < 0.01
+    assert raised_opacities(box, 0.5) is None
 
 
 def test_a_depth_that_the_neighbouring_views_do_not_confirm_is_left_out():

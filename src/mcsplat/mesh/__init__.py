@@ -1,10 +1,11 @@
 """Meshes from trained Gaussians: `extract(model, views)` fuses the median depth of every view, where its nearest
-views confirm it, into a truncated signed distance volume and returns its zero level set as a coloured
-trimesh.Trimesh; `write_mesh` writes it as .ply, .glb or .obj. `mcsplat export RUN --format mesh` is the command
-(docs/outputs.md, "A mesh of the scene").
+views confirm it (and its empty space in front of its clear depth), into a truncated signed distance volume and
+returns its zero level set as a coloured trimesh.Trimesh; `write_mesh` writes it as .ply, .glb or .obj.
+`mcsplat export RUN --format mesh` is the command (docs/outputs.md, "A mesh of the scene").
 
     grid.py         where the volume lies, its voxel size, whether it fits in memory
     consistency.py  which pixels' depths the nearest other views confirm
+    clear_space.py  the depth in front of which a view vouches for empty space (where its ray's alpha is still low)
     fusion.py       the signed distance volume, the fusion of one view, the closing of narrow gaps
     marching_cubes.py  the volume's zero level set (scikit-image's marching cubes) and vertex colours
     clean.py        dropping small pieces

@@ -4,9 +4,10 @@ device.
 A grid point seen by a view at camera depth z, in front of the pixel's depth d or at most the truncation t behind it,
 takes the observation min(1, (d - z) / t) into its running mean; farther behind it is hidden and left alone. An
 observation of 1 (the point is a band or more in front: the view says only that it is empty) counts `free_weight`
-(1 by default) beside one within the band. The running mean of the pixel's colour goes with it. Pixels without a
-surface (depth -inf) update nothing. The volume is walked in slabs of the first axis, so that the temporaries stay
-small whatever the grid.
+(1 by default) beside one within the band. Given the view's clear depth (clear_space.py), it vouches for empty space
+only a band or more in front of that, and leaves the grid points between there and its surface's band alone. The
+running mean of the pixel's colour goes with it. Pixels without a surface (depth -inf) update nothing. The volume is
+walked in slabs of the first axis, so that the temporaries stay small whatever the grid.
 """
 
 from __future__ import annotations
@@ -31,8 +32,11 @@ class TSDFVolume:
         self.color = torch.zeros((*grid.shape, 3), dtype=torch.float16, device=device)
 
     @torch.no_grad()
-    def integrate(self, camera: Camera, depth: torch.Tensor, rgb: torch.Tensor) -> None:
-        """Fuse one view: `depth` [H, W] camera depth of the surface (-inf where there is none), `rgb` [H, W, 3]."""
+    def integrate(self, camera: Camera, depth: torch.Tensor, rgb: torch.Tensor,
+                  clear_depth: torch.Tensor | None = None) -> None:
+        """Fuse one view: `depth` [H, W] camera depth of the surface (-inf where there is none), `rgb` [H, W, 3];
+        `clear_depth` [H, W] (at most `depth`): the view vouches for empty space only a band or more in front of it
+        (None: of `depth`)."""
         grid, device = self.grid, self.device
         nx, ny, nz = grid.shape
         height, width = depth.shape
@@ -42,6 +46,10 @@ class TSDFVolume:
         framed_rgb = torch.zeros((height + 2, width + 2, 3), device=device)
         framed_rgb[1:-1, 1:-1] = rgb
         framed_depth, framed_rgb = framed_depth.reshape(-1), framed_rgb.reshape(-1, 3)
+        if clear_depth is not None:
+            framed_clear = torch.full((height + 2, width + 2), -float("inf"), device=device)
+            framed_clear[1:-1, 1:-1] = clear_depth
+            framed_clear = framed_clear.reshape(-1)
         w2c = camera.world_to_camera.to(device, torch.float64)
         rotation = w2c[:3, :3]
         # Camera coordinates of grid point (i, j, k): base + i a + j b + k c, each axis's term computed once.
@@ -65,7 +73,10 @@ class TSDFVolume:
             row = torch.add(plane[1], i, alpha=step_i[1]).mul_(inverse_z).mul_(camera.fy).add_(camera.cy + 1)
             pixel = row.clamp_(0, height + 1).long().mul_(width + 2).add_(column.clamp_(0, width + 1).long())
             sdf = framed_depth[pixel].sub_(z)
-            ids = ((sdf >= -truncation) & (z > NEAR_PLANE)).reshape(-1).nonzero().squeeze(1)
+            counted = (sdf >= -truncation) & (z > NEAR_PLANE)
+            if clear_depth is not None:  # in front of the surface but not clear of it: the view cannot tell
+                counted &= (sdf < truncation) | (framed_clear[pixel] - z >= truncation)
+            ids = counted.reshape(-1).nonzero().squeeze(1)
             if ids.numel() == 0:
                 continue
             in_volume = ids + x0 * ny * nz

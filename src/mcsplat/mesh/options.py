@@ -30,6 +30,10 @@ TRUNCATION_VOXELS = 4  # half-width of the signed distance band, in voxels (the 
 # beside an observation within the band. Below 1, a surface that some views see through (semi-transparent, so their
 # median depth lands behind it) is not carved away by them (docs/outputs.md, "Where MCMC's depth was lost").
 FREE_WEIGHT = 1.0
+# A view vouches for empty space only in front of where its ray's accumulated alpha reaches about this, not in front
+# of its median depth (clear_space.py); 0.5 is the median depth itself. 0.2 and 0.07 gave the same cup meshes
+# (docs/outputs.md, "Views that see through a surface").
+CLEAR_ALPHA = 0.2
 
 
 @dataclass(frozen=True)
@@ -56,6 +60,8 @@ class MeshOptions:
     surface there (within 1% of its depth): floaters and stray depths are left out. 0 fuses every pixel."""
     # Not an option: benchmarks/fusion_gap.py measures it (docs/outputs.md, "Where MCMC's depth was lost").
     free_weight: Annotated[float, tyro.conf.Suppress] = FREE_WEIGHT
+    # Not an option either: benchmarks/mesh_quality.py's --clear-alpha compares it with 0.5 (the median depth).
+    clear_alpha: Annotated[float, tyro.conf.Suppress] = CLEAR_ALPHA
 
     def __post_init__(self) -> None:
         if not 0.0 < self.alpha_min <= 1.0:
@@ -69,6 +75,8 @@ class MeshOptions:
                                f"nearest views a depth is checked against), got {self.consistent_views}")
         if not 0.0 < self.free_weight <= 1.0:
             raise MCSplatError(f"free_weight must be in (0, 1], got {self.free_weight}")
+        if not 0.0 < self.clear_alpha <= 0.5:
+            raise MCSplatError(f"clear_alpha must be in (0, 0.5], got {self.clear_alpha}")
         if not 0.0 <= self.min_component <= 1.0:
             raise MCSplatError(f"--min-component must be in [0, 1] (a share of the largest piece's faces), got "
                                f"{self.min_component}")

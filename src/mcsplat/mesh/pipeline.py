@@ -1,8 +1,8 @@
 """`extract(model, views)`: a trained model's surface as a coloured triangle mesh.
 
     render every view's median (or planar) depth  ->  render each view again, keep the pixels whose depth enough
-    of its nearest views confirm, fuse them with the colour into a truncated signed distance volume  ->  marching
-    cubes  ->  drop the small pieces
+    of its nearest views confirm, fuse them with the colour into a truncated signed distance volume, each view's
+    empty space only in front of its clear depth  ->  marching cubes  ->  drop the small pieces
 
 Pixels whose accumulated alpha stays below `alpha_min` fuse nothing (they show no surface), and their colour is the
 foreground's own (the background taken out and divided by alpha). Everything but marching cubes runs on the model's
@@ -22,6 +22,7 @@ from ..camera import Camera
 from ..errors import MCSplatError
 from ..render import GaussiansLike, render
 from .clean import drop_small_pieces
+from .clear_space import clear_depth, raised_opacities
 from .consistency import KeptDepth, consistent_depth, nearest_views
 from .fusion import TSDFVolume
 from .grid import check_memory, choose_grid, object_box
@@ -53,6 +54,7 @@ def extract(model: GaussiansLike, views: Sequence, options: MeshOptions = MeshOp
     seconds["depths"] = time.perf_counter() - started
     started = time.perf_counter()
     volume = TSDFVolume(grid, device, options.free_weight)
+    raised = raised_opacities(model, options.clear_alpha)
     surface_pixels = fused_pixels = 0
     for index, camera in enumerate(tqdm(cameras, desc="fusing views", unit="view", disable=not progress,
                                         leave=False)):
@@ -62,7 +64,7 @@ def extract(model: GaussiansLike, views: Sequence, options: MeshOptions = MeshOp
         need = min(options.consistent_views, len(neighbours[index]))
         confirmed = consistent_depth(depth, on_device, [kept[j] for j in neighbours[index]], need)
         fused_pixels += int(torch.isfinite(confirmed).sum())
-        volume.integrate(camera, confirmed, rgb)
+        volume.integrate(camera, confirmed, rgb, clear_depth(raised, on_device, depth, sh_degree))
     del kept
     if surface_pixels == 0:
         raise MCSplatError(f"no pixel of any view reaches --alpha-min {options.alpha_min}: nothing to fuse; lower it")

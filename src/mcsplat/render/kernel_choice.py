@@ -53,3 +53,10 @@ def kernels_for(tensor: torch.Tensor, cpu_choice: str | None = None) -> str:
         return _chosen["CUDA"]
     chosen = cpu_choice or _chosen["CPU"]
     return "scalar" if chosen == "simd" and tensor.dtype != torch.float32 else chosen
+
+
+def simd_serves(*tensors: torch.Tensor) -> bool:
+    """Whether the CPU's own SIMD kernels serve these tensors: float32 and contiguous, where renders of them run
+    'simd' (not while the CPU stands in for CUDA's kernels)."""
+    return (kernels_for(tensors[0]) == "simd"
+            and all(t.dtype == torch.float32 and t.is_contiguous() for t in tensors))

@@ -22,7 +22,7 @@ from ..compute.cpu_target import kernel_flags
 from ..compute.runtime import ensure_warp, flat_view, run_ranges
 from ..compute.simd_lanes import LANES, SIMD_MATH, VECTOR_TYPES, lanes_in, lanes_out
 from ..geometry.covariance import COVARIANCE_LANES
-from ..render.kernel_choice import kernels_for
+from ..render.kernel_choice import simd_serves
 
 _NORMALS = read_snippet(__package__, "normals_simd.h", {"LANES": LANES})
 _SOURCE = read_snippet(__package__, "position_noise_simd.cpp", {
@@ -70,8 +70,7 @@ KERNELS = [position_noise_simd]
 def takes(params: dict[str, torch.Tensor], factor: float | torch.Tensor) -> bool:
     """Whether the kernel serves these parameters: float32, contiguous, where the renderer runs the CPU's own kernels
     (kernel_choice: not while the CPU stands in for CUDA), and a factor the host holds."""
-    tensors = [params[key] for key in ("means", "quats", "log_scales", "opacity_logits")]
-    return (kernels_for(tensors[0]) == "simd" and all(t.dtype == torch.float32 and t.is_contiguous() for t in tensors)
+    return (simd_serves(*(params[key] for key in ("means", "quats", "log_scales", "opacity_logits")))
             and (not isinstance(factor, torch.Tensor) or factor.device.type == "cpu"))
 
 

@@ -15,7 +15,7 @@ import warp as wp
 
 from ..compute.cpp_snippets import read_snippet
 from ..compute.runtime import ensure_warp, flat_view, run_ranges
-from ..render.kernel_choice import kernels_for
+from ..render.kernel_choice import simd_serves
 
 __all__ = ["ndc_gradient_norms", "ScreenGradients"]
 
@@ -55,8 +55,8 @@ def add_norms_cpu(first_block: int, n: int, grad: _floats, radii: _ints, total: 
 def _one_pass(render_result: Any, num_gaussians: int) -> bool:
     """Whether add_norms_cpu serves this render: float32 on the CPU with the CPU's own kernels (kernel_choice)."""
     grad = render_result.means2d.grad
-    return (grad is not None and tuple(grad.shape) == (num_gaussians, 2) and grad.dtype == torch.float32
-            and grad.is_contiguous() and render_result.radii.dtype == torch.int32 and kernels_for(grad) == "simd")
+    return (grad is not None and tuple(grad.shape) == (num_gaussians, 2) and simd_serves(grad)
+            and render_result.radii.dtype == torch.int32)
 
 
 class ScreenGradients:

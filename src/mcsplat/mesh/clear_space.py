@@ -1,0 +1,43 @@
+"""Where a view vouches for empty space: in front of where its ray starts to meet the Gaussians, not in front of its
+median depth.
+
+A ray that crosses a semi-transparent surface (MCMC keeps many: docs/outputs.md, "Where MCMC's depth was lost")
+reaches alpha 0.5 only behind it, so that view's median depth lies behind the surface, and the fusion would read
+"empty" at the surface and carve a hole into it. The clear depth is where the ray's alpha reaches about
+CLEAR_ALPHA instead: the median depth of the same Gaussians with each opacity o raised to 1 - (1 - o)^k,
+k = log(0.5) / log(1 - CLEAR_ALPHA), whose transmittance is the k-th power of the original's where every Gaussian
+is met at its peak (off the peak it is a little higher, so the clear depth a little deeper). The fusion leaves a grid
+point between a view's clear depth and its median depth's band alone: the view saw something there and cannot say
+what. On an opaque surface the two depths are the same.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ..camera import Camera
+from ..render import GaussiansLike, Splats, render
+from ..render.constants import MEDIAN_TRANSMITTANCE
+from .options import CLEAR_ALPHA
+
+
+def raised_opacities(model: GaussiansLike, clear_alpha: float = CLEAR_ALPHA) -> Splats | None:
+    """The Gaussians whose median depth is `model`'s clear depth; None where that is the median depth itself
+    (`clear_alpha` at least the median's 0.5)."""
+    if clear_alpha >= 1.0 - MEDIAN_TRANSMITTANCE:
+        return None
+    power = math.log(MEDIAN_TRANSMITTANCE) / math.log(1.0 - clear_alpha)
+    return Splats(model.means, model.quats, model.scales, 1.0 - (1.0 - model.opacities) ** power, model.sh,
+                  getattr(model, "antialiased", False))
+
+
+def clear_depth(raised: Splats | None, camera: Camera, depth: torch.Tensor, sh_degree: int | None
+                ) -> torch.Tensor:
+    """[H, W]: the camera depth in front of which the view vouches for empty space, at most `depth` (the view's
+    surface, -inf where it has none)."""
+    if raised is None:
+        return depth
+    met = render(raised, camera, None, sh_degree, outputs={"median_depth"}).median_depth
+    return torch.where(met > 0, torch.minimum(met, depth), depth)
