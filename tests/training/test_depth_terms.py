@@ -26,6 +26,7 @@ from mcsplat.loss_terms import StepContext
 from mcsplat.render import render
 from mcsplat.train import train
 
+from tests.support.device_reads import RefuseReads
 from tests.support.helpers import views_a_term_spoke_on
 
 W, H = 32, 24
@@ -138,7 +139,26 @@ def test_the_sparse_term_leaves_out_the_points_a_mask_leaves_out():
     torch.testing.assert_close(term(masked), alone)
     assert abs(float(term(ctx).detach()) - float(alone.detach())) > 0.05, "unmasked, the right point counts"
     keep[:] = 0.0
-    assert term(masked) is None, "every point masked: nothing to say"
+    model.params["means"].grad = None
+    nothing = term(masked)
+    nothing.backward()
+    assert float(nothing.detach()) == 0.0 and not model.params["means"].grad.any(), "every point masked: nothing to say"
+
+
+def test_the_sparse_term_reads_nothing_back_from_the_device():
+    """The term's value and gradient are made without a read of the device (a count of the points in view, a check
+    that some weigh): on a GPU each would make the host wait, and a CUDA graph could not hold it. Points outside the
+    view (behind the camera, beside the image) weigh nothing instead of being left out by a boolean mask."""
+    model = sheet(3.0)
+    points = torch.tensor([[-0.5, 0.0, 2.0], [0.5, 0.2, 2.5], [0.0, 0.0, -2.0], [50.0, 0.0, 2.0]])
+    term = SparseDepth({"v": points}, Schedule(1.0))
+    ctx = context(model, view_with(None))
+    with RefuseReads():
+        value = term(ctx)
+        value.backward()
+    in_view = SparseDepth({"v": points[:2]}, Schedule(1.0))(context(model, view_with(None)))
+    torch.testing.assert_close(value.detach(), in_view.detach())
+    assert torch.isfinite(model.params["means"].grad).all() and model.params["means"].grad.any()
 
 
 def test_a_map_that_fits_only_inverted_is_left_out_with_a_warning():

@@ -63,13 +63,12 @@ class Schedule:
         return self.weight * (1.0 + (self.final - 1.0) * progress)
 
 
-def relative_error(rendered: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor | None:
-    """The weighted mean of |rendered - target| / target, or None when no weight is positive."""
+def relative_error(rendered: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """The weighted mean of |rendered - target| / target; 0, with a zero gradient, when no weight is positive. It
+    reads nothing back from the device (a step's loss stays on it: docs/method.md)."""
     total = weights.sum()
-    if not bool(total > 0):
-        return None
     safe = torch.where(weights > 0, target, torch.ones_like(target))
-    return (weights * (rendered - target).abs() / safe).sum() / total
+    return (weights * (rendered - target).abs() / safe).sum() / torch.where(total > 0, total, torch.ones_like(total))
 
 
 def sample_depth(depth: torch.Tensor, alpha: torch.Tensor, u: torch.Tensor, v: torch.Tensor
@@ -107,15 +106,14 @@ class SparseDepth:
         points = self.points.get(ctx.view.name)
         if weight == 0 or points is None:
             return None
-        u, v, z = project(points, ctx.camera)
-        if z.numel() == 0:
-            return None
+        with torch.no_grad():  # every point, those outside the view weighing 0: no count to read back
+            local = ctx.camera.to_camera_space(points)
+            u, v, inside = ctx.camera.pixels_of(local)
         depth, alpha = sample_depth(ctx.result.depth, ctx.result.alpha, u, v)
-        weights = (alpha >= MIN_ALPHA).to(depth.dtype)
+        weights = (inside & (alpha >= MIN_ALPHA)).to(depth.dtype)
         if ctx.keep is not None:  # a point on pixels the mask leaves out says nothing, as the photo there does not
             weights = weights * sample_maps(ctx.keep.detach().permute(2, 0, 1), u, v)[0]
-        error = relative_error(depth, z, weights)
-        return None if error is None else weight * error
+        return weight * relative_error(depth, local[:, 2], weights)
 
 
 def fit_scale_shift(prior: torch.Tensor, target: torch.Tensor, weights: torch.Tensor
@@ -180,8 +178,7 @@ class DenseDepth:
         target = target_depth(self.mode, prior, rendered, weights)
         if target is None:
             return None
-        error = relative_error(rendered, target, weights * (target > 0))
-        return None if error is None else weight * error
+        return weight * relative_error(rendered, target, weights * (target > 0))
 
 
 def sparse_points(scene: Scene, device: torch.device | str) -> dict[str, torch.Tensor]:
