@@ -21,6 +21,7 @@ from mcsplat.gaussians import GaussianModel
 from mcsplat.run.state import feature_parts
 from mcsplat.train import train
 
+from tests.support.device_reads import RefuseReads
 from tests.support.helpers import views_a_term_spoke_on
 
 
@@ -29,8 +30,14 @@ def test_the_loss_ignores_scale_and_shift_and_pulls_the_shape():
     keep = torch.ones(8, 8, dtype=torch.bool)
     assert float(correlation_loss(truth, 7.0 * truth + 2.0, keep)) == pytest.approx(0.0, abs=1e-6)
     assert float(correlation_loss(truth, 5.0 - truth, keep)) == pytest.approx(2.0, abs=1e-6)
-    assert correlation_loss(truth, torch.full_like(truth, 4.0), keep) is None  # a flat map says nothing
-    assert correlation_loss(truth, truth, keep & (torch.arange(64).reshape(8, 8) < 10)) is None  # too few pixels
+    # A flat map says nothing, nor do too few pixels: 0 and no gradient, found without a read of the device.
+    few = keep & (torch.arange(64).reshape(8, 8) < 10)
+    for prior, kept in ((torch.full_like(truth, 4.0), keep), (truth, few), (truth, keep & False)):
+        rendered = truth.clone().requires_grad_()
+        with RefuseReads():
+            nothing = correlation_loss(rendered, prior, kept)
+            nothing.backward()
+        assert float(nothing.detach()) == 0.0 and not rendered.grad.any()
     # Gradient descent on a noisy render brings its shape to the map's, whatever the map's scale and offset.
     rendered = (truth + 0.5 * torch.randn(8, 8, generator=torch.Generator().manual_seed(0))).requires_grad_()
     before = float(correlation_loss(rendered.detach(), 0.1 * truth + 30.0, keep))

@@ -27,17 +27,19 @@ from ..option_checks import refuse_non_finite
 MIN_PIXELS = 16  # a correlation over fewer pixels says little
 
 
-def correlation_loss(rendered: torch.Tensor, prior: torch.Tensor, keep: torch.Tensor) -> torch.Tensor | None:
+def correlation_loss(rendered: torch.Tensor, prior: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
     """1 - Pearson's r of `rendered` with `prior` over the pixels where `keep` is True (0 when one is an increasing
-    affine function of the other, 2 when a decreasing one); None when too few pixels or either is constant."""
-    if int(keep.sum()) < MIN_PIXELS:
-        return None
-    x, y = rendered[keep], prior[keep]
-    x, y = x - x.mean(), y - y.mean()
-    spread = x.norm() * y.norm()
-    if float(spread.detach()) == 0.0:
-        return None
-    return 1.0 - (x * y).sum() / spread
+    affine function of the other, 2 when a decreasing one); 0, with a zero gradient, over fewer than MIN_PIXELS pixels
+    or where either is constant. It reads nothing back from the device (no count, no check on the host)."""
+    kept = keep.to(rendered.dtype)
+    count = kept.sum()
+    per_pixel = torch.where(count > 0, count, torch.ones_like(count))
+    x = (rendered - (rendered * kept).sum() / per_pixel) * kept
+    y = (prior - (prior * kept).sum() / per_pixel) * kept
+    spread = (x * x).sum() * (y * y).sum()
+    says = (count >= MIN_PIXELS) & (spread > 0)
+    r = (x * y).sum() / torch.where(says, spread, torch.ones_like(spread)).sqrt()
+    return torch.where(says, 1.0 - r, torch.zeros_like(r))
 
 
 class DepthCorrelation:
@@ -56,8 +58,7 @@ class DepthCorrelation:
         keep = (prior > 0) & (ctx.result.alpha.detach() >= MIN_ALPHA)
         if ctx.keep is not None:  # the training mask
             keep = keep & (ctx.keep[..., 0] > 0)
-        loss = correlation_loss(ctx.result.depth, prior, keep)
-        return None if loss is None else self.weight * loss
+        return self.weight * correlation_loss(ctx.result.depth, prior, keep)
 
 
 @dataclass(frozen=True)
