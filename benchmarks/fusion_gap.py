@@ -107,7 +107,7 @@ def depth_maps(trained, cameras, options) -> tuple[list, list, list, list]:
         depth, rgb = surface_of_view(trained.model, camera, options.alpha_min, trained.sh_degree, options.depth)
         raw.append(depth)
         colours.append(rgb)
-        clears.append(clear_depth(raised, camera, depth, trained.sh_degree))
+        clears.append(clear_depth(raised, camera, depth))
     kept = [KeptDepth(camera, depth) for camera, depth in zip(cameras, raw)]
     neighbours = nearest_views(cameras)
     confirmed = [consistent_depth(depth, camera, [kept[j] for j in near], min(options.consistent_views, len(near)))

@@ -5,6 +5,7 @@ against the true mesh (exact_mesh_scene.py, chamfer.py), plain MCMC against MCMC
     .venv/bin/python benchmarks/mesh_chamfer.py --arms mcmc-surface --steps 2000
     .venv/bin/python benchmarks/mesh_chamfer.py --arms mcmc-surface --depth planar   # fuse the planar depth
     .venv/bin/python benchmarks/mesh_chamfer.py --arms mcmc --truncation 24         # a wider band
+    .venv/bin/python benchmarks/mesh_chamfer.py --arms mcmc --clear-alpha 0.5       # the fusion before the clear depth
     .venv/bin/python benchmarks/mesh_chamfer.py --report                          # rebuild results.md
 
 The scene is written once into results/mesh_chamfer/scene/ (80 training and 20 test views of 200x200 around a
@@ -50,6 +51,7 @@ import tyro
 import _common as C
 from framework import Arm, Common, recorded
 from mcsplat.mesh.grid import TRUNCATION_VOXELS
+from mcsplat.mesh.options import CLEAR_ALPHA
 import chamfer
 import exact_mesh_scene as exact
 from mesh_quality import STRATEGY_OPTIONS, TRAIN_OPTIONS, reusable
@@ -72,12 +74,15 @@ class Options:
     """The depth the export fuses."""
     truncation: float = TRUNCATION_VOXELS
     """The export's band, in voxels."""
+    clear_alpha: float = CLEAR_ALPHA
+    """The export's MeshOptions.clear_alpha (0.5: the fusion before the clear depth), exported in Python as
+    `mcsplat export` does (the command has no such option); the arm is recorded as `<arm>-clear<A>`."""
     common: Annotated[Common, tyro.conf.OmitArgPrefixes] = Common()
 
 
 def arms(options: Options) -> list[Arm]:
     """An arm per strategy, named with the export's suffix; the later ones wait for the first (its voxel size)."""
-    names = [arm + suffix(options.depth, options.truncation) for arm in options.arms]
+    names = [arm + suffix(options.depth, options.truncation, options.clear_alpha) for arm in options.arms]
     return [Arm(name, {"arm": name, "strategy": arm}, after=tuple(names[:1]) if index else ())
             for index, (arm, name) in enumerate(zip(options.arms, names))]
 
@@ -89,7 +94,7 @@ def run(arm: Arm, options: Options, folder: Path) -> dict:
     truth = trimesh.load(scene_dir / "mesh.ply", force="mesh", process=False)
     run_dir = train(arm.labels["strategy"], options.steps, options.common.threads, scene_dir, folder / "runs")
     voxel_size = recorded("mesh_chamfer", folder).get(arm.after[0])["voxel_size"] if arm.after else None
-    exported = export(run_dir, voxel_size, options.depth, options.truncation)
+    exported = export(run_dir, voxel_size, options.depth, options.truncation, options.clear_alpha)
     return measure(arm.name, run_dir, exported, truth, loaded, folder / f"{arm.name}.png")
 
 
@@ -124,14 +129,18 @@ def train(arm: str, steps: int, threads: int | None, scene_dir: Path, runs: Path
     return run
 
 
-def export(run: Path, voxel_size: float | None, depth: str = "median", truncation: float = TRUNCATION_VOXELS
-           ) -> dict:
+def export(run: Path, voxel_size: float | None, depth: str = "median", truncation: float = TRUNCATION_VOXELS,
+           clear_alpha: float = CLEAR_ALPHA) -> dict:
     """`mcsplat export RUN --format mesh` in a fresh process, timed; the mesh goes to RUN/chamfer_mesh<suffix>.ply
-    (suffix(): none with the export's defaults)."""
-    out = run / f"chamfer_mesh{suffix(depth, truncation)}.ply"
+    (suffix(): none with the export's defaults). Another clear alpha than the default: export_worker instead."""
+    out = run / f"chamfer_mesh{suffix(depth, truncation, clear_alpha)}.ply"
     size = [] if voxel_size is None else ["--voxel-size", repr(voxel_size), "--voxel-budget", str(1 << 26)]
     command = [sys.executable, "-m", "mcsplat", "export", str(run), "--format", "mesh", "--out", str(out), *size,
                "--depth", depth, "--truncation", repr(truncation)]
+    if clear_alpha != CLEAR_ALPHA:
+        command = [sys.executable, __file__, "--export-worker", json.dumps(
+            {"run": str(run), "out": str(out), "voxel_size": voxel_size, "depth": depth, "truncation": truncation,
+             "clear_alpha": clear_alpha})]
     started = time.perf_counter()
     done = subprocess.run(command, capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(C.REPO / "src")))
     seconds = time.perf_counter() - started
@@ -141,9 +150,28 @@ def export(run: Path, voxel_size: float | None, depth: str = "median", truncatio
     return {"mesh_file": out, "export_seconds": round(seconds, 1), "voxel_size": float(said.group(1)) if said else None}
 
 
-def suffix(depth: str, truncation: float) -> str:
-    """-planar for the planar depth, -t<N> for a band of N voxels other than the default, both, or none."""
-    return ("" if depth == "median" else f"-{depth}") + ("" if truncation == TRUNCATION_VOXELS else f"-t{truncation:g}")
+def suffix(depth: str, truncation: float, clear_alpha: float = CLEAR_ALPHA) -> str:
+    """-planar for the planar depth, -t<N> for a band of N voxels, -clear<A> for a clear alpha other than the
+    defaults, any of them, or none."""
+    return (("" if depth == "median" else f"-{depth}")
+            + ("" if truncation == TRUNCATION_VOXELS else f"-t{truncation:g}")
+            + ("" if clear_alpha == CLEAR_ALPHA else f"-clear{clear_alpha:g}"))
+
+
+def export_worker(run: str, out: str, voxel_size: float | None, depth: str, truncation: float,
+                  clear_alpha: float) -> None:
+    """In a fresh process: what `mcsplat export RUN --format mesh` does, with MeshOptions.clear_alpha; prints the
+    grid as the command does."""
+    from mcsplat.mesh import MeshOptions, extract, write_mesh
+    from mcsplat.run import trained as trained_run
+
+    trained = trained_run.load(run, torch.device("cpu"))
+    size = {} if voxel_size is None else {"voxel_size": voxel_size, "voxel_budget": 1 << 26}
+    mesh = extract(trained.model, trained.scene.train, MeshOptions(**size, depth=depth, truncation=truncation,
+                                                                   clear_alpha=clear_alpha),
+                   sh_degree=trained.sh_degree)
+    write_mesh(Path(out), mesh)
+    print(f"fused in {mesh.metadata['mcsplat']['grid'].describe()}")
 
 
 # ------------------------------------------------------------------------------------------------ measures
@@ -238,5 +266,7 @@ def report(records: list[dict], folder: Path) -> str:
 
 
 if __name__ == "__main__":
+    if sys.argv[1:2] == ["--export-worker"]:  # export()'s fresh process for another clear alpha
+        sys.exit(export_worker(**json.loads(sys.argv[2])))
     import framework
     sys.exit(framework.script("mesh_chamfer"))

@@ -366,6 +366,8 @@ def report(records: list[dict], folder: Path) -> str:
         for mcmc, adc in (("mcmc", "adc"), ("mcmc-surface", "adc-surface")):
             if {mcmc, adc} <= set(by):
                 m, a = by[mcmc], by[adc]
+                if m.get("clear_alpha", 0.5) != a.get("clear_alpha", 0.5):  # fused differently: no comparison
+                    continue
                 closer = mcmc if m["points_to_mesh_median"] < a["points_to_mesh_median"] else adc
                 lines.append(f"- {scene}: {closer}'s mesh is closer to the SfM points (median "
                              f"{100 * m['points_to_mesh_median']:.2f}% R for {mcmc}, "

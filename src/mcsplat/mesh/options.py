@@ -31,8 +31,8 @@ TRUNCATION_VOXELS = 4  # half-width of the signed distance band, in voxels (the 
 # median depth lands behind it) is not carved away by them (docs/outputs.md, "Where MCMC's depth was lost").
 FREE_WEIGHT = 1.0
 # A view vouches for empty space only in front of where its ray's accumulated alpha reaches about this, not in front
-# of its median depth (clear_space.py); 0.5 is the median depth itself. 0.2 and 0.07 gave the same cup meshes
-# (docs/outputs.md, "Views that see through a surface").
+# of its median depth (clear_space.py); 0.5 is the median depth itself. 0.2 and 0.07 gave the same mesh of one cup
+# run (docs/outputs.md, "Views that see through a surface").
 CLEAR_ALPHA = 0.2
 
 

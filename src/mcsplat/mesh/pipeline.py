@@ -64,7 +64,7 @@ def extract(model: GaussiansLike, views: Sequence, options: MeshOptions = MeshOp
         need = min(options.consistent_views, len(neighbours[index]))
         confirmed = consistent_depth(depth, on_device, [kept[j] for j in neighbours[index]], need)
         fused_pixels += int(torch.isfinite(confirmed).sum())
-        volume.integrate(camera, confirmed, rgb, clear_depth(raised, on_device, depth, sh_degree))
+        volume.integrate(camera, confirmed, rgb, clear_depth(raised, on_device, depth))
     del kept
     if surface_pixels == 0:
         raise MCSplatError(f"no pixel of any view reaches --alpha-min {options.alpha_min}: nothing to fuse; lower it")
