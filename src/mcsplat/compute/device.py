@@ -1,4 +1,5 @@
-"""Which torch device a command runs on: `--device auto|cpu|cuda`, and how much memory it has free."""
+"""Which torch device a command runs on: `--device auto|cpu|cuda`, how much memory it has free, and copies to it
+that do not make the host wait."""
 
 from __future__ import annotations
 
@@ -16,6 +17,14 @@ def resolve_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise MCSplatError("--device cuda: no CUDA device is available here; use --device cpu (or auto)")
     return torch.device(name)
+
+
+def upload(values: torch.Tensor, device: torch.device | str) -> torch.Tensor:
+    """Host tensor `values` on `device` without the host waiting: to a GPU from pinned memory (a copy from pageable
+    memory waits for the GPU's queue), on the CPU as they are."""
+    if torch.device(device).type == "cuda" and not values.is_pinned():
+        values = values.pin_memory()
+    return values.to(device, non_blocking=True)
 
 
 def free_memory(device: torch.device) -> int | None:

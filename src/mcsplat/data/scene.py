@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Sequence
 import torch
 
 from ..camera import Camera
+from ..compute.device import upload
 from .image_store import LazyImage
 from ..errors import MCSplatError
 
@@ -66,10 +67,7 @@ class View:
     def image_float(self, device: torch.device | str = "cpu", size: tuple[int, int] | None = None) -> torch.Tensor:
         """The image as float32 [H, W, 3] in [0, 1] on `device` (the uint8 tensor is moved first, then converted);
         with `size` (width, height) smaller than the image, area-averaged down to it on the device."""
-        pixels = self.image
-        if torch.device(device).type == "cuda" and not pixels.is_pinned():
-            pixels = pixels.pin_memory()  # a copy from pageable memory would wait for the GPU's queue
-        image = pixels.to(device, non_blocking=True).to(torch.float32).div_(255.0)
+        image = upload(self.image, device).to(torch.float32).div_(255.0)
         if size is None or tuple(size) == (image.shape[1], image.shape[0]):
             return image
         chw = torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(size[1], size[0]), mode="area")

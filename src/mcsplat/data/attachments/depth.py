@@ -28,6 +28,7 @@ from PIL import Image
 from .. import images, undistort
 from .kind import Found, Kind
 from .resampling import NEAREST
+from ...compute.device import upload
 from ...errors import DataError
 from ...option_checks import refuse_non_finite
 
@@ -123,7 +124,7 @@ class DepthKind(Kind):
         return _as_float32(depth * view.source.units, file)
 
     def as_float(self, values: torch.Tensor, device: torch.device | str) -> torch.Tensor:
-        return values.to(device, non_blocking=True)[:, :, None]
+        return upload(values, device)[:, :, None]
 
     def note(self, values: Sequence[torch.Tensor | None], found: Found, options: DepthOptions) -> str:
         present = [depth for depth in values if depth is not None]

@@ -24,6 +24,7 @@ from PIL import Image
 from .. import images
 from .kind import Found, Kind
 from .resampling import AREA
+from ...compute.device import upload
 from ...errors import DataError
 
 MASK_FOLDER = "masks"
@@ -101,7 +102,7 @@ class MaskKind(Kind):
         return 255 - keep if options.invert_masks else keep
 
     def as_float(self, values: torch.Tensor, device: torch.device | str) -> torch.Tensor:
-        return values.to(device, non_blocking=True).to(torch.float32).div_(255.0)[:, :, None]
+        return upload(values, device).to(torch.float32).div_(255.0)[:, :, None]
 
     def check(self, values: Sequence[torch.Tensor | None], found: Found, views: Sequence[Any],
               options: MaskOptions) -> None:
