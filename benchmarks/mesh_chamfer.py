@@ -55,6 +55,7 @@ from mcsplat.mesh.options import CLEAR_ALPHA
 import chamfer
 import exact_mesh_scene as exact
 from mesh_quality import STRATEGY_OPTIONS, TRAIN_OPTIONS, reusable
+from mesh_quality import export as mesh_quality_export
 
 ARMS = ("mcmc", "mcmc-surface")
 PICTURE_SIDE = 360       # pixels of a picture panel's side
@@ -132,15 +133,15 @@ def train(arm: str, steps: int, threads: int | None, scene_dir: Path, runs: Path
 def export(run: Path, voxel_size: float | None, depth: str = "median", truncation: float = TRUNCATION_VOXELS,
            clear_alpha: float = CLEAR_ALPHA) -> dict:
     """`mcsplat export RUN --format mesh` in a fresh process, timed; the mesh goes to RUN/chamfer_mesh<suffix>.ply
-    (suffix(): none with the export's defaults). Another clear alpha than the default: export_worker instead."""
+    (suffix(): none with the export's defaults). Another clear alpha than the default (no option of the command):
+    mesh_quality.py's export worker."""
     out = run / f"chamfer_mesh{suffix(depth, truncation, clear_alpha)}.ply"
+    if clear_alpha != CLEAR_ALPHA:
+        made = mesh_quality_export(run, voxel_size, truncation, clear_alpha, out, depth)
+        return {"mesh_file": out, "export_seconds": made["export_seconds"], "voxel_size": made["voxel_size"]}
     size = [] if voxel_size is None else ["--voxel-size", repr(voxel_size), "--voxel-budget", str(1 << 26)]
     command = [sys.executable, "-m", "mcsplat", "export", str(run), "--format", "mesh", "--out", str(out), *size,
                "--depth", depth, "--truncation", repr(truncation)]
-    if clear_alpha != CLEAR_ALPHA:
-        command = [sys.executable, __file__, "--export-worker", json.dumps(
-            {"run": str(run), "out": str(out), "voxel_size": voxel_size, "depth": depth, "truncation": truncation,
-             "clear_alpha": clear_alpha})]
     started = time.perf_counter()
     done = subprocess.run(command, capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(C.REPO / "src")))
     seconds = time.perf_counter() - started
@@ -156,22 +157,6 @@ def suffix(depth: str, truncation: float, clear_alpha: float = CLEAR_ALPHA) -> s
     return (("" if depth == "median" else f"-{depth}")
             + ("" if truncation == TRUNCATION_VOXELS else f"-t{truncation:g}")
             + ("" if clear_alpha == CLEAR_ALPHA else f"-clear{clear_alpha:g}"))
-
-
-def export_worker(run: str, out: str, voxel_size: float | None, depth: str, truncation: float,
-                  clear_alpha: float) -> None:
-    """In a fresh process: what `mcsplat export RUN --format mesh` does, with MeshOptions.clear_alpha; prints the
-    grid as the command does."""
-    from mcsplat.mesh import MeshOptions, extract, write_mesh
-    from mcsplat.run import trained as trained_run
-
-    trained = trained_run.load(run, torch.device("cpu"))
-    size = {} if voxel_size is None else {"voxel_size": voxel_size, "voxel_budget": 1 << 26}
-    mesh = extract(trained.model, trained.scene.train, MeshOptions(**size, depth=depth, truncation=truncation,
-                                                                   clear_alpha=clear_alpha),
-                   sh_degree=trained.sh_degree)
-    write_mesh(Path(out), mesh)
-    print(f"fused in {mesh.metadata['mcsplat']['grid'].describe()}")
 
 
 # ------------------------------------------------------------------------------------------------ measures
@@ -266,7 +251,5 @@ def report(records: list[dict], folder: Path) -> str:
 
 
 if __name__ == "__main__":
-    if sys.argv[1:2] == ["--export-worker"]:  # export()'s fresh process for another clear alpha
-        sys.exit(export_worker(**json.loads(sys.argv[2])))
     import framework
     sys.exit(framework.script("mesh_chamfer"))

@@ -178,20 +178,20 @@ def train(scene: str, strategy: str, runs: Path, data_root: Path, threads: int |
 
 
 # ------------------------------------------------------------------------------------------------ export
-def export_worker(run: str, voxel_size: float | None, truncation: float, clear_alpha: float = CLEAR_ALPHA) -> None:
-    """In a fresh process: what `mcsplat export RUN --format mesh [--voxel-size S]` does, timed; prints one JSON
-    line."""
+def export_worker(run: str, voxel_size: float | None, truncation: float, clear_alpha: float = CLEAR_ALPHA,
+                  out: str | None = None, depth: str = "median") -> None:
+    """In a fresh process: what `mcsplat export RUN --format mesh [--voxel-size S] [--out OUT] [--depth D]` does,
+    with MeshOptions.clear_alpha (no option of the command), timed; prints one JSON line."""
     from mcsplat.run import trained as trained_run
     from mcsplat.mesh import DEFAULT_VOXEL_BUDGET, MeshOptions, extract, write_mesh
 
     started = time.perf_counter()
     trained = trained_run.load(run, torch.device("cpu"))
     # A given voxel size may need more voxels than the default budget when this model's box is larger.
-    options = MeshOptions(truncation=truncation, clear_alpha=clear_alpha) if voxel_size is None else \
-        MeshOptions(voxel_size=voxel_size, voxel_budget=4 * DEFAULT_VOXEL_BUDGET, truncation=truncation,
-                    clear_alpha=clear_alpha)
+    size = {} if voxel_size is None else {"voxel_size": voxel_size, "voxel_budget": 4 * DEFAULT_VOXEL_BUDGET}
+    options = MeshOptions(**size, truncation=truncation, clear_alpha=clear_alpha, depth=depth)
     mesh = extract(trained.model, trained.scene.train, options, sh_degree=trained.sh_degree)
-    write_mesh(trained.folder.mesh_file, mesh)
+    write_mesh(Path(out) if out else trained.folder.mesh_file, mesh)
     made = mesh.metadata["mcsplat"]
     grid = made["grid"]
     print(json.dumps({"export_seconds": round(time.perf_counter() - started, 1), "peak_rss_mb": round(C.peak_rss_mb()),
@@ -201,16 +201,17 @@ def export_worker(run: str, voxel_size: float | None, truncation: float, clear_a
 
 
 def export(run: Path, voxel_size: float | None = None, truncation: float = TRUNCATION_VOXELS,
-           clear_alpha: float = CLEAR_ALPHA) -> dict:
+           clear_alpha: float = CLEAR_ALPHA, out: Path | None = None, depth: str = "median") -> dict:
     """The export worker's figures for `run`, fused in `voxel_size` where that fits 4x the default voxel budget, else
     (a model whose box is much larger: ADC's floaters) in the finest size its own box allows, as the voxel column
     then shows."""
-    asked = {"run": str(run), "voxel_size": voxel_size, "truncation": truncation, "clear_alpha": clear_alpha}
+    asked = {"run": str(run), "voxel_size": voxel_size, "truncation": truncation, "clear_alpha": clear_alpha,
+             "out": None if out is None else str(out), "depth": depth}
     done = subprocess.run([sys.executable, __file__, "--export-worker", json.dumps(asked)], capture_output=True,
                           text=True)
     if done.returncode != 0 and voxel_size is not None and "over the budget" in done.stderr:
         print(f"{run.name}: the shared voxel size does not fit its box; fused in its own", file=sys.stderr)
-        return export(run, None, truncation, clear_alpha)
+        return export(run, None, truncation, clear_alpha, out, depth)
     if done.returncode != 0:
         sys.exit(f"export of {run} failed: {done.stderr.strip()}")
     return json.loads(done.stdout.strip().splitlines()[-1])

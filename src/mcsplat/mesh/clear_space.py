@@ -38,10 +38,10 @@ def raised_opacities(model: GaussiansLike, clear_alpha: float = CLEAR_ALPHA) -> 
                   model.sh[:, :1].contiguous(), getattr(model, "antialiased", False))
 
 
-def clear_depth(raised: Splats | None, camera: Camera, depth: torch.Tensor) -> torch.Tensor:
+def clear_depth(raised: Splats | None, camera: Camera, depth: torch.Tensor) -> torch.Tensor | None:
     """[H, W]: the camera depth in front of which the view vouches for empty space, at most `depth` (the view's
-    surface, -inf where it has none)."""
+    surface, -inf where it has none); None where that is `depth` itself (no `raised` Gaussians)."""
     if raised is None:
-        return depth
+        return None
     met = render(raised, camera, None, 0, outputs={"median_depth"}).median_depth
     return torch.where(met > 0, torch.minimum(met, depth), depth)
