@@ -52,7 +52,10 @@ ARMS = {"mcmc": [], "mcmc-surface": SURFACE, "adc": ["--strategy", "adc"],
         "mcmc-surface-distortion100-antialiased": [*SURFACE, "--antialiased", "--surface-distortion", "100"],
         # ... and with PGSR's multi-view geometric consistency, at PGSR's weight and a tenth of it.
         "mcmc-surface-multiview-antialiased": [*SURFACE, "--antialiased", "--surface-multiview", "0.03"],
-        "mcmc-surface-multiview0.1x-antialiased": [*SURFACE, "--antialiased", "--surface-multiview", "0.003"]}
+        "mcmc-surface-multiview0.1x-antialiased": [*SURFACE, "--antialiased", "--surface-multiview", "0.003"],
+        # ... and trained at the scored size (400x400; the later --downscale wins), as a diagnosis, not an arm of
+        # the schedule: is the depth error a training pixel's?
+        "mcmc-surface-antialiased-trained-400": [*SURFACE, "--antialiased", "--downscale", "1"]}
 DEFAULT_ARMS = ("mcmc", "mcmc-surface", "adc", "adc-surface")
 CAP = 300_000
 WITHIN = 0.02        # units of the scene (lego is about 2.5 units across)

@@ -85,7 +85,7 @@ STRATEGY_OPTIONS["mcmc-surface-normal005"] = STRATEGY_OPTIONS["mcmc-surface"] + 
 for _arm in ("mcmc", "mcmc-surface", "mcmc-surface-normal005"):
     STRATEGY_OPTIONS[f"{_arm}-seed1"] = STRATEGY_OPTIONS[_arm] + ["--seed", "1"]
 # Depth supervision from the SfM points each image saw, from the first step (COLMAP scenes only: cup and bird)
-SPARSE_DEPTH = ["--sparse-depth", "0.1", "--sparse-depth-from", "0"]
+SPARSE_DEPTH = ["--sparse-depth", "0.1", "--sparse-depth-from", "0", "--sparse-depth-final", "1"]  # held to the end
 STRATEGY_OPTIONS["mcmc-sparse-depth"] = STRATEGY_OPTIONS["mcmc"] + SPARSE_DEPTH
 STRATEGY_OPTIONS["mcmc-surface-sparse-depth"] = STRATEGY_OPTIONS["mcmc-surface"] + SPARSE_DEPTH
 NEAR_VOXELS = 3           # "on the surface": within this many voxels of the mesh

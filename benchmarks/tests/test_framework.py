@@ -30,6 +30,7 @@ TOY = {"antialiasing": ["--scenes", "lego", "--steps", "10", "--init-scale", "1.
        "mesh_quality": ["--scenes", "cup", "bird", "--strategies", "mcmc", "adc", "--truncation", "8"],
        "pose_refinement": ["--steps", "10", "--lrs", "1e-3"],
        "sfm_depth": ["--runs", "/some/where/cup-mcmc", "/some/where/bird-adc"],
+       "sparse_depth": ["--scenes", "cup", "--seeds", "0", "1", "--steps", "10"],
        "time_to_quality": ["--scenes", "cup", "bird", "--minutes", "1", "2", "--before-minutes", "1"]}
 # Arms whose records the scripts made before the runner, in the committed results: found, so not run again.
 RECORDED = {"fusion_gap": [], "mesh_chamfer": [], "mesh_quality": ["--scenes", "cup", "bird"], "sfm_depth": [],

@@ -18,8 +18,8 @@ from mcsplat.data.attachments.depth import KIND as DEPTH
 from mcsplat.data.attachments.depth import DepthOptions
 from mcsplat.data.attachments.kind import Attachment
 from mcsplat.data.sfm_tracks import points_seen
-from mcsplat.depth_supervision.terms import (DenseDepth, Schedule, SparseDepth, check_metric_scale, depth_terms,
-                                             project, target_depth)
+from mcsplat.depth_supervision.terms import (DenseDepth, DepthTermOptions, Schedule, SparseDepth, check_metric_scale,
+                                             depth_terms, project, target_depth)
 from mcsplat.errors import MCSplatError
 from mcsplat.gaussians import GaussianModel
 from mcsplat.loss_terms import StepContext
@@ -205,6 +205,16 @@ def test_the_weight_starts_at_its_share_and_falls_to_its_final_share():
     assert schedule.at(100, 101) == pytest.approx(0.1)
     model = sheet(3.0)
     assert DenseDepth("metric", schedule)(context(model, view_with(plane_depth()), step=10, steps=101)) is None
+
+
+def test_sparse_depth_starts_half_way_and_fades_out_by_default():
+    """The default benchmarks/sparse_depth.py chose: the photos have the last steps to themselves."""
+    options = DepthTermOptions(sparse_depth=0.1)
+    schedule = Schedule(options.sparse_depth, options.sparse_depth_from, options.sparse_depth_final)
+    assert schedule.at(999, 2000) == 0.0
+    assert schedule.at(1000, 2000) == pytest.approx(0.1)
+    assert schedule.at(1500, 2000) == pytest.approx(0.05, rel=0.01)
+    assert schedule.at(1999, 2000) == 0.0
 
 
 def test_the_options_refuse_what_they_cannot_use():

@@ -263,8 +263,9 @@ class DepthTermOptions:
     image saw held to the point's depth (mean relative error); 0: off. 0.1 is a start (docs/training.md) ..."""
     sparse_depth_from: float = 0.5
     """... from this share of the steps on (what the start costs: docs/training.md) ..."""
-    sparse_depth_final: float = 1.0
-    """... going linearly to this share of itself at the last step."""
+    sparse_depth_final: float = 0.0
+    """... going linearly to this share of itself at the last step (0: fading out, so that the photos have the last
+    steps to themselves; 1: held to the end, for a mesh)."""
 
     def __post_init__(self) -> None:
         refuse_non_finite(self)
