@@ -2,7 +2,8 @@
 samples a pixel, the estimator that turns a pixel's Gaussians into one depth, or the Gaussians themselves.
 
     .venv/bin/python benchmarks/depth_error_sources.py                   # the mcmc-surface-antialiased run, 20 views
-    .venv/bin/python benchmarks/depth_error_sources.py --runs results/depth_accuracy/runs/mcmc-2000 --views 40
+    .venv/bin/python benchmarks/depth_error_sources.py --views 40 \
+        --runs benchmarks/results/depth_accuracy/runs/mcmc-2000 benchmarks/results/depth_accuracy/runs/adc-2000
 
 Over an evenly spaced subset of the test views, scored as depth_accuracy.py scores them (pixels where the truth has
 depth and the model's alpha is at least 0.5; all of them, and those away from depth edges), each row changes one
@@ -10,7 +11,8 @@ thing:
 
     median depth          what depth_accuracy.py scores (and the mesh export fuses)
     2x2 area average      the median depth rendered at twice the size and averaged over each pixel's four, as the
-                          dataset's 400x400 depth was made from its 800x800 renders (INTER_AREA)
+                          dataset's 400x400 depth was made from its 800x800 renders (INTER_AREA) away from the
+                          outline (at the outline the dataset averaged in the background's code, which this does not)
     alpha window A-B      instead of the one Gaussian at which the accumulated alpha reaches 0.5, the mean of the
                           Gaussians' depths (each where the pixel's ray meets its density's peak, as the median's)
                           weighted by the share of the accumulated alpha between A and B each one adds; 0-1 is the
@@ -81,8 +83,10 @@ def peak_depth_terms(model, camera) -> tuple[torch.Tensor, torch.Tensor, torch.T
     return inverse, (inverse @ centre[:, :, None])[:, :, 0], centre[:, 2], 3 * scales.amax(dim=1)
 
 
-def window_depths(model, camera, sh_degree: int) -> tuple[object, dict[tuple[float, float], torch.Tensor]]:
-    """The render (with its median depth) and, per alpha window, each pixel's window-weighted mean depth [H, W]."""
+def window_depths(model, camera, sh_degree: int, windows=WINDOWS
+                  ) -> tuple[object, dict[tuple[float, float], torch.Tensor], torch.Tensor]:
+    """The render (with its median depth); per alpha window, each pixel's window-weighted mean depth [H, W] (0 where
+    the window holds none of its alpha); and the accumulated alpha [H, W] that this loop found, the render's own."""
     from mcsplat.render import render
     from mcsplat.render.constants import ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN
 
@@ -91,7 +95,8 @@ def window_depths(model, camera, sh_degree: int) -> tuple[object, dict[tuple[flo
     means2d, conics, opacities, _, _, _, bins, width, height = inputs.kept[:9]
     bins = bins.listed()
     inverse, inverse_mean, centre_depth, reach = peak_depth_terms(model, camera)
-    maps = {window: torch.zeros(height, width, dtype=torch.float64) for window in WINDOWS}
+    maps = {window: torch.zeros(height, width, dtype=torch.float64) for window in windows}
+    accumulated = torch.zeros(height, width, dtype=torch.float64)
     rows, columns = torch.meshgrid(torch.arange(TILE_SIZE), torch.arange(TILE_SIZE), indexing="ij")
     for tile in range(bins.tiles_x * bins.tiles_y):
         start, end = (int(v) for v in bins.tile_ranges[tile])
@@ -115,12 +120,13 @@ def window_depths(model, camera, sh_degree: int) -> tuple[object, dict[tuple[flo
                            torch.ones(len(x), dtype=torch.float64)], dim=1)
         peak = (ray @ inverse_mean[ids].T) / torch.einsum("pi,gij,pj->pg", ray, inverse[ids], ray)
         depth = torch.minimum(torch.maximum(peak, centre_depth[ids] - reach[ids]), centre_depth[ids] + reach[ids])
-        for low, high in WINDOWS:
+        accumulated[y[inside], x[inside]] = accumulated_after[inside, -1]
+        for low, high in windows:
             share = (accumulated_after.clamp(max=high) - accumulated_before.clamp(min=low)).clamp(min=0)
             total = share.sum(dim=1)
             mean = torch.where(total > 0, (share * depth).sum(dim=1) / total.clamp(min=1e-12), torch.zeros_like(total))
             maps[(low, high)][y[inside], x[inside]] = mean[inside]
-    return out, maps
+    return out, maps, accumulated
 
 
 def area_averaged_median(model, camera, sh_degree: int) -> torch.Tensor:
@@ -157,7 +163,7 @@ def sources(run: Path, views) -> list[dict]:
 
     for view in views:
         truth = view.attachment("depth")[..., 0]
-        out, windows = window_depths(trained.model, view.camera, trained.sh_degree)
+        out, windows, _ = window_depths(trained.model, view.camera, trained.sh_degree)
         both = (truth > 0) & (out.alpha >= depth_accuracy.ALPHA_SEEN)
         interior = both & depth_accuracy.away_from_edges(truth)
         add("median depth", out.median_depth, truth, both, interior)

@@ -12,16 +12,19 @@ def record(scene, arm, seed, psnr, depth_error=0.01):
             "num_gaussians": 30_000, "train_seconds": 40.0}
 
 
-def test_changes_are_paired_by_seed():
+def test_changes_are_paired_by_seed_and_steps():
     records = [record("cup", "off", 0, 28.0, 0.09), record("cup", "off", 1, 30.0, 0.11),
                record("cup", "half-way", 0, 27.9), record("cup", "half-way", 1, 29.7),
                record("cup", "fade-out", 1, 30.2)]
     page = sparse_depth.report(records, None)
     # Seeds 2 dB apart; the changes against the same seed: -0.1 and -0.3, mean -0.2, standard error 0.1.
-    assert "| cup | half-way | 2 | 28.80 | -0.20 dB (0.10) | 1.0% |" in page
-    assert "| cup | off | 2 | 29.00 | - | 10.0% |" in page
-    assert "| cup | fade-out | 1 | 30.20 | +0.20 dB (nan) |" in page
+    assert "| cup | 2,000 | half-way | 2 | 28.80 | -0.20 dB (0.10, 2 seeds) | 1.0% |" in page
+    assert "| cup | 2,000 | off | 2 | 29.00 | - | 10.0% |" in page
+    assert "| cup | 2,000 | fade-out | 1 | 30.20 | +0.20 dB (nan, 1 seeds) |" in page
     assert "| cup | half-way | 1 | 29.70 | -0.30 |" in page  # the run's own row
+    longer = sparse_depth.report([*records, {**record("cup", "half-way", 0, 40.0), "steps": 4000}], None)
+    assert "| cup | 2,000 | half-way | 2 | 28.80 | -0.20 dB (0.10, 2 seeds) |" in longer  # not averaged with it
+    assert "| cup | 4,000 | half-way | 1 | 40.00 | - |" in longer  # no run without sparse depth at 4,000 steps
 
 
 @pytest.mark.parametrize("arm", sparse_depth.ARMS)

@@ -209,8 +209,7 @@ def test_the_weight_starts_at_its_share_and_falls_to_its_final_share():
 
 def test_sparse_depth_starts_half_way_and_fades_out_by_default():
     """The default benchmarks/sparse_depth.py chose: the photos have the last steps to themselves."""
-    options = DepthTermOptions(sparse_depth=0.1)
-    schedule = Schedule(options.sparse_depth, options.sparse_depth_from, options.sparse_depth_final)
+    schedule = DepthTermOptions(sparse_depth=0.1).sparse_schedule
     assert schedule.at(999, 2000) == 0.0
     assert schedule.at(1000, 2000) == pytest.approx(0.1)
     assert schedule.at(1500, 2000) == pytest.approx(0.05, rel=0.01)

@@ -265,7 +265,7 @@ class DepthTermOptions:
     """... from this share of the steps on (what the start costs: docs/training.md) ..."""
     sparse_depth_final: float = 0.0
     """... going linearly to this share of itself at the last step (0: fading out, so that the photos have the last
-    steps to themselves; 1: held to the end, for a mesh)."""
+    steps to themselves; 1: held to the end, as the meshes of docs/outputs.md were measured, from the first step)."""
 
     def __post_init__(self) -> None:
         refuse_non_finite(self)
@@ -281,10 +281,16 @@ class DepthTermOptions:
     unused_reason = ("these shape a depth term this run trains without (--depth-loss none, --sparse-depth 0), so "
                      "they would be ignored; add it, or leave them out")
 
+    @property
+    def sparse_schedule(self) -> Schedule:
+        return Schedule(self.sparse_depth, self.sparse_depth_from, self.sparse_depth_final)
+
+    @property
+    def dense_schedule(self) -> Schedule:
+        return Schedule(self.depth_weight, self.depth_from, self.depth_final)
+
     def setup(self, start: FeatureStart) -> FeatureParts:
         if self.sparse_depth == 0 and self.depth_loss == "none":
             return FeatureParts()
-        return FeatureParts(loss_terms=depth_terms(
-            start.scene, start.model.means, start.device, mode=self.depth_loss,
-            sparse=Schedule(self.sparse_depth, self.sparse_depth_from, self.sparse_depth_final),
-            dense=Schedule(self.depth_weight, self.depth_from, self.depth_final)))
+        return FeatureParts(loss_terms=depth_terms(start.scene, start.model.means, start.device, mode=self.depth_loss,
+                                                   sparse=self.sparse_schedule, dense=self.dense_schedule))
