@@ -74,13 +74,14 @@ def peak_depth_terms(model, camera) -> tuple[torch.Tensor, torch.Tensor, torch.T
     (3 of its largest scale): along a ray r (z = 1) its density peaks at depth r.Am / r.A.r, kept within the reach of
     the centre's depth (render/outputs/median.py)."""
     from mcsplat.geometry.rotation import quaternion_to_rotation
+    from mcsplat.render.outputs.median import REACH
 
     w2c = camera.world_to_camera.double()
     rotation = w2c[:3, :3] @ quaternion_to_rotation(model.quats.detach().double())
     centre = model.means.detach().double() @ w2c[:3, :3].T + w2c[:3, 3]
     scales = model.scales.detach().double()
     inverse = rotation @ torch.diag_embed(scales.pow(-2)) @ rotation.transpose(1, 2)
-    return inverse, (inverse @ centre[:, :, None])[:, :, 0], centre[:, 2], 3 * scales.amax(dim=1)
+    return inverse, (inverse @ centre[:, :, None])[:, :, 0], centre[:, 2], REACH * scales.amax(dim=1)
 
 
 def window_depths(model, camera, sh_degree: int, windows=WINDOWS

@@ -39,8 +39,7 @@ import _common as C
 # The converted experiments, by module name (each module's docstring says what it measures).
 EXPERIMENTS = ("antialiasing", "appearance", "auto_cap", "budget", "collapse", "defaults_before_after",
                "depth_accuracy", "fusion_gap", "masks", "mesh_chamfer", "mesh_quality", "pose_refinement", "sfm_depth",
-               "sparse_depth",
-               "time_to_quality")
+               "sparse_depth", "time_to_quality")
 SCHEMA = 1
 SCHEMA_FIELDS = ("name", "script", "schema", "date", "commit", "machine", "load_average_before", "options", "worker")
 NOT_READY = 3  # a worker's exit status for NotReady

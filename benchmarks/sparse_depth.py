@@ -47,7 +47,6 @@ ARMS = {"off": {}, "half-way": HALF_WAY, "first-step": {**HALF_WAY, "sparse_dept
         "fade-out": {**HALF_WAY, "sparse_depth_final": 0.0}, "light": {**HALF_WAY, "sparse_depth": 0.03}}
 DEFAULT_ARMS = ("off", "half-way", "fade-out")
 STEPS, DOWNSCALE, CAP = 2000, 4, 30_000
-ALPHA_SEEN = 0.5  # the render's depth is read where it is at least this opaque (as the loss term reads it)
 KEY = ("scene", "arm", "seed", "steps")
 
 
@@ -86,7 +85,7 @@ def depth_error(run: Path, data: Path) -> float:
     import torch
 
     from mcsplat.data.sfm_tracks import points_seen
-    from mcsplat.depth_supervision.terms import project, sample_depth
+    from mcsplat.depth_supervision.terms import MIN_ALPHA, project, sample_depth
     from mcsplat.render import render
     from mcsplat.run.scene import scene_of
     from mcsplat.run.trained import load
@@ -103,7 +102,7 @@ def depth_error(run: Path, data: Path) -> float:
             u, v, z = project(points, view.camera)
             out = render(trained.model, view.camera, None, trained.sh_degree)
             depth, alpha = sample_depth(out.depth, out.alpha, u, v)
-            covered = alpha >= ALPHA_SEEN
+            covered = alpha >= MIN_ALPHA  # where the loss term reads the render's depth
             errors.append(((depth - z).abs() / z)[covered].numpy())
     values = np.concatenate(errors) if errors else np.array([])
     return float(np.median(values)) if values.size else float("nan")
