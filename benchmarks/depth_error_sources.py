@@ -69,33 +69,18 @@ class CompositeInputs:
         return self._inner(*args, **kwargs)
 
 
-def peak_depth_terms(model, camera) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per Gaussian, in camera axes: the inverse covariance A [N, 3, 3], A m [N, 3], the centre's depth and the reach
-    (3 of its largest scale): along a ray r (z = 1) its density peaks at depth r.Am / r.A.r, kept within the reach of
-    the centre's depth (render/outputs/median.py)."""
-    from mcsplat.geometry.rotation import quaternion_to_rotation
-    from mcsplat.render.outputs.median import REACH
-
-    w2c = camera.world_to_camera.double()
-    rotation = w2c[:3, :3] @ quaternion_to_rotation(model.quats.detach().double())
-    centre = model.means.detach().double() @ w2c[:3, :3].T + w2c[:3, 3]
-    scales = model.scales.detach().double()
-    inverse = rotation @ torch.diag_embed(scales.pow(-2)) @ rotation.transpose(1, 2)
-    return inverse, (inverse @ centre[:, :, None])[:, :, 0], centre[:, 2], REACH * scales.amax(dim=1)
-
-
 def window_depths(model, camera, sh_degree: int, windows=WINDOWS
                   ) -> tuple[object, dict[tuple[float, float], torch.Tensor], torch.Tensor]:
     """The render (with its median depth); per alpha window, each pixel's window-weighted mean depth [H, W] (0 where
     the window holds none of its alpha); and the accumulated alpha [H, W] that this loop found, the render's own."""
     from mcsplat.render import render
     from mcsplat.render.constants import ALPHA_MAX, ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN
+    from mcsplat.render.outputs.median import peak_depths, pixel_rays
 
     inputs = CompositeInputs()
     out = render(model, camera, None, sh_degree, outputs={"median_depth"}, path=inputs.path)
     means2d, conics, opacities, _, _, _, bins, width, height = inputs.kept[:9]
     bins = bins.listed()
-    inverse, inverse_mean, centre_depth, reach = peak_depth_terms(model, camera)
     maps = {window: torch.zeros(height, width, dtype=torch.float64) for window in windows}
     accumulated = torch.zeros(height, width, dtype=torch.float64)
     rows, columns = torch.meshgrid(torch.arange(TILE_SIZE), torch.arange(TILE_SIZE), indexing="ij")
@@ -117,10 +102,9 @@ def window_depths(model, camera, sh_degree: int, windows=WINDOWS
         alpha = torch.where(after >= TRANSMITTANCE_MIN, alpha, torch.zeros_like(alpha))  # where the kernels stop
         accumulated_after = 1 - torch.cumprod(1 - alpha, dim=1)
         accumulated_before = torch.cat([torch.zeros_like(alpha[:, :1]), accumulated_after[:, :-1]], dim=1)
-        ray = torch.stack([(x + 0.5 - camera.cx) / camera.fx, (y + 0.5 - camera.cy) / camera.fy,
-                           torch.ones(len(x), dtype=torch.float64)], dim=1)
-        peak = (ray @ inverse_mean[ids].T) / torch.einsum("pi,gij,pj->pg", ray, inverse[ids], ray)
-        depth = torch.minimum(torch.maximum(peak, centre_depth[ids] - reach[ids]), centre_depth[ids] + reach[ids])
+        # Each Gaussian's depth where the pixel's ray meets its density's peak, as the median depth takes it.
+        depth = peak_depths(ids.repeat(len(x)), pixel_rays(y, x, camera).repeat_interleave(len(ids), dim=0),
+                            model.means, model.quats, model.scales, camera).reshape(len(x), len(ids))
         accumulated[y[inside], x[inside]] = accumulated_after[inside, -1]
         for low, high in windows:
             share = (accumulated_after.clamp(max=high) - accumulated_before.clamp(min=low)).clamp(min=0)

@@ -30,19 +30,32 @@ def median_depth(median_ids: torch.Tensor, means: torch.Tensor, quats: torch.Ten
     depth = torch.zeros(median_ids.shape, dtype=means.dtype, device=means.device)
     if not hit.any():
         return depth
-    used, which = torch.unique(median_ids[hit].long(), return_inverse=True)
+    rows, columns = hit.nonzero(as_tuple=True)
+    depth[hit] = peak_depths(median_ids[hit], pixel_rays(rows, columns, camera), means, quats, scales,
+                             camera).to(means.dtype)
+    return depth
+
+
+def pixel_rays(rows: torch.Tensor, columns: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """[k, 3] float64: the rays (x, y, 1) in camera axes through the centres of pixels (rows, columns)."""
+    return torch.stack([(columns.double() + 0.5 - camera.cx) / camera.fx, (rows.double() + 0.5 - camera.cy) / camera.fy,
+                        torch.ones_like(rows, dtype=torch.float64)], dim=1)
+
+
+@torch.no_grad()
+def peak_depths(ids: torch.Tensor, rays: torch.Tensor, means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor,
+                camera: Camera) -> torch.Tensor:
+    """[k] float64: the camera depth t* at which Gaussian ids[i] is densest along rays[i] (camera axes, z = 1), kept
+    within REACH of its largest scale of its centre's depth."""
+    used, which = torch.unique(ids.long(), return_inverse=True)
     w2c = camera.world_to_camera.to(means.device, torch.float64)
     rotation = w2c[:3, :3] @ quaternion_to_rotation(quats.detach()[used].double())  # Gaussian axes -> camera
     centre = means.detach()[used].double() @ w2c[:3, :3].T + w2c[:3, 3]
     scale = scales.detach()[used].double()
     mean_local = torch.einsum("nji,nj->ni", rotation, centre)
-    rows, columns = hit.nonzero(as_tuple=True)
-    ray = torch.stack([(columns.double() + 0.5 - camera.cx) / camera.fx, (rows.double() + 0.5 - camera.cy) / camera.fy,
-                       torch.ones_like(rows, dtype=torch.float64)], dim=1)
-    ray_local = torch.einsum("pji,pj->pi", rotation[which], ray)
+    ray_local = torch.einsum("pji,pj->pi", rotation[which], rays.to(means.device))
     inverse_variance = scale[which].pow(-2)
     peak = (ray_local * mean_local[which] * inverse_variance).sum(1) / (ray_local.square() * inverse_variance).sum(1)
     reach = REACH * scale[which].amax(dim=1)
     centre_depth = centre[which, 2]
-    depth[hit] = torch.minimum(torch.maximum(peak, centre_depth - reach), centre_depth + reach).to(means.dtype)
-    return depth
+    return torch.minimum(torch.maximum(peak, centre_depth - reach), centre_depth + reach)
